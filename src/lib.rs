@@ -1,0 +1,17 @@
+//! Radiosity baking for animated glTF scenes with global lines and the multiframe method.
+//!
+//! # Layout
+//!
+//! The modules follow the data's journey:
+//!
+//! - [`loader`]: glTF 2.0 in, [`scene::Scene`] out. Validates once, evaluates animations over
+//!   the frames, decides what is static and what moves, normalises to the bounding sphere.
+//! - [`scene`]: the engine's scene model: patches, static triangles, moving objects, frames. It
+//!   knows nothing of glTF or HTTP.
+//! - [`samples`]: the generator of the sample scenes in `scenes/`.
+//!
+//! The method is described in `METHOD.md` (shared with the team) and the README.
+
+pub mod loader;
+pub mod samples;
+pub mod scene;

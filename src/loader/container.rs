@@ -1,0 +1,239 @@
+//! The file container: GLB chunks or JSON, and the buffers' bytes.
+//!
+//! The loader never reads the filesystem or the network on behalf of a scene: buffers and images
+//! come from the GLB binary chunk, from a buffer view, or from a `data:` URI; any other URI is
+//! refused.
+
+use base64::Engine as _;
+use gltf::Document;
+
+use super::LoadError;
+
+/// A parsed file: the validated document and the bytes of each of its buffers.
+pub struct Container {
+    /// The glTF document, validated by the `gltf` crate (indices between objects are in range).
+    pub document: Document,
+    /// Bytes of each buffer, exactly `byteLength` long.
+    pub buffers: Vec<Vec<u8>>,
+}
+
+const GLB_MAGIC: &[u8; 4] = b"glTF";
+const CHUNK_JSON: u32 = 0x4E4F_534A;
+const CHUNK_BIN: u32 = 0x004E_4942;
+
+/// Parses a `.glb` or `.gltf` file from memory.
+pub fn parse(bytes: &[u8]) -> Result<Container, LoadError> {
+    let (json, blob) = if bytes.starts_with(GLB_MAGIC) {
+        split_glb(bytes)?
+    } else {
+        (bytes, None)
+    };
+    let gltf = gltf::Gltf::from_slice(json).map_err(describe_gltf_error)?;
+    let document = gltf.document;
+    let mut buffers = Vec::with_capacity(document.buffers().len());
+    for buffer in document.buffers() {
+        let what = || format!("buffer {}", buffer.index());
+        let mut data = match buffer.source() {
+            gltf::buffer::Source::Bin => blob.map(<[u8]>::to_vec).ok_or_else(|| {
+                LoadError::malformed(
+                    what(),
+                    "refers to the GLB binary chunk, but the file has none",
+                )
+            })?,
+            gltf::buffer::Source::Uri(uri) => decode_data_uri(uri, &what)?,
+        };
+        let length = buffer.length();
+        if data.len() < length {
+            return Err(LoadError::malformed(
+                what(),
+                format!(
+                    "byteLength is {length} but only {} bytes are present",
+                    data.len()
+                ),
+            ));
+        }
+        data.truncate(length);
+        buffers.push(data);
+    }
+    Ok(Container { document, buffers })
+}
+
+/// Splits a GLB file into its JSON chunk and optional binary chunk (glTF 2.0 §4.4), checking
+/// every length against the data actually present.
+fn split_glb(bytes: &[u8]) -> Result<(&[u8], Option<&[u8]>), LoadError> {
+    let bad = |reason: &str| LoadError::Container(format!("GLB: {reason}"));
+    let word = |at: usize| -> Option<u32> {
+        let b = bytes.get(at..at.checked_add(4)?)?;
+        Some(u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+    };
+    let version = word(4).ok_or_else(|| bad("truncated header"))?;
+    if version != 2 {
+        return Err(bad(&format!("version {version}, expected 2")));
+    }
+    let declared = word(8).ok_or_else(|| bad("truncated header"))? as usize;
+    if declared > bytes.len() {
+        return Err(bad(&format!(
+            "header declares {declared} bytes but the file has {}",
+            bytes.len()
+        )));
+    }
+    let bytes = &bytes[..declared];
+    let mut at = 12;
+    let mut chunk = |expected: u32, name: &str| -> Result<Option<&[u8]>, LoadError> {
+        if at >= bytes.len() {
+            return Ok(None);
+        }
+        let length = word(at).ok_or_else(|| bad(&format!("truncated {name} chunk header")))?;
+        let kind = word(at + 4).ok_or_else(|| bad(&format!("truncated {name} chunk header")))?;
+        if kind != expected {
+            return Err(bad(&format!(
+                "expected the {name} chunk, found type {kind:#010x}"
+            )));
+        }
+        let start = at + 8;
+        let end = start
+            .checked_add(length as usize)
+            .filter(|&end| end <= bytes.len())
+            .ok_or_else(|| bad(&format!("{name} chunk runs past the end of the file")))?;
+        at = end;
+        Ok(Some(&bytes[start..end]))
+    };
+    let json = chunk(CHUNK_JSON, "JSON")?.ok_or_else(|| bad("no JSON chunk"))?;
+    let bin = chunk(CHUNK_BIN, "BIN")?;
+    Ok((json, bin))
+}
+
+/// Decodes a `data:` URI; refuses any other URI.
+pub fn decode_data_uri(uri: &str, what: &dyn Fn() -> String) -> Result<Vec<u8>, LoadError> {
+    let Some(rest) = uri.strip_prefix("data:") else {
+        return Err(LoadError::ExternalUri {
+            object: what(),
+            uri: uri.chars().take(120).collect(),
+        });
+    };
+    let Some((media, payload)) = rest.split_once(',') else {
+        return Err(LoadError::malformed(what(), "data: URI without a ','"));
+    };
+    if !media.ends_with(";base64") {
+        return Err(LoadError::malformed(
+            what(),
+            "data: URI is not base64-encoded (';base64' is required)",
+        ));
+    }
+    base64::engine::general_purpose::STANDARD
+        .decode(payload.trim())
+        .map_err(|e| LoadError::malformed(what(), format!("data: URI is not valid base64 ({e})")))
+}
+
+/// Turns the `gltf` crate's error into ours, naming the offending objects.
+fn describe_gltf_error(error: gltf::Error) -> LoadError {
+    match error {
+        gltf::Error::Validation(errors) => {
+            let mut lines: Vec<String> = errors
+                .iter()
+                .take(8)
+                .map(|(path, e)| format!("{path}: {e}"))
+                .collect();
+            if errors.len() > 8 {
+                lines.push(format!("and {} more", errors.len() - 8));
+            }
+            LoadError::Validation(lines.join("; "))
+        }
+        gltf::Error::Deserialize(e) => LoadError::Container(format!("invalid JSON: {e}")),
+        other => LoadError::Container(other.to_string()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn glb(json: &[u8], bin: Option<&[u8]>) -> Vec<u8> {
+        let mut out = Vec::new();
+        let pad = |v: &mut Vec<u8>, fill: u8| {
+            while !v.len().is_multiple_of(4) {
+                v.push(fill);
+            }
+        };
+        let mut j = json.to_vec();
+        pad(&mut j, b' ');
+        out.extend_from_slice(GLB_MAGIC);
+        out.extend_from_slice(&2u32.to_le_bytes());
+        out.extend_from_slice(&0u32.to_le_bytes());
+        out.extend_from_slice(&(j.len() as u32).to_le_bytes());
+        out.extend_from_slice(&CHUNK_JSON.to_le_bytes());
+        out.extend_from_slice(&j);
+        if let Some(bin) = bin {
+            let mut b = bin.to_vec();
+            pad(&mut b, 0);
+            out.extend_from_slice(&(b.len() as u32).to_le_bytes());
+            out.extend_from_slice(&CHUNK_BIN.to_le_bytes());
+            out.extend_from_slice(&b);
+        }
+        let len = out.len() as u32;
+        out[8..12].copy_from_slice(&len.to_le_bytes());
+        out
+    }
+
+    const MINIMAL: &str = r#"{"asset":{"version":"2.0"},"buffers":[{"byteLength":4}]}"#;
+
+    #[test]
+    fn glb_with_binary_chunk() {
+        let file = glb(MINIMAL.as_bytes(), Some(&[1, 2, 3, 4]));
+        let c = parse(&file).unwrap();
+        assert_eq!(c.buffers, vec![vec![1, 2, 3, 4]]);
+    }
+
+    #[test]
+    fn glb_lengths_are_checked() {
+        let mut file = glb(MINIMAL.as_bytes(), Some(&[1, 2, 3, 4]));
+        // A header shorter than itself, a chunk longer than the file, a truncated file.
+        file[8..12].copy_from_slice(&3u32.to_le_bytes());
+        assert!(parse(&file).is_err());
+        let mut file = glb(MINIMAL.as_bytes(), Some(&[1, 2, 3, 4]));
+        file[12..16].copy_from_slice(&u32::MAX.to_le_bytes());
+        assert!(parse(&file).is_err());
+        let file = glb(MINIMAL.as_bytes(), Some(&[1, 2, 3, 4]));
+        assert!(parse(&file[..file.len() - 2]).is_err());
+    }
+
+    #[test]
+    fn missing_binary_chunk_is_an_error() {
+        let file = glb(MINIMAL.as_bytes(), None);
+        let e = parse(&file).err().unwrap().to_string();
+        assert!(e.contains("buffer 0"), "{e}");
+    }
+
+    #[test]
+    fn external_uris_are_refused() {
+        for uri in [
+            "/etc/passwd",
+            "file:///etc/passwd",
+            "http://example.com/a.bin",
+            "a.bin",
+        ] {
+            let json = format!(
+                r#"{{"asset":{{"version":"2.0"}},"buffers":[{{"byteLength":4,"uri":"{uri}"}}]}}"#
+            );
+            match parse(json.as_bytes()) {
+                Err(LoadError::ExternalUri { object, uri: u }) => {
+                    assert_eq!(object, "buffer 0");
+                    assert_eq!(u, uri);
+                }
+                Err(other) => panic!("{uri}: wrong error {other}"),
+                Ok(_) => panic!("{uri}: accepted"),
+            }
+        }
+    }
+
+    #[test]
+    fn data_uris_are_decoded_and_checked() {
+        let ok = r#"{"asset":{"version":"2.0"},"buffers":[{"byteLength":3,"uri":"data:application/octet-stream;base64,AQIDBA=="}]}"#;
+        assert_eq!(parse(ok.as_bytes()).unwrap().buffers, vec![vec![1, 2, 3]]);
+        let short = r#"{"asset":{"version":"2.0"},"buffers":[{"byteLength":9,"uri":"data:application/octet-stream;base64,AQIDBA=="}]}"#;
+        assert!(parse(short.as_bytes()).is_err());
+        let not_b64 =
+            r#"{"asset":{"version":"2.0"},"buffers":[{"byteLength":1,"uri":"data:,abc"}]}"#;
+        assert!(parse(not_b64.as_bytes()).is_err());
+    }
+}

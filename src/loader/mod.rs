@@ -1,0 +1,686 @@
+//! glTF 2.0 in, [`Scene`] out.
+//!
+//! The loader reads `.glb` and `.gltf` files from memory, validates everything once, evaluates
+//! the chosen animations over the frames, decides what is static and what moves, normalises
+//! the scene to its bounding sphere and makes the patches. Nothing here panics on any input:
+//! every problem is a [`LoadError`] naming the offending object.
+
+mod accessor;
+mod animation;
+mod container;
+mod material;
+mod mesh;
+mod nodes;
+
+use glam::{DAffine3, DMat4, DVec3, Vec3};
+
+use crate::scene::subdivide::{self, Subdivision, triangle_area};
+use crate::scene::{
+    Deformation, Faces, Frames, Material, Motion, MovingObject, Normalisation, Patch, Provenance,
+    Scene, Side, SkinBinding, TriangleMesh,
+};
+pub use animation::{Interpolation, Sampler};
+
+/// What to load from a file, and the limits that keep a hostile file from exhausting memory.
+/// The same names are used by the CLI and the HTTP API.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LoadOptions {
+    /// Frames per second of the timeline.
+    pub fps: f64,
+    /// The animation to play, by name or index; `None` plays all of them together.
+    pub animation: Option<String>,
+    /// Time of the first frame, seconds; defaults to the first keyframe.
+    pub start: Option<f64>,
+    /// Time of the last frame, seconds; defaults to the last keyframe.
+    pub end: Option<f64>,
+    /// Subdivide triangles until every edge is at most this long (scene units); `None` keeps
+    /// one patch per triangle side.
+    pub patch_size: Option<f64>,
+    /// Most frames a timeline may have.
+    pub max_frames: usize,
+    /// Most patches a scene may have.
+    pub max_patches: usize,
+}
+
+impl Default for LoadOptions {
+    fn default() -> Self {
+        Self {
+            fps: 24.0,
+            animation: None,
+            start: None,
+            end: None,
+            patch_size: None,
+            max_frames: 100_000,
+            max_patches: 4_000_000,
+        }
+    }
+}
+
+impl LoadOptions {
+    fn check(&self) -> Result<(), LoadError> {
+        if !(self.fps.is_finite() && self.fps > 0.0) {
+            return Err(LoadError::Option(format!(
+                "fps must be a positive number, not {}",
+                self.fps
+            )));
+        }
+        for (name, value) in [("start", self.start), ("end", self.end)] {
+            if value.is_some_and(|v| !v.is_finite()) {
+                return Err(LoadError::Option(format!(
+                    "{name} must be a finite time in seconds"
+                )));
+            }
+        }
+        if let Some(size) = self.patch_size
+            && !(size.is_finite() && size > 0.0)
+        {
+            return Err(LoadError::Option(format!(
+                "patch_size must be a positive length, not {size}"
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// Why a file could not be loaded. Every variant names what is wrong; none carries internal
+/// state.
+#[derive(Debug, thiserror::Error)]
+pub enum LoadError {
+    /// Not a glTF file, or a broken GLB container or JSON.
+    #[error("{0}")]
+    Container(String),
+    /// The `gltf` crate's validation failed (dangling indices, missing required fields,
+    /// unsupported required extensions).
+    #[error("invalid glTF: {0}")]
+    Validation(String),
+    /// A buffer or image refers to a file or URL; the loader reads nothing on a scene's behalf.
+    #[error(
+        "{object}: external URI {uri:?} refused; embed the data (a .glb, or data: URIs in a .gltf)"
+    )]
+    ExternalUri {
+        /// The object holding the URI, e.g. "buffer 0".
+        object: String,
+        /// The URI (cut to 120 characters).
+        uri: String,
+    },
+    /// An object's content is wrong.
+    #[error("{object}: {reason}")]
+    Malformed {
+        /// The object, e.g. "accessor 3" or "mesh 0 primitive 1".
+        object: String,
+        /// What is wrong with it.
+        reason: String,
+    },
+    /// A load option is invalid or names something the file does not have.
+    #[error("{0}")]
+    Option(String),
+    /// The scene would exceed a limit (frames, patches).
+    #[error("{0}")]
+    Limit(String),
+    /// Nothing to light.
+    #[error("the scene has no triangles with an area")]
+    Empty,
+}
+
+impl LoadError {
+    fn malformed(object: impl Into<String>, reason: impl Into<String>) -> Self {
+        Self::Malformed {
+            object: object.into(),
+            reason: reason.into(),
+        }
+    }
+}
+
+/// Loads a `.glb` or `.gltf` (with embedded data) from memory.
+pub fn load(bytes: &[u8], options: &LoadOptions) -> Result<Scene, LoadError> {
+    options.check()?;
+    let container::Container { document, buffers } = container::parse(bytes)?;
+    let mut warnings = Vec::new();
+    let roots: Vec<usize> = match document
+        .default_scene()
+        .or_else(|| document.scenes().next())
+    {
+        Some(scene) => scene.nodes().map(|n| n.index()).collect(),
+        None => {
+            let mut is_child = vec![false; document.nodes().len()];
+            document
+                .nodes()
+                .flat_map(|n| n.children())
+                .for_each(|c| is_child[c.index()] = true);
+            warnings.push("the file has no scene: every root node is used".to_string());
+            (0..is_child.len()).filter(|&n| !is_child[n]).collect()
+        }
+    };
+    let hierarchy = nodes::hierarchy(&document, &roots)?;
+    let morph_targets: Vec<usize> = document
+        .nodes()
+        .map(|n| n.mesh().map_or(0, |m| mesh::morph_target_count(&m)))
+        .collect();
+    let timeline = nodes::timeline(&document, &buffers, options, &morph_targets, &mut warnings)?;
+    let mut materials = material::convert(&document, &buffers, &mut warnings)?;
+    let default_material = materials.len() as u32;
+    materials.push(Material::gltf_default());
+
+    let mesh_nodes: Vec<gltf::Node<'_>> = hierarchy
+        .order
+        .iter()
+        .filter_map(|&n| document.nodes().nth(n))
+        .filter(|n| n.mesh().is_some())
+        .collect();
+    let mut wanted = vec![false; document.nodes().len()];
+    for node in &mesh_nodes {
+        wanted[node.index()] = true;
+        if let Some(skin) = node.skin() {
+            skin.joints().for_each(|j| wanted[j.index()] = true);
+        }
+    }
+    let poses = nodes::evaluate(&hierarchy, &timeline, &wanted);
+    let frames = timeline.frames;
+
+    let mut instances = Vec::with_capacity(mesh_nodes.len());
+    for node in &mesh_nodes {
+        instances.push(place(
+            &document,
+            &buffers,
+            node,
+            &poses,
+            frames,
+            default_material,
+            &mut warnings,
+        )?);
+    }
+    if !materials_used(&instances, default_material) {
+        materials.pop();
+    }
+    let dropped: usize = instances
+        .iter()
+        .map(|i| i.kept.iter().filter(|k| !**k).count())
+        .sum();
+    if dropped > 0 {
+        warnings.push(format!("dropped {dropped} zero-area triangles"));
+    }
+    let normalisation = bounds(&instances, frames.count).ok_or(LoadError::Empty)?;
+    build(
+        instances,
+        materials,
+        frames,
+        normalisation,
+        options,
+        warnings,
+    )
+}
+
+fn materials_used(instances: &[Instance], material: u32) -> bool {
+    instances
+        .iter()
+        .any(|i| i.geometry.origin.iter().any(|o| o.2 == material))
+}
+
+/// One mesh node, placed: its geometry and how it sits in the world over the frames.
+struct Instance {
+    node: u32,
+    mesh: u32,
+    geometry: mesh::MeshGeometry,
+    /// Whether each triangle has an area (at some frame); the others are dropped.
+    kept: Vec<bool>,
+    placement: Placement,
+}
+
+enum Placement {
+    /// Never moves: vertex positions in scene units.
+    Static(Vec<DVec3>),
+    /// Moves rigidly: mesh space to scene units, per frame.
+    Rigid(Vec<DMat4>),
+    /// Deforms: evaluated per frame, poses in scene units (normalised later).
+    Deforming(Box<Deformation>),
+}
+
+/// Relative tolerance below which a transform or position counts as unchanged: far below what
+/// `f32` tracing in normalised space resolves.
+const STILL: f64 = 1e-10;
+
+fn same_matrix(a: &DMat4, b: &DMat4) -> bool {
+    let scale = a.to_cols_array().iter().fold(1.0f64, |m, v| m.max(v.abs()));
+    a.abs_diff_eq(*b, STILL * scale)
+}
+
+fn place(
+    document: &gltf::Document,
+    buffers: &[Vec<u8>],
+    node: &gltf::Node<'_>,
+    poses: &nodes::Poses,
+    frames: Frames,
+    default_material: u32,
+    warnings: &mut Vec<String>,
+) -> Result<Instance, LoadError> {
+    let Some(gmesh) = node.mesh() else {
+        return Err(LoadError::malformed(
+            format!("node {}", node.index()),
+            "has no mesh",
+        ));
+    };
+    let n = node.index();
+    let skin = node.skin();
+    let geometry = mesh::read(
+        document,
+        buffers,
+        &gmesh,
+        default_material,
+        skin.as_ref().map(|s| s.joints().len()),
+        warnings,
+    )?;
+    let targets = geometry.targets.len();
+    let animated_weights = poses.weights[n].is_some();
+    let deforms =
+        (skin.is_some() && geometry.influences.is_some()) || (targets > 0 && animated_weights);
+    let frame_count = frames.count;
+    let placement = if deforms || targets > 0 {
+        // Morph targets with fixed weights still displace the mesh: evaluate them like a
+        // deformation and keep the result static if it never changes.
+        let default_weights: Vec<f64> = node
+            .weights()
+            .or_else(|| gmesh.weights())
+            .map(|w| w.iter().map(|&x| f64::from(x)).collect())
+            .unwrap_or_default();
+        let mut fixed = vec![0.0; targets];
+        for (slot, w) in fixed.iter_mut().zip(&default_weights) {
+            *slot = *w;
+        }
+        if !default_weights.is_empty() && default_weights.len() != targets {
+            warnings.push(format!(
+                "node {n}: {} default morph weights for {targets} targets",
+                default_weights.len()
+            ));
+        }
+        let weights = match &poses.weights[n] {
+            Some(w) => w.clone(),
+            None => fixed.repeat(frame_count),
+        };
+        let skin_binding = match (&skin, &geometry.influences) {
+            (Some(skin), Some(influences)) => {
+                let ibm = mesh::inverse_bind_matrices(document, buffers, skin)?;
+                let joints: Vec<usize> = skin.joints().map(|j| j.index()).collect();
+                let mut joint_poses = Vec::with_capacity(frame_count * joints.len());
+                for f in 0..frame_count {
+                    for (j, &joint) in joints.iter().enumerate() {
+                        joint_poses.push(DAffine3::from_mat4(poses.world(joint, f)) * ibm[j]);
+                    }
+                }
+                let mut offsets = vec![0u32];
+                let mut flat = Vec::new();
+                for list in influences {
+                    flat.extend_from_slice(list);
+                    offsets.push(flat.len() as u32);
+                }
+                Some(SkinBinding {
+                    offsets,
+                    influences: flat,
+                    joints: joints.len(),
+                    joint_poses,
+                })
+            }
+            (Some(_), None) => {
+                warnings.push(format!(
+                    "node {n} has a skin but its mesh has no JOINTS_0/WEIGHTS_0: placed rigidly"
+                ));
+                None
+            }
+            _ => None,
+        };
+        let node_poses = (0..frame_count)
+            .map(|f| DAffine3::from_mat4(poses.world(n, f)))
+            .collect();
+        let deformation = Deformation {
+            base: geometry.positions.clone(),
+            targets: geometry.targets.clone(),
+            weights,
+            skin: skin_binding,
+            node_poses,
+            midpoints: Vec::new(),
+        };
+        let first = deformation.positions_at(0);
+        let scale = first
+            .iter()
+            .fold(0.0f64, |m, p| m.max(p.abs().max_element()));
+        let moves = (1..frame_count).any(|f| {
+            deformation
+                .positions_at(f)
+                .iter()
+                .zip(&first)
+                .any(|(a, b)| !a.abs_diff_eq(*b, STILL * scale.max(f64::MIN_POSITIVE)))
+        });
+        if moves {
+            Placement::Deforming(Box::new(deformation))
+        } else {
+            Placement::Static(first)
+        }
+    } else {
+        let first = poses.world(n, 0);
+        let moves = (1..frame_count).any(|f| !same_matrix(&poses.world(n, f), &first));
+        if moves {
+            Placement::Rigid((0..frame_count).map(|f| poses.world(n, f)).collect())
+        } else {
+            Placement::Static(
+                geometry
+                    .positions
+                    .iter()
+                    .map(|&p| first.transform_point3(p))
+                    .collect(),
+            )
+        }
+    };
+    for p in positions_to_check(&placement, &geometry) {
+        if !p.is_finite() {
+            return Err(LoadError::malformed(
+                format!("node {n}"),
+                "its transforms give non-finite positions",
+            ));
+        }
+    }
+    let kept = keep_triangles(&geometry, &placement, frame_count);
+    Ok(Instance {
+        node: n as u32,
+        mesh: gmesh.index() as u32,
+        geometry,
+        kept,
+        placement,
+    })
+}
+
+/// Positions whose finiteness the instance must guarantee (frame 0 is representative: every
+/// pose is a product of finite matrices checked at load).
+fn positions_to_check(placement: &Placement, geometry: &mesh::MeshGeometry) -> Vec<DVec3> {
+    match placement {
+        Placement::Static(p) => p.clone(),
+        Placement::Rigid(poses) => {
+            let ok = poses.iter().all(|m| m.is_finite());
+            let mut v = geometry.positions.clone();
+            if !ok {
+                v.push(DVec3::NAN);
+            }
+            v
+        }
+        Placement::Deforming(d) => {
+            let mut v = d.positions_at(0);
+            if !d.node_poses.iter().all(|m| m.is_finite())
+                || !d
+                    .skin
+                    .as_ref()
+                    .is_none_or(|s| s.joint_poses.iter().all(|m| m.is_finite()))
+            {
+                v.push(DVec3::NAN);
+            }
+            v
+        }
+    }
+}
+
+/// A triangle is kept if it has an area: in scene units for static geometry, in mesh space for
+/// a rigid object (a pose may scale it to nothing for a while), at some frame for a deforming
+/// one. "No area" is relative: below 1e-12 of its longest edge squared, which is collinear to
+/// within the precision of its input.
+fn keep_triangles(
+    geometry: &mesh::MeshGeometry,
+    placement: &Placement,
+    frames: usize,
+) -> Vec<bool> {
+    let has_area = |p: &[DVec3], t: &[u32; 3]| {
+        let [a, b, c] = t.map(|i| p[i as usize]);
+        let longest = (b - a)
+            .length_squared()
+            .max((c - b).length_squared())
+            .max((a - c).length_squared());
+        triangle_area(a, b, c) > 1e-12 * longest
+    };
+    match placement {
+        Placement::Static(p) => geometry.triangles.iter().map(|t| has_area(p, t)).collect(),
+        Placement::Rigid(_) => geometry
+            .triangles
+            .iter()
+            .map(|t| has_area(&geometry.positions, t))
+            .collect(),
+        Placement::Deforming(d) => {
+            let mut kept = vec![false; geometry.triangles.len()];
+            for f in 0..frames {
+                if kept.iter().all(|k| *k) {
+                    break;
+                }
+                let p = d.positions_at(f);
+                for (k, t) in kept.iter_mut().zip(&geometry.triangles) {
+                    *k = *k || has_area(&p, t);
+                }
+            }
+            kept
+        }
+    }
+}
+
+/// Bounding sphere (of the axis-aligned box) of every kept triangle over every frame.
+fn bounds(instances: &[Instance], frames: usize) -> Option<Normalisation> {
+    let mut lo = DVec3::splat(f64::INFINITY);
+    let mut hi = DVec3::splat(f64::NEG_INFINITY);
+    let mut grow = |p: DVec3| {
+        lo = lo.min(p);
+        hi = hi.max(p);
+    };
+    for inst in instances {
+        let used = used_vertices(inst);
+        match &inst.placement {
+            Placement::Static(p) => used.iter().for_each(|&v| grow(p[v])),
+            Placement::Rigid(poses) => {
+                let (a, b) = local_box(&inst.geometry.positions, &used);
+                for pose in poses {
+                    for k in 0..8 {
+                        let corner = DVec3::new(
+                            if k & 1 == 0 { a.x } else { b.x },
+                            if k & 2 == 0 { a.y } else { b.y },
+                            if k & 4 == 0 { a.z } else { b.z },
+                        );
+                        grow(pose.transform_point3(corner));
+                    }
+                }
+            }
+            Placement::Deforming(d) => {
+                for f in 0..frames {
+                    let p = d.positions_at(f);
+                    used.iter().for_each(|&v| grow(p[v]));
+                }
+            }
+        }
+    }
+    if lo.x > hi.x {
+        return None;
+    }
+    let radius = 0.5 * (hi - lo).length();
+    (radius > 0.0 && radius.is_finite()).then(|| Normalisation {
+        center: 0.5 * (lo + hi),
+        radius,
+    })
+}
+
+/// Vertices referenced by kept triangles, sorted.
+fn used_vertices(inst: &Instance) -> Vec<usize> {
+    let mut used: Vec<usize> = inst
+        .geometry
+        .triangles
+        .iter()
+        .zip(&inst.kept)
+        .filter(|(_, k)| **k)
+        .flat_map(|(t, _)| t.map(|i| i as usize))
+        .collect();
+    used.sort_unstable();
+    used.dedup();
+    used
+}
+
+fn local_box(positions: &[DVec3], used: &[usize]) -> (DVec3, DVec3) {
+    used.iter().fold(
+        (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
+        |(lo, hi), &v| (lo.min(positions[v]), hi.max(positions[v])),
+    )
+}
+
+/// Makes the patches and the engine's geometry from the placed instances.
+fn build(
+    instances: Vec<Instance>,
+    materials: Vec<Material>,
+    frames: Frames,
+    normalisation: Normalisation,
+    options: &LoadOptions,
+    warnings: Vec<String>,
+) -> Result<Scene, LoadError> {
+    let to_norm = normalisation.to_normalised();
+    let to_norm_mat = DMat4::from(to_norm);
+    let mut patches: Vec<Patch> = Vec::new();
+    let mut statics = TriangleMesh::default();
+    let mut objects = Vec::new();
+    let mut source_triangles = 0;
+    let too_many = || {
+        LoadError::Limit(format!(
+            "the scene would have more than {} patches{}",
+            options.max_patches,
+            if options.patch_size.is_some() {
+                "; use a larger patch_size"
+            } else {
+                ""
+            }
+        ))
+    };
+    for inst in instances {
+        let kept: Vec<usize> = (0..inst.kept.len()).filter(|&t| inst.kept[t]).collect();
+        source_triangles += kept.len();
+        let triangles: Vec<[u32; 3]> = kept.iter().map(|&t| inst.geometry.triangles[t]).collect();
+        // Positions (scene units) that decide the subdivision, and where areas are measured.
+        let measure: Vec<DVec3> = match &inst.placement {
+            Placement::Static(p) => p.clone(),
+            Placement::Rigid(poses) => {
+                let widest = poses
+                    .iter()
+                    .max_by(|a, b| a.determinant().abs().total_cmp(&b.determinant().abs()))
+                    .copied()
+                    .unwrap_or(DMat4::IDENTITY);
+                inst.geometry
+                    .positions
+                    .iter()
+                    .map(|&p| widest.transform_point3(p))
+                    .collect()
+            }
+            Placement::Deforming(d) => d.positions_at(0),
+        };
+        let budget = options.max_patches.saturating_sub(patches.len());
+        let split = match options.patch_size {
+            Some(size) => {
+                subdivide::subdivide(&measure, &triangles, size, budget).map_err(|_| too_many())?
+            }
+            None => Subdivision {
+                midpoints: Vec::new(),
+                sources: (0..triangles.len() as u32).collect(),
+                triangles,
+            },
+        };
+        let mut measure = measure;
+        subdivide::apply_midpoints(&mut measure, &split.midpoints);
+        let area_positions: Vec<DVec3> = match &inst.placement {
+            Placement::Rigid(poses) => {
+                let mut local = inst.geometry.positions.clone();
+                subdivide::apply_midpoints(&mut local, &split.midpoints);
+                local
+                    .iter()
+                    .map(|&p| poses[0].transform_point3(p))
+                    .collect()
+            }
+            _ => measure.clone(),
+        };
+        let object = match inst.placement {
+            Placement::Static(_) => None,
+            _ => Some(objects.len() as u32),
+        };
+        let mut mesh = TriangleMesh::default();
+        for (t, &src) in split.triangles.iter().zip(&split.sources) {
+            let (primitive, triangle, material) = inst.geometry.origin[kept[src as usize]];
+            let [a, b, c] = t.map(|i| area_positions[i as usize]);
+            let area = triangle_area(a, b, c);
+            let source = Provenance {
+                node: inst.node,
+                mesh: inst.mesh,
+                primitive,
+                triangle,
+            };
+            let mut patch = |side| {
+                patches.push(Patch {
+                    source,
+                    side,
+                    material,
+                    area,
+                    object,
+                });
+                (patches.len() - 1) as u32
+            };
+            let front = patch(Side::Front);
+            let back = materials[material as usize]
+                .double_sided
+                .then(|| patch(Side::Back));
+            mesh.triangles.push(*t);
+            mesh.faces.push(Faces { front, back });
+        }
+        if patches.len() > options.max_patches {
+            return Err(too_many());
+        }
+        match inst.placement {
+            Placement::Static(_) => {
+                let base = statics.positions.len() as u32;
+                statics.positions.extend(
+                    measure
+                        .iter()
+                        .map(|&p| to_norm.transform_point3(p).as_vec3()),
+                );
+                statics
+                    .triangles
+                    .extend(mesh.triangles.iter().map(|t| t.map(|i| i + base)));
+                statics.faces.extend(mesh.faces);
+            }
+            Placement::Rigid(poses) => {
+                let used: Vec<usize> = (0..inst.geometry.positions.len()).collect();
+                let (lo, hi) = local_box(&inst.geometry.positions, &used);
+                let centre = 0.5 * (lo + hi);
+                let mut local = inst.geometry.positions.clone();
+                subdivide::apply_midpoints(&mut local, &split.midpoints);
+                mesh.positions = local.iter().map(|&p| (p - centre).as_vec3()).collect();
+                let recentre = DMat4::from_translation(centre);
+                let poses = poses
+                    .iter()
+                    .map(|m| DAffine3::from_mat4(to_norm_mat * *m * recentre))
+                    .collect();
+                objects.push(MovingObject {
+                    node: inst.node,
+                    mesh,
+                    motion: Motion::Rigid { poses },
+                });
+            }
+            Placement::Deforming(mut d) => {
+                d.node_poses.iter_mut().for_each(|m| *m = to_norm * *m);
+                if let Some(skin) = &mut d.skin {
+                    skin.joint_poses.iter_mut().for_each(|m| *m = to_norm * *m);
+                }
+                d.midpoints = split.midpoints;
+                mesh.positions = d.positions_at(0).iter().map(|p| p.as_vec3()).collect();
+                objects.push(MovingObject {
+                    node: inst.node,
+                    mesh,
+                    motion: Motion::Deforming(d),
+                });
+            }
+        }
+    }
+    debug_assert!(statics.positions.iter().all(|p: &Vec3| p.is_finite()));
+    Ok(Scene {
+        materials,
+        patches,
+        statics,
+        objects,
+        frames,
+        normalisation,
+        source_triangles,
+        warnings,
+    })
+}

@@ -1,0 +1,425 @@
+//! The scene model the engine works on: patches, the static triangles, the moving objects and
+//! the frames of the timeline.
+//!
+//! It knows nothing of glTF or HTTP: the loader (`crate::loader`) builds it from a file, and the
+//! engine reads it. A `Scene` is known-good once built: every position is finite, every index is
+//! in range, every traced triangle has a non-zero area at some frame.
+//!
+//! Geometry lives in *normalised* space: the scene's bounding sphere (over every frame) mapped to
+//! the unit sphere, so that tracing in `f32` keeps the same relative precision for a scene of a
+//! millimetre and one of a kilometre placed far from the origin. [`Normalisation`] takes results
+//! back to the scene's own units.
+
+pub mod subdivide;
+
+use glam::{DAffine3, DVec3, Vec3};
+use serde::Serialize;
+
+/// Which face of a surface a patch is. A one-sided material gives only a front patch; a
+/// double-sided one gives a front and a back patch (METHOD.md §3).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Side {
+    /// The face the triangle's winding points to (counter-clockwise seen from it).
+    Front,
+    /// The other face; present only for double-sided materials.
+    Back,
+}
+
+/// Where a patch came from in the source file, so that clients can map results back.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize)]
+pub struct Provenance {
+    /// Index of the node that instances the mesh.
+    pub node: u32,
+    /// Index of the mesh.
+    pub mesh: u32,
+    /// Index of the primitive within the mesh.
+    pub primitive: u32,
+    /// Index of the triangle within the primitive (its position in the primitive's triangle list,
+    /// after strips and fans are unrolled).
+    pub triangle: u32,
+}
+
+/// A patch: one face of one (possibly subdivided) triangle, the unit radiosity is solved for.
+#[derive(Clone, Debug)]
+pub struct Patch {
+    /// The source triangle this patch is (part of).
+    pub source: Provenance,
+    /// Which face of the triangle.
+    pub side: Side,
+    /// Index into [`Scene::materials`].
+    pub material: u32,
+    /// Area in the scene's own units squared, at frame 0 (a scaled or deforming object's patches
+    /// change area over time; the engine measures area from the lines, not from this field).
+    pub area: f64,
+    /// The moving object the patch belongs to, `None` for static geometry.
+    pub object: Option<u32>,
+}
+
+/// The optical properties the radiosity solve needs, per material.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Material {
+    /// The material's name in the source file, if any.
+    pub name: Option<String>,
+    /// Diffuse reflectance per RGB channel, in [0, 1].
+    pub reflectance: [f64; 3],
+    /// Emitted radiance per RGB channel, in the units of the source's emissive colour (≥ 0).
+    pub emission: [f64; 3],
+    /// Whether each triangle has a back patch too.
+    pub double_sided: bool,
+}
+
+impl Material {
+    /// The glTF default material: white, not metallic (so reflectance 1), no emission, one-sided.
+    #[must_use]
+    pub fn gltf_default() -> Self {
+        Self {
+            name: None,
+            reflectance: [1.0; 3],
+            emission: [0.0; 3],
+            double_sided: false,
+        }
+    }
+
+    /// Whether the material emits light in any channel.
+    #[must_use]
+    pub fn is_emitter(&self) -> bool {
+        self.emission.iter().any(|&e| e > 0.0)
+    }
+}
+
+/// The patches on the two faces of a traced triangle. A line hitting the front face of the
+/// triangle deposits on `front`; hitting the back, on `back`, or nowhere (absorbed) when the
+/// material is one-sided.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Faces {
+    /// Patch on the front face.
+    pub front: u32,
+    /// Patch on the back face, for double-sided materials.
+    pub back: Option<u32>,
+}
+
+/// Indexed triangles with the patches on their faces. Triangles that share an edge share the
+/// vertex indices of that edge, so the tracer sees bit-identical edge positions (watertightness).
+#[derive(Clone, Debug, Default)]
+pub struct TriangleMesh {
+    /// Vertex positions; their space depends on the owner (normalised space for static geometry,
+    /// object space for a rigid object, unused for a deforming one).
+    pub positions: Vec<Vec3>,
+    /// Vertex indices of each triangle, counter-clockwise seen from the front face.
+    pub triangles: Vec<[u32; 3]>,
+    /// Patches on the faces of each triangle (same length as `triangles`).
+    pub faces: Vec<Faces>,
+}
+
+/// A transform-animated or deforming part of the scene (one node of the source file).
+#[derive(Clone, Debug)]
+pub struct MovingObject {
+    /// The node this object is.
+    pub node: u32,
+    /// Its triangles. For a rigid object, `positions` are in object space; for a deforming object
+    /// they are the frame-0 positions in normalised space (use [`MovingObject::positions_at`]).
+    pub mesh: TriangleMesh,
+    /// How its geometry changes over the frames.
+    pub motion: Motion,
+}
+
+/// How a moving object's geometry changes with the frame.
+#[derive(Clone, Debug)]
+pub enum Motion {
+    /// One set of triangles and a transform per frame.
+    Rigid {
+        /// Object space to normalised space, per frame (f64: composed from the source's
+        /// transforms and the normalisation without loss).
+        poses: Vec<DAffine3>,
+    },
+    /// Skinned or morphing: vertex positions are evaluated per frame.
+    Deforming(Box<Deformation>),
+}
+
+/// Everything needed to pose a skinned or morphing mesh at any frame, without storing frames ×
+/// vertices: the memory grows with the vertices and with joints × frames.
+#[derive(Clone, Debug)]
+pub struct Deformation {
+    /// Rest positions of the source vertices, in the mesh's own space.
+    pub base: Vec<DVec3>,
+    /// Morph target position deltas: `targets[t][v]`.
+    pub targets: Vec<Vec<DVec3>>,
+    /// Morph weights per frame, `frames × targets.len()` values.
+    pub weights: Vec<f64>,
+    /// Skinning, if the mesh is skinned; otherwise `node_poses` places the mesh.
+    pub skin: Option<SkinBinding>,
+    /// Mesh space to normalised space per frame, for a morphing mesh that is not skinned.
+    pub node_poses: Vec<DAffine3>,
+    /// Vertices added by subdivision: each is the midpoint of two earlier vertices.
+    pub midpoints: Vec<[u32; 2]>,
+}
+
+/// Linear-blend skinning data of a deforming mesh.
+#[derive(Clone, Debug)]
+pub struct SkinBinding {
+    /// Start of each source vertex's influences in `influences` (length = vertices + 1).
+    pub offsets: Vec<u32>,
+    /// (joint, weight) pairs; weights of a vertex sum to 1.
+    pub influences: Vec<(u32, f64)>,
+    /// Number of joints of the skin.
+    pub joints: usize,
+    /// Joint matrices composed with the normalisation, `frames × joints`:
+    /// normalise ∘ world(joint) ∘ inverse bind matrix.
+    pub joint_poses: Vec<DAffine3>,
+}
+
+impl Deformation {
+    /// Vertex positions at `frame` in normalised space, subdivision midpoints included.
+    #[must_use]
+    pub fn positions_at(&self, frame: usize) -> Vec<DVec3> {
+        let n_targets = self.targets.len();
+        let weights = &self.weights[frame * n_targets..(frame + 1) * n_targets];
+        let mut out = Vec::with_capacity(self.base.len() + self.midpoints.len());
+        for (v, &rest) in self.base.iter().enumerate() {
+            let mut p = rest;
+            for (target, &w) in self.targets.iter().zip(weights) {
+                if w != 0.0 {
+                    p += target[v] * w;
+                }
+            }
+            let posed = match &self.skin {
+                Some(skin) => {
+                    let poses = &skin.joint_poses[frame * skin.joints..(frame + 1) * skin.joints];
+                    let range = skin.offsets[v] as usize..skin.offsets[v + 1] as usize;
+                    skin.influences[range]
+                        .iter()
+                        .map(|&(joint, w)| poses[joint as usize].transform_point3(p) * w)
+                        .sum()
+                }
+                None => self.node_poses[frame].transform_point3(p),
+            };
+            out.push(posed);
+        }
+        for &[a, b] in &self.midpoints {
+            let m = midpoint(out[a as usize], out[b as usize]);
+            out.push(m);
+        }
+        out
+    }
+}
+
+/// The midpoint used by subdivision. Symmetric in its arguments to the bit (IEEE addition is
+/// commutative), which keeps shared edges of neighbouring triangles identical.
+#[must_use]
+pub fn midpoint(a: DVec3, b: DVec3) -> DVec3 {
+    (a + b) * 0.5
+}
+
+impl MovingObject {
+    /// Vertex positions of the object at `frame`, in normalised space.
+    #[must_use]
+    pub fn positions_at(&self, frame: usize) -> Vec<Vec3> {
+        match &self.motion {
+            Motion::Rigid { poses } => {
+                let pose = poses[frame];
+                self.mesh
+                    .positions
+                    .iter()
+                    .map(|p| pose.transform_point3(p.as_dvec3()).as_vec3())
+                    .collect()
+            }
+            Motion::Deforming(d) => d.positions_at(frame).iter().map(|p| p.as_vec3()).collect(),
+        }
+    }
+
+    /// Whether the object is rigid (one set of triangles and a pose per frame).
+    #[must_use]
+    pub fn is_rigid(&self) -> bool {
+        matches!(self.motion, Motion::Rigid { .. })
+    }
+}
+
+/// The frames of the timeline: frame `f` is at time `start + f / fps`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Frames {
+    /// Time of frame 0, in seconds.
+    pub start: f64,
+    /// Frames per second.
+    pub fps: f64,
+    /// Number of frames (at least 1).
+    pub count: usize,
+}
+
+impl Frames {
+    /// Time of frame `f`, in seconds.
+    #[must_use]
+    pub fn time(&self, f: usize) -> f64 {
+        self.start + f as f64 / self.fps
+    }
+}
+
+/// The map between the scene's own units and normalised space, where the bounding sphere of the
+/// whole animation is the unit sphere: `p_normalised = (p - center) / radius`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Normalisation {
+    /// Centre of the bounding sphere, in scene units.
+    pub center: DVec3,
+    /// Radius of the bounding sphere, in scene units (> 0).
+    pub radius: f64,
+}
+
+impl Normalisation {
+    /// The affine map from scene units to normalised space.
+    #[must_use]
+    pub fn to_normalised(&self) -> DAffine3 {
+        DAffine3::from_scale(DVec3::splat(1.0 / self.radius))
+            * DAffine3::from_translation(-self.center)
+    }
+
+    /// A point in normalised space back in scene units.
+    #[must_use]
+    pub fn to_scene(&self, p: DVec3) -> DVec3 {
+        self.center + p * self.radius
+    }
+}
+
+/// A loaded scene, ready for the engine.
+#[derive(Clone, Debug)]
+pub struct Scene {
+    /// Materials, indexed by [`Patch::material`].
+    pub materials: Vec<Material>,
+    /// Every patch; a patch's id is its index here.
+    pub patches: Vec<Patch>,
+    /// Geometry that never moves, in normalised space: traced once for the whole timeline.
+    pub statics: TriangleMesh,
+    /// Geometry that moves or deforms.
+    pub objects: Vec<MovingObject>,
+    /// The frames of the timeline.
+    pub frames: Frames,
+    /// Scene units to normalised space.
+    pub normalisation: Normalisation,
+    /// Source triangles kept (before subdivision), for the summary.
+    pub source_triangles: usize,
+    /// Things the loader ignored or repaired, one line each.
+    pub warnings: Vec<String>,
+}
+
+/// What the `scene` command and the service report about a loaded scene.
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct Summary {
+    /// Source triangles kept (zero-area ones dropped).
+    pub triangles: usize,
+    /// Traced triangles after subdivision.
+    pub traced_triangles: usize,
+    /// Patches (a double-sided triangle has two).
+    pub patches: usize,
+    /// Triangles of the static geometry.
+    pub static_triangles: usize,
+    /// Moving objects, rigid and deforming.
+    pub moving_objects: usize,
+    /// Rigid moving objects among them.
+    pub rigid_objects: usize,
+    /// Deforming (skinned or morphing) objects among them.
+    pub deforming_objects: usize,
+    /// Triangles of the moving objects.
+    pub moving_triangles: usize,
+    /// Frames of the timeline.
+    pub frames: usize,
+    /// Time of the first frame, seconds.
+    pub start: f64,
+    /// Frames per second.
+    pub fps: f64,
+    /// Patches that emit light.
+    pub emitters: usize,
+    /// Centre of the bounding sphere, scene units.
+    pub center: [f64; 3],
+    /// Radius of the bounding sphere, scene units.
+    pub radius: f64,
+    /// Total area of the patches at frame 0, scene units squared.
+    pub area: f64,
+    /// Loader warnings.
+    pub warnings: Vec<String>,
+}
+
+impl Scene {
+    /// The summary of this scene.
+    #[must_use]
+    pub fn summary(&self) -> Summary {
+        let moving_triangles = self.objects.iter().map(|o| o.mesh.triangles.len()).sum();
+        let rigid_objects = self.objects.iter().filter(|o| o.is_rigid()).count();
+        Summary {
+            triangles: self.source_triangles,
+            traced_triangles: self.statics.triangles.len() + moving_triangles,
+            patches: self.patches.len(),
+            static_triangles: self.statics.triangles.len(),
+            moving_objects: self.objects.len(),
+            rigid_objects,
+            deforming_objects: self.objects.len() - rigid_objects,
+            moving_triangles,
+            frames: self.frames.count,
+            start: self.frames.start,
+            fps: self.frames.fps,
+            emitters: self
+                .patches
+                .iter()
+                .filter(|p| self.materials[p.material as usize].is_emitter())
+                .count(),
+            center: self.normalisation.center.to_array(),
+            radius: self.normalisation.radius,
+            area: self.patches.iter().map(|p| p.area).sum(),
+            warnings: self.warnings.clone(),
+        }
+    }
+
+    /// Every traced triangle of the scene posed at `frame`, in normalised space, with its faces:
+    /// the static triangles first, then each object's. This is the scene "traced alone" at one
+    /// frame, the reference the multiframe list is checked against.
+    #[must_use]
+    pub fn triangles_at(&self, frame: usize) -> Vec<([Vec3; 3], Faces)> {
+        let mut out = Vec::new();
+        let mut push = |positions: &[Vec3], mesh: &TriangleMesh| {
+            for (t, faces) in mesh.triangles.iter().zip(&mesh.faces) {
+                let corners = t.map(|i| positions[i as usize]);
+                out.push((corners, *faces));
+            }
+        };
+        push(&self.statics.positions, &self.statics);
+        for object in &self.objects {
+            push(&object.positions_at(frame), &object.mesh);
+        }
+        out
+    }
+}
+
+impl std::fmt::Display for Summary {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        writeln!(
+            f,
+            "triangles       {} ({} traced after subdivision)",
+            self.triangles, self.traced_triangles
+        )?;
+        writeln!(f, "patches         {}", self.patches)?;
+        writeln!(f, "static          {} triangles", self.static_triangles)?;
+        writeln!(
+            f,
+            "moving          {} objects ({} rigid, {} deforming), {} triangles",
+            self.moving_objects, self.rigid_objects, self.deforming_objects, self.moving_triangles
+        )?;
+        writeln!(
+            f,
+            "frames          {} at {} fps from t = {} s",
+            self.frames, self.fps, self.start
+        )?;
+        writeln!(f, "emitters        {} patches", self.emitters)?;
+        writeln!(
+            f,
+            "bounds          centre [{}, {}, {}], radius {}",
+            self.center[0], self.center[1], self.center[2], self.radius
+        )?;
+        writeln!(f, "area            {}", self.area)?;
+        if self.warnings.is_empty() {
+            writeln!(f, "warnings        none")
+        } else {
+            writeln!(f, "warnings        {}", self.warnings.len())?;
+            self.warnings
+                .iter()
+                .try_for_each(|w| writeln!(f, "  - {w}"))
+        }
+    }
+}
