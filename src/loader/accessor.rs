@@ -9,9 +9,10 @@ use gltf::{Accessor, Document};
 
 use super::LoadError;
 
-/// Accessors larger than this many elements are refused before any allocation (a hostile file
-/// can declare a count of 2⁶⁴ − 1 with a tiny buffer).
-const MAX_ELEMENTS: usize = 1 << 28;
+/// Values (components) an accessor without a buffer view may expand to: such an accessor is all
+/// zeros (or sparse), so a tiny hostile file could otherwise ask for any amount of memory.
+/// Accessors backed by a view are bounded by the bytes actually present.
+const MAX_VIEWLESS_VALUES: usize = 1 << 24;
 
 /// An accessor's elements, flattened: element `i` is `values[i * width..(i + 1) * width]`.
 pub struct Elements {
@@ -169,6 +170,7 @@ fn read_strided(
             ));
         }
     }
+    out.reserve(count * layout.offsets.len());
     for i in 0..count {
         let base = offset + i * stride;
         for &c in &layout.offsets {
@@ -194,12 +196,7 @@ pub fn read(document: &Document, buffers: &[Vec<u8>], index: usize) -> Result<El
     );
     let width = layout.offsets.len();
     let count = accessor.count();
-    if count > MAX_ELEMENTS {
-        return Err(bad(format!(
-            "count {count} exceeds the limit of {MAX_ELEMENTS}"
-        )));
-    }
-    let mut values = Vec::with_capacity(count * width);
+    let mut values = Vec::new();
     match accessor.view() {
         Some(view) => {
             let bytes = view_bytes(&view, buffers)?;
@@ -220,7 +217,15 @@ pub fn read(document: &Document, buffers: &[Vec<u8>], index: usize) -> Result<El
             )
             .map_err(bad)?;
         }
-        None => values.resize(count * width, 0.0),
+        None => match count.checked_mul(width).filter(|&n| n <= MAX_VIEWLESS_VALUES) {
+            Some(n) => values.resize(n, 0.0),
+            None => {
+                return Err(bad(format!(
+                    "{count} elements without a bufferView exceed the limit of \
+                     {MAX_VIEWLESS_VALUES} values"
+                )));
+            }
+        },
     }
     if let Some(sparse) = accessor.sparse() {
         let n = sparse.count();

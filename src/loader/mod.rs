@@ -40,6 +40,10 @@ pub struct LoadOptions {
     pub max_frames: usize,
     /// Most patches a scene may have.
     pub max_patches: usize,
+    /// Most per-frame evaluations a load may do: animated node transforms and deformed vertices
+    /// (and their bounds and area checks), each counted once per frame. Bounds the time and
+    /// memory a file with many frames and many moving parts can take.
+    pub max_work: u64,
 }
 
 impl Default for LoadOptions {
@@ -52,6 +56,7 @@ impl Default for LoadOptions {
             patch_size: None,
             max_frames: 100_000,
             max_patches: 4_000_000,
+            max_work: 200_000_000,
         }
     }
 }
@@ -122,6 +127,22 @@ pub enum LoadError {
     Empty,
 }
 
+/// What is left of [`LoadOptions::max_work`].
+struct Budget(u64);
+
+impl Budget {
+    fn spend(&mut self, amount: u64, what: impl FnOnce() -> String) -> Result<(), LoadError> {
+        self.0 = self.0.checked_sub(amount).ok_or_else(|| {
+            LoadError::Limit(format!(
+                "{} would exceed the evaluation budget; use fewer frames (lower fps or a \
+                 shorter start..end)",
+                what()
+            ))
+        })?;
+        Ok(())
+    }
+}
+
 impl LoadError {
     fn malformed(object: impl Into<String>, reason: impl Into<String>) -> Self {
         Self::Malformed {
@@ -174,7 +195,13 @@ pub fn load(bytes: &[u8], options: &LoadOptions) -> Result<Scene, LoadError> {
             skin.joints().for_each(|j| wanted[j.index()] = true);
         }
     }
-    let poses = nodes::evaluate(&hierarchy, &timeline, &wanted);
+    let mut budget = Budget(options.max_work);
+    let animated = nodes::animated(&hierarchy, &timeline.tracks);
+    let frame_count = timeline.frames.count as u64;
+    budget.spend(animated.iter().filter(|a| **a).count() as u64 * frame_count, || {
+        format!("animating the scene's nodes over {frame_count} frames")
+    })?;
+    let poses = nodes::evaluate(&hierarchy, &timeline, &animated, &wanted);
     let frames = timeline.frames;
 
     let mut instances = Vec::with_capacity(mesh_nodes.len());
@@ -186,6 +213,7 @@ pub fn load(bytes: &[u8], options: &LoadOptions) -> Result<Scene, LoadError> {
             &poses,
             frames,
             default_material,
+            &mut budget,
             &mut warnings,
         )?);
     }
@@ -251,6 +279,7 @@ fn place(
     poses: &nodes::Poses,
     frames: Frames,
     default_material: u32,
+    budget: &mut Budget,
     warnings: &mut Vec<String>,
 ) -> Result<Instance, LoadError> {
     let Some(gmesh) = node.mesh() else {
@@ -275,6 +304,12 @@ fn place(
         (skin.is_some() && geometry.influences.is_some()) || (targets > 0 && animated_weights);
     let frame_count = frames.count;
     let placement = if deforms || targets > 0 {
+        // Posing every frame three times over (moves? bounds, areas), plus the joints.
+        let joints = skin.as_ref().map_or(0, |s| s.joints().len());
+        budget.spend(
+            (3 * geometry.positions.len() + joints) as u64 * frame_count as u64,
+            || format!("deforming node {n} over {frame_count} frames"),
+        )?;
         // Morph targets with fixed weights still displace the mesh: evaluate them like a
         // deformation and keep the result static if it never changes.
         let default_weights: Vec<f64> = node

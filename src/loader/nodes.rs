@@ -302,16 +302,27 @@ impl Poses {
     }
 }
 
-/// Evaluates the world transform of every node at frame 0, and of the `wanted` nodes at every
-/// frame when an animated transform lies on their chain of ancestors.
-pub fn evaluate(hierarchy: &Hierarchy, timeline: &Timeline, wanted: &[bool]) -> Poses {
-    let count = hierarchy.local.len();
-    let tracks = &timeline.tracks;
-    // Which nodes have an animated transform on their chain (parents come first in `order`).
-    let mut animated = vec![false; count];
+/// Which nodes have an animated transform on their chain of ancestors (themselves included).
+#[must_use]
+pub fn animated(hierarchy: &Hierarchy, tracks: &[Tracks]) -> Vec<bool> {
+    let mut animated = vec![false; hierarchy.local.len()];
+    // Parents come first in `order`.
     for &n in &hierarchy.order {
         animated[n] = tracks[n].moves() || hierarchy.parent[n].is_some_and(|p| animated[p]);
     }
+    animated
+}
+
+/// Evaluates the world transform of every node at frame 0, and of the `wanted` nodes at every
+/// frame when they are `animated` (see [`animated`]).
+pub fn evaluate(
+    hierarchy: &Hierarchy,
+    timeline: &Timeline,
+    animated: &[bool],
+    wanted: &[bool],
+) -> Poses {
+    let count = hierarchy.local.len();
+    let tracks = &timeline.tracks;
     let base_trs: Vec<(DVec3, DQuat, DVec3)> = hierarchy
         .local
         .iter()

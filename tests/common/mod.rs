@@ -1,0 +1,193 @@
+//! A tiny glTF writer for tests: build a document piece by piece, get `.gltf` or `.glb` bytes.
+
+
+use base64::Engine as _;
+use serde_json::{Value, json};
+
+/// A glTF document under construction with one binary buffer.
+pub struct Doc {
+    /// The JSON, without `buffers` (added when written).
+    pub json: Value,
+    /// The binary buffer's bytes.
+    pub bin: Vec<u8>,
+}
+
+impl Default for Doc {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl Doc {
+    pub fn new() -> Self {
+        Self {
+            json: json!({"asset": {"version": "2.0"}}),
+            bin: Vec::new(),
+        }
+    }
+
+    /// Appends `value` to the top-level array `key`, returning its index.
+    pub fn push(&mut self, key: &str, value: Value) -> usize {
+        let arr = self.json[key].as_array_mut();
+        match arr {
+            Some(a) => {
+                a.push(value);
+                a.len() - 1
+            }
+            None => {
+                self.json[key] = json!([value]);
+                0
+            }
+        }
+    }
+
+    fn view(&mut self, bytes: &[u8]) -> usize {
+        while self.bin.len() % 4 != 0 {
+            self.bin.push(0);
+        }
+        let offset = self.bin.len();
+        self.bin.extend_from_slice(bytes);
+        self.push(
+            "bufferViews",
+            json!({"buffer": 0, "byteOffset": offset, "byteLength": bytes.len()}),
+        )
+    }
+
+    /// A float accessor of `ty` ("SCALAR", "VEC3", "VEC4", "MAT4") with min/max.
+    pub fn floats(&mut self, data: &[f32], ty: &str) -> usize {
+        let width = match ty {
+            "SCALAR" => 1,
+            "VEC2" => 2,
+            "VEC3" => 3,
+            "VEC4" => 4,
+            "MAT4" => 16,
+            _ => panic!("type {ty}"),
+        };
+        let bytes: Vec<u8> = data.iter().flat_map(|v| v.to_le_bytes()).collect();
+        let view = self.view(&bytes);
+        let mut min = vec![f32::INFINITY; width];
+        let mut max = vec![f32::NEG_INFINITY; width];
+        for chunk in data.chunks(width) {
+            for (i, &v) in chunk.iter().enumerate() {
+                min[i] = min[i].min(v);
+                max[i] = max[i].max(v);
+            }
+        }
+        let mut accessor = json!({"bufferView": view, "componentType": 5126,
+            "count": data.len() / width, "type": ty});
+        if !data.is_empty() {
+            accessor["min"] = json!(min);
+            accessor["max"] = json!(max);
+        }
+        self.push("accessors", accessor)
+    }
+
+    /// An index accessor with component type 5121 (u8), 5123 (u16) or 5125 (u32).
+    pub fn indices(&mut self, data: &[u32], component: u32) -> usize {
+        let bytes: Vec<u8> = match component {
+            5121 => data.iter().map(|&v| v as u8).collect(),
+            5123 => data.iter().flat_map(|&v| (v as u16).to_le_bytes()).collect(),
+            _ => data.iter().flat_map(|v| v.to_le_bytes()).collect(),
+        };
+        let view = self.view(&bytes);
+        self.push(
+            "accessors",
+            json!({"bufferView": view, "componentType": component, "count": data.len(), "type": "SCALAR"}),
+        )
+    }
+
+    /// A mesh with one triangle primitive; returns the mesh index.
+    pub fn mesh(&mut self, positions: &[[f32; 3]], indices: Option<&[u32]>, material: Option<usize>) -> usize {
+        let flat: Vec<f32> = positions.iter().flatten().copied().collect();
+        let pos = self.floats(&flat, "VEC3");
+        let mut prim = json!({"attributes": {"POSITION": pos}});
+        if let Some(idx) = indices {
+            prim["indices"] = json!(self.indices(idx, 5123));
+        }
+        if let Some(m) = material {
+            prim["material"] = json!(m);
+        }
+        self.push("meshes", json!({"primitives": [prim]}))
+    }
+
+    /// A node; returns its index.
+    pub fn node(&mut self, node: Value) -> usize {
+        self.push("nodes", node)
+    }
+
+    /// A scene with the given root nodes, made the default.
+    pub fn scene(&mut self, roots: &[usize]) -> usize {
+        let s = self.push("scenes", json!({"nodes": roots}));
+        self.json["scene"] = json!(s);
+        s
+    }
+
+    /// An animation with one channel per (node, path, times, values, interpolation).
+    pub fn animation(&mut self, name: &str, channels: &[(usize, &str, &[f32], &[f32], &str)]) -> usize {
+        let mut samplers = Vec::new();
+        let mut chans = Vec::new();
+        for (i, &(node, path, times, values, interp)) in channels.iter().enumerate() {
+            let input = self.floats(times, "SCALAR");
+            let ty = match path {
+                "rotation" => "VEC4",
+                "weights" => "SCALAR",
+                _ => "VEC3",
+            };
+            let output = self.floats(values, ty);
+            samplers.push(json!({"input": input, "output": output, "interpolation": interp}));
+            chans.push(json!({"sampler": i, "target": {"node": node, "path": path}}));
+        }
+        self.push("animations", json!({"name": name, "samplers": samplers, "channels": chans}))
+    }
+
+    fn with_buffer(&self, uri: Option<String>) -> Value {
+        let mut j = self.json.clone();
+        if !self.bin.is_empty() {
+            let mut b = json!({"byteLength": self.bin.len()});
+            if let Some(uri) = uri {
+                b["uri"] = json!(uri);
+            }
+            j["buffers"] = json!([b]);
+        }
+        j
+    }
+
+    /// The document as `.gltf` with the buffer embedded as a data: URI.
+    pub fn gltf(&self) -> Vec<u8> {
+        let uri = format!(
+            "data:application/octet-stream;base64,{}",
+            base64::engine::general_purpose::STANDARD.encode(&self.bin)
+        );
+        serde_json::to_vec(&self.with_buffer(Some(uri))).unwrap()
+    }
+
+    /// The document as `.glb`.
+    pub fn glb(&self) -> Vec<u8> {
+        let mut json = serde_json::to_vec(&self.with_buffer(None)).unwrap();
+        while json.len() % 4 != 0 {
+            json.push(b' ');
+        }
+        let mut bin = self.bin.clone();
+        while bin.len() % 4 != 0 {
+            bin.push(0);
+        }
+        let mut out = Vec::new();
+        out.extend_from_slice(b"glTF");
+        out.extend_from_slice(&2u32.to_le_bytes());
+        let total = 12 + 8 + json.len() + if bin.is_empty() { 0 } else { 8 + bin.len() };
+        out.extend_from_slice(&(total as u32).to_le_bytes());
+        out.extend_from_slice(&(json.len() as u32).to_le_bytes());
+        out.extend_from_slice(b"JSON");
+        out.extend_from_slice(&json);
+        if !bin.is_empty() {
+            out.extend_from_slice(&(bin.len() as u32).to_le_bytes());
+            out.extend_from_slice(b"BIN\0");
+            out.extend_from_slice(&bin);
+        }
+        out
+    }
+}
+
+/// Corners of an axis-aligned quad in the XY plane facing +Z: two triangles.
+pub const QUAD: [[f32; 3]; 4] = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]];
+pub const QUAD_INDICES: [u32; 6] = [0, 1, 2, 0, 2, 3];

@@ -1,0 +1,381 @@
+//! The glTF loader against hand-built files: what is read, what is static or moving, and what
+//! is refused.
+
+mod common;
+
+use common::{Doc, QUAD, QUAD_INDICES};
+use glam::DVec3;
+use radiosity::loader::{LoadError, LoadOptions, load};
+use radiosity::scene::{Motion, Scene, Side};
+use serde_json::json;
+
+fn opts() -> LoadOptions {
+    LoadOptions::default()
+}
+
+fn load_ok(doc: &Doc) -> Scene {
+    let gltf = load(&doc.gltf(), &opts()).unwrap();
+    let glb = load(&doc.glb(), &opts()).unwrap();
+    assert_eq!(gltf.patches.len(), glb.patches.len(), ".gltf and .glb disagree");
+    gltf
+}
+
+fn err(bytes: &[u8], options: &LoadOptions) -> String {
+    match load(bytes, options) {
+        Ok(_) => panic!("accepted"),
+        Err(e) => e.to_string(),
+    }
+}
+
+/// A quad node, a second quad child of an animated node, and a third quad under a node whose
+/// "animation" keeps the same value at every key.
+fn three_quads() -> Doc {
+    let mut d = Doc::new();
+    let mesh = d.mesh(&QUAD, Some(&QUAD_INDICES), None);
+    let still = d.node(json!({"mesh": mesh, "translation": [5.0, 0.0, 0.0]}));
+    let child = d.node(json!({"mesh": mesh, "translation": [0.0, 0.0, 1.0]}));
+    let mover = d.node(json!({"children": [child]}));
+    let fake = d.node(json!({"mesh": mesh, "translation": [-5.0, 0.0, 0.0]}));
+    d.scene(&[still, mover, fake]);
+    d.animation(
+        "walk",
+        &[
+            (mover, "translation", &[0.0, 1.0, 2.0], &[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 3.0, 0.0, 0.0], "LINEAR"),
+            (fake, "translation", &[0.0, 2.0], &[-5.0, 0.0, 0.0, -5.0, 0.0, 0.0], "LINEAR"),
+            (fake, "rotation", &[0.0, 0.7, 2.0], &[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], "LINEAR"),
+        ],
+    );
+    d
+}
+
+#[test]
+fn static_and_moving_are_told_apart_by_evaluating_the_frames() {
+    let scene = load_ok(&three_quads());
+    // Only the child of the animated node moves; the constant channels move nothing.
+    assert_eq!(scene.objects.len(), 1);
+    assert_eq!(scene.objects[0].node, 1);
+    assert!(scene.objects[0].is_rigid());
+    assert_eq!(scene.statics.triangles.len(), 4);
+    assert_eq!(scene.frames.count, 49); // 2 s at 24 fps, both ends included
+    let moving = scene.patches.iter().filter(|p| p.object.is_some()).count();
+    assert_eq!(moving, 2);
+}
+
+#[test]
+fn rigid_poses_follow_the_interpolated_animation() {
+    let scene = load_ok(&three_quads());
+    let n = scene.normalisation;
+    let object = &scene.objects[0];
+    for (frame, expected_x) in [(0, 0.0), (12, 0.5), (24, 1.0), (36, 2.0), (48, 3.0)] {
+        let posed = object.positions_at(frame);
+        let lowest = posed
+            .iter()
+            .map(|p| n.to_scene(p.as_dvec3()))
+            .fold(DVec3::INFINITY, DVec3::min);
+        assert!(
+            lowest.abs_diff_eq(DVec3::new(expected_x, 0.0, 1.0), 1e-5),
+            "frame {frame}: {lowest}"
+        );
+    }
+}
+
+#[test]
+fn frames_follow_fps_and_overrides_and_animation_choice() {
+    let doc = three_quads();
+    let bytes = doc.gltf();
+    let frames = |o: LoadOptions| load(&bytes, &o).unwrap().frames;
+    let f = frames(LoadOptions { fps: 10.0, ..opts() });
+    assert_eq!((f.start, f.count), (0.0, 21));
+    let f = frames(LoadOptions { start: Some(0.5), end: Some(1.0), ..opts() });
+    assert_eq!((f.start, f.count), (0.5, 13));
+    assert_eq!(f.time(12), 1.0);
+    assert_eq!(frames(LoadOptions { animation: Some("walk".into()), ..opts() }).count, 49);
+    assert_eq!(frames(LoadOptions { animation: Some("0".into()), ..opts() }).count, 49);
+    let e = err(&bytes, &LoadOptions { animation: Some("run".into()), ..opts() });
+    assert!(e.contains("\"run\"") && e.contains("walk"), "{e}");
+    let e = err(&bytes, &LoadOptions { fps: 0.0, ..opts() });
+    assert!(e.contains("fps"), "{e}");
+    let e = err(&bytes, &LoadOptions { fps: 1e9, ..opts() });
+    assert!(e.contains("limit"), "{e}");
+    let e = err(&bytes, &LoadOptions { start: Some(2.0), end: Some(1.0), ..opts() });
+    assert!(e.contains("before"), "{e}");
+}
+
+#[test]
+fn a_scene_without_animation_has_one_frame() {
+    let mut d = Doc::new();
+    let mesh = d.mesh(&QUAD, None, None);
+    let n = d.node(json!({"mesh": mesh}));
+    d.scene(&[n]);
+    let scene = load_ok(&d);
+    assert_eq!(scene.frames.count, 1);
+    assert!(scene.objects.is_empty());
+    // Without indices: vertices in order, 4 vertices = 1 triangle and 1 leftover index.
+    assert_eq!(scene.patches.len(), 1);
+    assert!(scene.warnings.iter().any(|w| w.contains("trailing")), "{:?}", scene.warnings);
+}
+
+#[test]
+fn materials_give_reflectance_emission_and_sides() {
+    let mut d = Doc::new();
+    let lamp = d.push(
+        "materials",
+        json!({"name": "lamp", "pbrMetallicRoughness": {"baseColorFactor": [0.5, 0.25, 1.0, 1.0], "metallicFactor": 0.5},
+               "emissiveFactor": [1.0, 0.5, 0.0], "extensions": {"KHR_materials_emissive_strength": {"emissiveStrength": 4.0}},
+               "doubleSided": true}),
+    );
+    d.json["extensionsUsed"] = json!(["KHR_materials_emissive_strength"]);
+    let lit = d.mesh(&QUAD, Some(&QUAD_INDICES), Some(lamp));
+    let plain = d.mesh(&QUAD, Some(&QUAD_INDICES), None);
+    let a = d.node(json!({"mesh": lit}));
+    let b = d.node(json!({"mesh": plain, "translation": [0.0, 0.0, 2.0]}));
+    d.scene(&[a, b]);
+    let scene = load_ok(&d);
+    let m = &scene.materials[0];
+    assert_eq!(m.name.as_deref(), Some("lamp"));
+    assert_eq!(m.reflectance, [0.25, 0.125, 0.5]);
+    assert_eq!(m.emission, [4.0, 2.0, 0.0]);
+    // The default material: white, not metallic, one-sided.
+    assert_eq!(scene.materials[1].reflectance, [1.0; 3]);
+    assert_eq!(scene.materials[1].emission, [0.0; 3]);
+    // Two double-sided triangles (front and back) and two one-sided ones.
+    assert_eq!(scene.patches.len(), 6);
+    let sides: Vec<Side> = scene.patches.iter().map(|p| p.side).collect();
+    assert_eq!(sides, [Side::Front, Side::Back, Side::Front, Side::Back, Side::Front, Side::Front]);
+    assert_eq!(scene.summary().emitters, 4);
+    assert_eq!(scene.statics.faces[0].back, Some(1));
+    assert_eq!(scene.statics.faces[2].back, None);
+}
+
+#[test]
+fn provenance_and_areas_map_back_to_the_file() {
+    let mut d = Doc::new();
+    let mesh = d.mesh(&QUAD, Some(&QUAD_INDICES), None);
+    let n = d.node(json!({"mesh": mesh, "scale": [2.0, 3.0, 1.0]}));
+    d.scene(&[n]);
+    let scene = load_ok(&d);
+    for (k, p) in scene.patches.iter().enumerate() {
+        assert_eq!((p.source.node, p.source.mesh, p.source.primitive, p.source.triangle), (0, 0, 0, k as u32));
+        assert!((p.area - 3.0).abs() < 1e-12, "{}", p.area);
+    }
+}
+
+#[test]
+fn subdivision_keeps_area_and_provenance() {
+    let mut d = Doc::new();
+    let mesh = d.mesh(&QUAD, Some(&QUAD_INDICES), None);
+    let n = d.node(json!({"mesh": mesh, "scale": [10.0, 3.0, 1.0]}));
+    d.scene(&[n]);
+    let options = LoadOptions { patch_size: Some(0.5), ..opts() };
+    let scene = load(&d.gltf(), &options).unwrap();
+    assert!(scene.patches.len() > 100, "{}", scene.patches.len());
+    for source in 0..2 {
+        let area: f64 = scene.patches.iter().filter(|p| p.source.triangle == source).map(|p| p.area).sum();
+        assert!((area - 15.0).abs() < 1e-9, "triangle {source}: {area}");
+    }
+    // Every edge of the result is at most 0.5 in scene units.
+    let n = scene.normalisation;
+    for t in &scene.statics.triangles {
+        for k in 0..3 {
+            let a = scene.statics.positions[t[k] as usize].as_dvec3() * n.radius;
+            let b = scene.statics.positions[t[(k + 1) % 3] as usize].as_dvec3() * n.radius;
+            assert!((a - b).length() <= 0.5 + 1e-5);
+        }
+    }
+    let e = err(&d.gltf(), &LoadOptions { patch_size: Some(1e-4), max_patches: 10_000, ..opts() });
+    assert!(e.contains("patch_size"), "{e}");
+}
+
+#[test]
+fn strips_fans_matrices_and_index_sizes() {
+    let mut d = Doc::new();
+    let pos: Vec<f32> = QUAD.iter().flatten().copied().collect();
+    let p = d.floats(&pos, "VEC3");
+    let strip = d.indices(&[0, 1, 3, 2], 5121);
+    let fan = d.indices(&[0, 1, 2, 3], 5125);
+    let mesh = d.push(
+        "meshes",
+        json!({"primitives": [
+            {"attributes": {"POSITION": p}, "indices": strip, "mode": 5},
+            {"attributes": {"POSITION": p}, "indices": fan, "mode": 6},
+            {"attributes": {"POSITION": p}, "mode": 1}
+        ]}),
+    );
+    // A matrix moving the mesh by (0, 0, 7).
+    let m = d.node(json!({"mesh": mesh, "matrix": [1,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,7,1]}));
+    d.scene(&[m]);
+    let scene = load_ok(&d);
+    assert_eq!(scene.patches.len(), 4);
+    assert!(scene.warnings.iter().any(|w| w.contains("Lines")), "{:?}", scene.warnings);
+    let prims: Vec<(u32, u32)> = scene.patches.iter().map(|p| (p.source.primitive, p.source.triangle)).collect();
+    assert_eq!(prims, [(0, 0), (0, 1), (1, 0), (1, 1)]);
+    assert!((scene.normalisation.center.z - 7.0).abs() < 1e-12);
+    // Every triangle faces +Z: strips and fans keep the winding.
+    for t in &scene.statics.triangles {
+        let [a, b, c] = t.map(|i| scene.statics.positions[i as usize]);
+        assert!((b - a).cross(c - a).z > 0.0);
+    }
+}
+
+#[test]
+fn the_default_scene_is_chosen() {
+    let mut d = Doc::new();
+    let mesh = d.mesh(&QUAD, Some(&QUAD_INDICES), None);
+    let a = d.node(json!({"mesh": mesh}));
+    let b = d.node(json!({"mesh": mesh, "translation": [0, 0, 3]}));
+    let c = d.node(json!({"mesh": mesh, "translation": [0, 0, 6]}));
+    d.push("scenes", json!({"nodes": [a]}));
+    d.push("scenes", json!({"nodes": [b, c]}));
+    d.json["scene"] = json!(1);
+    assert_eq!(load_ok(&d).patches.len(), 4);
+    d.json.as_object_mut().unwrap().remove("scene");
+    assert_eq!(load_ok(&d).patches.len(), 2);
+}
+
+#[test]
+fn zero_area_triangles_are_dropped_and_counted() {
+    let mut d = Doc::new();
+    let pts = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [2.0, 0.0, 0.0]];
+    let mesh = d.mesh(&pts, Some(&[0, 1, 2, 0, 1, 3, 2, 2, 1]), None);
+    let n = d.node(json!({"mesh": mesh}));
+    d.scene(&[n]);
+    let scene = load_ok(&d);
+    assert_eq!(scene.patches.len(), 1);
+    assert_eq!(scene.summary().triangles, 1);
+    assert!(scene.warnings.iter().any(|w| w.contains("dropped 2 zero-area")), "{:?}", scene.warnings);
+    // The bounds ignore vertices only dropped triangles use.
+    assert!((scene.normalisation.center.x - 0.5).abs() < 1e-12);
+}
+
+#[test]
+fn a_scene_of_any_size_and_place_normalises_to_the_same_geometry() {
+    let make = |scale: f64, offset: f64| {
+        let mut d = Doc::new();
+        let mesh = d.mesh(&QUAD, Some(&QUAD_INDICES), None);
+        let n = d.node(json!({"mesh": mesh, "scale": [scale, scale, scale], "translation": [offset, 0.0, 0.0]}));
+        let m = d.node(json!({"mesh": mesh, "scale": [scale, scale, scale], "translation": [offset, 0.0, scale]}));
+        d.scene(&[n, m]);
+        load(&d.glb(), &opts()).unwrap()
+    };
+    let reference = make(1.0, 0.0);
+    for (scale, offset) in [(1e-4, 0.0), (1e5, 0.0), (1.0, 1e6), (1e-3, -1e6)] {
+        let scene = make(scale, offset);
+        // The scale goes through f32 in the file: relative 1e-7.
+        assert!((scene.normalisation.radius / reference.normalisation.radius / scale - 1.0).abs() < 1e-6);
+        for (a, b) in scene.statics.positions.iter().zip(&reference.statics.positions) {
+            assert!(a.abs_diff_eq(*b, 1e-6), "scale {scale} offset {offset}: {a} vs {b}");
+        }
+        let area: f64 = scene.patches.iter().map(|p| p.area).sum();
+        assert!((area / (scale * scale) - 2.0).abs() < 1e-6);
+    }
+}
+
+#[test]
+fn malformed_files_are_refused_naming_the_object() {
+    // Index out of range.
+    let mut d = Doc::new();
+    let mesh = d.mesh(&QUAD, Some(&[0, 1, 9]), None);
+    let n = d.node(json!({"mesh": mesh}));
+    d.scene(&[n]);
+    let e = err(&d.gltf(), &opts());
+    assert!(e.contains("mesh 0 primitive 0") && e.contains("index 9"), "{e}");
+
+    // An accessor reaching past its buffer view.
+    let mut d = Doc::new();
+    let mesh = d.mesh(&QUAD, Some(&QUAD_INDICES), None);
+    let n = d.node(json!({"mesh": mesh}));
+    d.scene(&[n]);
+    d.json["accessors"][0]["count"] = json!(5);
+    let e = err(&d.gltf(), &opts());
+    assert!(e.contains("accessor 0") && e.contains("overrun"), "{e}");
+    d.json["accessors"][0]["count"] = json!(4);
+    d.json["bufferViews"][0]["byteLength"] = json!(4096);
+    let e = err(&d.gltf(), &opts());
+    assert!(e.contains("bufferView 0") && e.contains("outside"), "{e}");
+
+    // A cycle in the node graph.
+    let mut d = Doc::new();
+    let mesh = d.mesh(&QUAD, Some(&QUAD_INDICES), None);
+    let a = d.node(json!({"mesh": mesh, "children": [1]}));
+    d.node(json!({"children": [2]}));
+    d.node(json!({"children": [1]}));
+    d.scene(&[a]);
+    let e = err(&d.gltf(), &opts());
+    assert!(e.contains("node 1") || e.contains("node 2"), "{e}");
+
+    // Non-finite positions.
+    let mut d = Doc::new();
+    let mesh = d.mesh(&[[0.0, 0.0, 0.0], [f32::NAN, 0.0, 0.0], [0.0, 1.0, 0.0]], None, None);
+    let n = d.node(json!({"mesh": mesh}));
+    d.scene(&[n]);
+    let e = err(&d.gltf(), &opts());
+    assert!(e.contains("accessor 0") && e.contains("finite"), "{e}");
+
+    // A sampler whose output does not match its input.
+    let mut d = three_quads();
+    let bad = d.floats(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0], "VEC3");
+    d.json["animations"][0]["samplers"][0]["output"] = json!(bad);
+    let e = err(&d.gltf(), &opts());
+    assert!(e.contains("animation 0 sampler 0") && e.contains("3 input keys"), "{e}");
+
+    // A dangling reference, caught by validation.
+    let mut d = three_quads();
+    d.json["scenes"][0]["nodes"] = json!([42]);
+    let e = err(&d.gltf(), &opts());
+    assert!(e.contains("scenes[0].nodes[0]"), "{e}");
+
+    // Nothing with an area.
+    let mut d = Doc::new();
+    let n = d.node(json!({}));
+    d.scene(&[n]);
+    assert!(matches!(load(&d.gltf(), &opts()), Err(LoadError::Empty)));
+}
+
+#[test]
+fn external_uris_are_refused_for_buffers_and_images() {
+    let mut d = three_quads();
+    let good = d.gltf();
+    let mut j: serde_json::Value = serde_json::from_slice(&good).unwrap();
+    j["buffers"][0]["uri"] = json!("../../etc/passwd");
+    let e = err(&serde_json::to_vec(&j).unwrap(), &opts());
+    assert!(e.contains("buffer 0") && e.contains("external URI"), "{e}");
+
+    let image = d.push("images", json!({"uri": "file:///etc/passwd"}));
+    let texture = d.push("textures", json!({"source": image}));
+    d.push("materials", json!({"pbrMetallicRoughness": {"baseColorTexture": {"index": texture}}}));
+    d.json["meshes"][0]["primitives"][0]["material"] = json!(0);
+    let e = err(&d.gltf(), &opts());
+    assert!(e.contains("image 0") && e.contains("external URI"), "{e}");
+}
+
+#[test]
+fn morph_targets_and_skins_from_the_khronos_samples_deform() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/gltf-samples");
+    let morph = std::fs::read(dir.join("SimpleMorph.gltf")).unwrap();
+    let scene = load(&morph, &opts()).unwrap();
+    assert_eq!(scene.objects.len(), 1);
+    let Motion::Deforming(_) = &scene.objects[0].motion else { panic!("not deforming") };
+    assert_eq!(scene.frames.count, 97); // weights animated over 0–4 s
+    // The triangle (0,0,0) (1,0,0) (0.5,0.5,0); target 0 moves vertex 2 by (−1, 1, 0), target 1
+    // by (1, 1, 0); the weights are (0,0) (0,1) (1,1) (1,0) (0,0) at t = 0..4 s, LINEAR.
+    let n = scene.normalisation;
+    let vertex2 = |f: usize| n.to_scene(scene.objects[0].positions_at(f)[2].as_dvec3());
+    for (frame, expected) in [
+        (0, DVec3::new(0.5, 0.5, 0.0)),
+        (24, DVec3::new(1.5, 1.5, 0.0)),
+        (36, DVec3::new(1.0, 2.0, 0.0)), // weights (0.5, 1)
+        (72, DVec3::new(-0.5, 1.5, 0.0)),
+    ] {
+        assert!(vertex2(frame).abs_diff_eq(expected, 1e-5), "frame {frame}: {}", vertex2(frame));
+    }
+
+    let skin = std::fs::read(dir.join("SimpleSkin.gltf")).unwrap();
+    let scene = load(&skin, &opts()).unwrap();
+    assert_eq!(scene.objects.len(), 1);
+    assert!(!scene.objects[0].is_rigid());
+    assert_eq!(scene.frames.count, 133);
+    let (a, b) = (scene.objects[0].positions_at(0), scene.objects[0].positions_at(24));
+    // At t = 1 s the second joint is turned 90°: the root vertices stay, the top ones move.
+    assert!(a[0].abs_diff_eq(b[0], 1e-6));
+    assert!(a.iter().zip(&b).any(|(p, q)| p.distance(*q) > 0.05));
+}
