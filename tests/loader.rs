@@ -16,7 +16,11 @@ fn opts() -> LoadOptions {
 fn load_ok(doc: &Doc) -> Scene {
     let gltf = load(&doc.gltf(), &opts()).unwrap();
     let glb = load(&doc.glb(), &opts()).unwrap();
-    assert_eq!(gltf.patches.len(), glb.patches.len(), ".gltf and .glb disagree");
+    assert_eq!(
+        gltf.patches.len(),
+        glb.patches.len(),
+        ".gltf and .glb disagree"
+    );
     gltf
 }
 
@@ -40,9 +44,27 @@ fn three_quads() -> Doc {
     d.animation(
         "walk",
         &[
-            (mover, "translation", &[0.0, 1.0, 2.0], &[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 3.0, 0.0, 0.0], "LINEAR"),
-            (fake, "translation", &[0.0, 2.0], &[-5.0, 0.0, 0.0, -5.0, 0.0, 0.0], "LINEAR"),
-            (fake, "rotation", &[0.0, 0.7, 2.0], &[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], "LINEAR"),
+            (
+                mover,
+                "translation",
+                &[0.0, 1.0, 2.0],
+                &[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 3.0, 0.0, 0.0],
+                "LINEAR",
+            ),
+            (
+                fake,
+                "translation",
+                &[0.0, 2.0],
+                &[-5.0, 0.0, 0.0, -5.0, 0.0, 0.0],
+                "LINEAR",
+            ),
+            (
+                fake,
+                "rotation",
+                &[0.0, 0.7, 2.0],
+                &[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+                "LINEAR",
+            ),
         ],
     );
     d
@@ -84,20 +106,54 @@ fn frames_follow_fps_and_overrides_and_animation_choice() {
     let doc = three_quads();
     let bytes = doc.gltf();
     let frames = |o: LoadOptions| load(&bytes, &o).unwrap().frames;
-    let f = frames(LoadOptions { fps: 10.0, ..opts() });
+    let f = frames(LoadOptions {
+        fps: 10.0,
+        ..opts()
+    });
     assert_eq!((f.start, f.count), (0.0, 21));
-    let f = frames(LoadOptions { start: Some(0.5), end: Some(1.0), ..opts() });
+    let f = frames(LoadOptions {
+        start: Some(0.5),
+        end: Some(1.0),
+        ..opts()
+    });
     assert_eq!((f.start, f.count), (0.5, 13));
     assert_eq!(f.time(12), 1.0);
-    assert_eq!(frames(LoadOptions { animation: Some("walk".into()), ..opts() }).count, 49);
-    assert_eq!(frames(LoadOptions { animation: Some("0".into()), ..opts() }).count, 49);
-    let e = err(&bytes, &LoadOptions { animation: Some("run".into()), ..opts() });
+    assert_eq!(
+        frames(LoadOptions {
+            animation: Some("walk".into()),
+            ..opts()
+        })
+        .count,
+        49
+    );
+    assert_eq!(
+        frames(LoadOptions {
+            animation: Some("0".into()),
+            ..opts()
+        })
+        .count,
+        49
+    );
+    let e = err(
+        &bytes,
+        &LoadOptions {
+            animation: Some("run".into()),
+            ..opts()
+        },
+    );
     assert!(e.contains("\"run\"") && e.contains("walk"), "{e}");
     let e = err(&bytes, &LoadOptions { fps: 0.0, ..opts() });
     assert!(e.contains("fps"), "{e}");
     let e = err(&bytes, &LoadOptions { fps: 1e9, ..opts() });
     assert!(e.contains("limit"), "{e}");
-    let e = err(&bytes, &LoadOptions { start: Some(2.0), end: Some(1.0), ..opts() });
+    let e = err(
+        &bytes,
+        &LoadOptions {
+            start: Some(2.0),
+            end: Some(1.0),
+            ..opts()
+        },
+    );
     assert!(e.contains("before"), "{e}");
 }
 
@@ -112,7 +168,11 @@ fn a_scene_without_animation_has_one_frame() {
     assert!(scene.objects.is_empty());
     // Without indices: vertices in order, 4 vertices = 1 triangle and 1 leftover index.
     assert_eq!(scene.patches.len(), 1);
-    assert!(scene.warnings.iter().any(|w| w.contains("trailing")), "{:?}", scene.warnings);
+    assert!(
+        scene.warnings.iter().any(|w| w.contains("trailing")),
+        "{:?}",
+        scene.warnings
+    );
 }
 
 #[test]
@@ -141,7 +201,17 @@ fn materials_give_reflectance_emission_and_sides() {
     // Two double-sided triangles (front and back) and two one-sided ones.
     assert_eq!(scene.patches.len(), 6);
     let sides: Vec<Side> = scene.patches.iter().map(|p| p.side).collect();
-    assert_eq!(sides, [Side::Front, Side::Back, Side::Front, Side::Back, Side::Front, Side::Front]);
+    assert_eq!(
+        sides,
+        [
+            Side::Front,
+            Side::Back,
+            Side::Front,
+            Side::Back,
+            Side::Front,
+            Side::Front
+        ]
+    );
     assert_eq!(scene.summary().emitters, 4);
     assert_eq!(scene.statics.faces[0].back, Some(1));
     assert_eq!(scene.statics.faces[2].back, None);
@@ -155,7 +225,15 @@ fn provenance_and_areas_map_back_to_the_file() {
     d.scene(&[n]);
     let scene = load_ok(&d);
     for (k, p) in scene.patches.iter().enumerate() {
-        assert_eq!((p.source.node, p.source.mesh, p.source.primitive, p.source.triangle), (0, 0, 0, k as u32));
+        assert_eq!(
+            (
+                p.source.node,
+                p.source.mesh,
+                p.source.primitive,
+                p.source.triangle
+            ),
+            (0, 0, 0, k as u32)
+        );
         assert!((p.area - 3.0).abs() < 1e-12, "{}", p.area);
     }
 }
@@ -166,11 +244,19 @@ fn subdivision_keeps_area_and_provenance() {
     let mesh = d.mesh(&QUAD, Some(&QUAD_INDICES), None);
     let n = d.node(json!({"mesh": mesh, "scale": [10.0, 3.0, 1.0]}));
     d.scene(&[n]);
-    let options = LoadOptions { patch_size: Some(0.5), ..opts() };
+    let options = LoadOptions {
+        patch_size: Some(0.5),
+        ..opts()
+    };
     let scene = load(&d.gltf(), &options).unwrap();
     assert!(scene.patches.len() > 100, "{}", scene.patches.len());
     for source in 0..2 {
-        let area: f64 = scene.patches.iter().filter(|p| p.source.triangle == source).map(|p| p.area).sum();
+        let area: f64 = scene
+            .patches
+            .iter()
+            .filter(|p| p.source.triangle == source)
+            .map(|p| p.area)
+            .sum();
         assert!((area - 15.0).abs() < 1e-9, "triangle {source}: {area}");
     }
     // Every edge of the result is at most 0.5 in scene units.
@@ -182,7 +268,14 @@ fn subdivision_keeps_area_and_provenance() {
             assert!((a - b).length() <= 0.5 + 1e-5);
         }
     }
-    let e = err(&d.gltf(), &LoadOptions { patch_size: Some(1e-4), max_patches: 10_000, ..opts() });
+    let e = err(
+        &d.gltf(),
+        &LoadOptions {
+            patch_size: Some(1e-4),
+            max_patches: 10_000,
+            ..opts()
+        },
+    );
     assert!(e.contains("patch_size"), "{e}");
 }
 
@@ -206,8 +299,16 @@ fn strips_fans_matrices_and_index_sizes() {
     d.scene(&[m]);
     let scene = load_ok(&d);
     assert_eq!(scene.patches.len(), 4);
-    assert!(scene.warnings.iter().any(|w| w.contains("Lines")), "{:?}", scene.warnings);
-    let prims: Vec<(u32, u32)> = scene.patches.iter().map(|p| (p.source.primitive, p.source.triangle)).collect();
+    assert!(
+        scene.warnings.iter().any(|w| w.contains("Lines")),
+        "{:?}",
+        scene.warnings
+    );
+    let prims: Vec<(u32, u32)> = scene
+        .patches
+        .iter()
+        .map(|p| (p.source.primitive, p.source.triangle))
+        .collect();
     assert_eq!(prims, [(0, 0), (0, 1), (1, 0), (1, 1)]);
     assert!((scene.normalisation.center.z - 7.0).abs() < 1e-12);
     // Every triangle faces +Z: strips and fans keep the winding.
@@ -235,14 +336,26 @@ fn the_default_scene_is_chosen() {
 #[test]
 fn zero_area_triangles_are_dropped_and_counted() {
     let mut d = Doc::new();
-    let pts = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [2.0, 0.0, 0.0]];
+    let pts = [
+        [0.0, 0.0, 0.0],
+        [1.0, 0.0, 0.0],
+        [0.0, 1.0, 0.0],
+        [2.0, 0.0, 0.0],
+    ];
     let mesh = d.mesh(&pts, Some(&[0, 1, 2, 0, 1, 3, 2, 2, 1]), None);
     let n = d.node(json!({"mesh": mesh}));
     d.scene(&[n]);
     let scene = load_ok(&d);
     assert_eq!(scene.patches.len(), 1);
     assert_eq!(scene.summary().triangles, 1);
-    assert!(scene.warnings.iter().any(|w| w.contains("dropped 2 zero-area")), "{:?}", scene.warnings);
+    assert!(
+        scene
+            .warnings
+            .iter()
+            .any(|w| w.contains("dropped 2 zero-area")),
+        "{:?}",
+        scene.warnings
+    );
     // The bounds ignore vertices only dropped triangles use.
     assert!((scene.normalisation.center.x - 0.5).abs() < 1e-12);
 }
@@ -261,9 +374,20 @@ fn a_scene_of_any_size_and_place_normalises_to_the_same_geometry() {
     for (scale, offset) in [(1e-4, 0.0), (1e5, 0.0), (1.0, 1e6), (1e-3, -1e6)] {
         let scene = make(scale, offset);
         // The scale goes through f32 in the file: relative 1e-7.
-        assert!((scene.normalisation.radius / reference.normalisation.radius / scale - 1.0).abs() < 1e-6);
-        for (a, b) in scene.statics.positions.iter().zip(&reference.statics.positions) {
-            assert!(a.abs_diff_eq(*b, 1e-6), "scale {scale} offset {offset}: {a} vs {b}");
+        assert!(
+            (scene.normalisation.radius / reference.normalisation.radius / scale - 1.0).abs()
+                < 1e-6
+        );
+        for (a, b) in scene
+            .statics
+            .positions
+            .iter()
+            .zip(&reference.statics.positions)
+        {
+            assert!(
+                a.abs_diff_eq(*b, 1e-6),
+                "scale {scale} offset {offset}: {a} vs {b}"
+            );
         }
         let area: f64 = scene.patches.iter().map(|p| p.area).sum();
         assert!((area / (scale * scale) - 2.0).abs() < 1e-6);
@@ -278,7 +402,10 @@ fn malformed_files_are_refused_naming_the_object() {
     let n = d.node(json!({"mesh": mesh}));
     d.scene(&[n]);
     let e = err(&d.gltf(), &opts());
-    assert!(e.contains("mesh 0 primitive 0") && e.contains("index 9"), "{e}");
+    assert!(
+        e.contains("mesh 0 primitive 0") && e.contains("index 9"),
+        "{e}"
+    );
 
     // An accessor reaching past its buffer view.
     let mut d = Doc::new();
@@ -305,7 +432,11 @@ fn malformed_files_are_refused_naming_the_object() {
 
     // Non-finite positions.
     let mut d = Doc::new();
-    let mesh = d.mesh(&[[0.0, 0.0, 0.0], [f32::NAN, 0.0, 0.0], [0.0, 1.0, 0.0]], None, None);
+    let mesh = d.mesh(
+        &[[0.0, 0.0, 0.0], [f32::NAN, 0.0, 0.0], [0.0, 1.0, 0.0]],
+        None,
+        None,
+    );
     let n = d.node(json!({"mesh": mesh}));
     d.scene(&[n]);
     let e = err(&d.gltf(), &opts());
@@ -316,7 +447,10 @@ fn malformed_files_are_refused_naming_the_object() {
     let bad = d.floats(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0], "VEC3");
     d.json["animations"][0]["samplers"][0]["output"] = json!(bad);
     let e = err(&d.gltf(), &opts());
-    assert!(e.contains("animation 0 sampler 0") && e.contains("3 input keys"), "{e}");
+    assert!(
+        e.contains("animation 0 sampler 0") && e.contains("3 input keys"),
+        "{e}"
+    );
 
     // A dangling reference, caught by validation.
     let mut d = three_quads();
@@ -342,7 +476,10 @@ fn external_uris_are_refused_for_buffers_and_images() {
 
     let image = d.push("images", json!({"uri": "file:///etc/passwd"}));
     let texture = d.push("textures", json!({"source": image}));
-    d.push("materials", json!({"pbrMetallicRoughness": {"baseColorTexture": {"index": texture}}}));
+    d.push(
+        "materials",
+        json!({"pbrMetallicRoughness": {"baseColorTexture": {"index": texture}}}),
+    );
     d.json["meshes"][0]["primitives"][0]["material"] = json!(0);
     let e = err(&d.gltf(), &opts());
     assert!(e.contains("image 0") && e.contains("external URI"), "{e}");
@@ -354,7 +491,9 @@ fn morph_targets_and_skins_from_the_khronos_samples_deform() {
     let morph = std::fs::read(dir.join("SimpleMorph.gltf")).unwrap();
     let scene = load(&morph, &opts()).unwrap();
     assert_eq!(scene.objects.len(), 1);
-    let Motion::Deforming(_) = &scene.objects[0].motion else { panic!("not deforming") };
+    let Motion::Deforming(_) = &scene.objects[0].motion else {
+        panic!("not deforming")
+    };
     assert_eq!(scene.frames.count, 97); // weights animated over 0–4 s
     // The triangle (0,0,0) (1,0,0) (0.5,0.5,0); target 0 moves vertex 2 by (−1, 1, 0), target 1
     // by (1, 1, 0); the weights are (0,0) (0,1) (1,1) (1,0) (0,0) at t = 0..4 s, LINEAR.
@@ -366,7 +505,11 @@ fn morph_targets_and_skins_from_the_khronos_samples_deform() {
         (36, DVec3::new(1.0, 2.0, 0.0)), // weights (0.5, 1)
         (72, DVec3::new(-0.5, 1.5, 0.0)),
     ] {
-        assert!(vertex2(frame).abs_diff_eq(expected, 1e-5), "frame {frame}: {}", vertex2(frame));
+        assert!(
+            vertex2(frame).abs_diff_eq(expected, 1e-5),
+            "frame {frame}: {}",
+            vertex2(frame)
+        );
     }
 
     let skin = std::fs::read(dir.join("SimpleSkin.gltf")).unwrap();
@@ -374,7 +517,10 @@ fn morph_targets_and_skins_from_the_khronos_samples_deform() {
     assert_eq!(scene.objects.len(), 1);
     assert!(!scene.objects[0].is_rigid());
     assert_eq!(scene.frames.count, 133);
-    let (a, b) = (scene.objects[0].positions_at(0), scene.objects[0].positions_at(24));
+    let (a, b) = (
+        scene.objects[0].positions_at(0),
+        scene.objects[0].positions_at(24),
+    );
     // At t = 1 s the second joint is turned 90°: the root vertices stay, the top ones move.
     assert!(a[0].abs_diff_eq(b[0], 1e-6));
     assert!(a.iter().zip(&b).any(|(p, q)| p.distance(*q) > 0.05));

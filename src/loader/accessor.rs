@@ -217,7 +217,10 @@ pub fn read(document: &Document, buffers: &[Vec<u8>], index: usize) -> Result<El
             )
             .map_err(bad)?;
         }
-        None => match count.checked_mul(width).filter(|&n| n <= MAX_VIEWLESS_VALUES) {
+        None => match count
+            .checked_mul(width)
+            .filter(|&n| n <= MAX_VIEWLESS_VALUES)
+        {
             Some(n) => values.resize(n, 0.0),
             None => {
                 return Err(bad(format!(

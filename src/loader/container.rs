@@ -28,8 +28,10 @@ pub fn parse(bytes: &[u8]) -> Result<Container, LoadError> {
     } else {
         (bytes, None)
     };
-    let gltf = gltf::Gltf::from_slice(json).map_err(describe_gltf_error)?;
-    let document = gltf.document;
+    let root = gltf::json::Root::from_slice(json)
+        .map_err(|e| LoadError::Container(format!("invalid JSON: {e}")))?;
+    precheck(&root)?;
+    let document = Document::from_json(root).map_err(describe_gltf_error)?;
     let mut buffers = Vec::with_capacity(document.buffers().len());
     for buffer in document.buffers() {
         let what = || format!("buffer {}", buffer.index());
@@ -56,6 +58,46 @@ pub fn parse(bytes: &[u8]) -> Result<Container, LoadError> {
         buffers.push(data);
     }
     Ok(Container { document, buffers })
+}
+
+/// Checks what the `gltf` crate's validation (gltf-json 1.4.1) gets wrong: it indexes the
+/// accessor of each POSITION attribute before checking that it exists, and it never validates
+/// animation channel targets, whose getters then unwrap. Both would panic on a hostile file.
+fn precheck(root: &gltf::json::Root) -> Result<(), LoadError> {
+    use gltf::json::validation::Checked;
+    let position = Checked::Valid(gltf::json::mesh::Semantic::Positions);
+    for (m, mesh) in root.meshes.iter().enumerate() {
+        for (p, primitive) in mesh.primitives.iter().enumerate() {
+            if let Some(index) = primitive.attributes.get(&position) {
+                if index.value() >= root.accessors.len() {
+                    return Err(LoadError::Validation(format!(
+                        "meshes[{m}].primitives[{p}].attributes[\"POSITION\"]: index {} out of \
+                         range ({} accessors)",
+                        index.value(),
+                        root.accessors.len()
+                    )));
+                }
+            }
+        }
+    }
+    for (a, animation) in root.animations.iter().enumerate() {
+        for (c, channel) in animation.channels.iter().enumerate() {
+            let path = format!("animations[{a}].channels[{c}].target");
+            if channel.target.node.value() >= root.nodes.len() {
+                return Err(LoadError::Validation(format!(
+                    "{path}.node: index {} out of range ({} nodes)",
+                    channel.target.node.value(),
+                    root.nodes.len()
+                )));
+            }
+            if !matches!(channel.target.path, Checked::Valid(_)) {
+                return Err(LoadError::Validation(format!(
+                    "{path}.path: not one of translation, rotation, scale, weights"
+                )));
+            }
+        }
+    }
+    Ok(())
 }
 
 /// Splits a GLB file into its JSON chunk and optional binary chunk (glTF 2.0 §4.4), checking

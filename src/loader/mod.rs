@@ -198,9 +198,10 @@ pub fn load(bytes: &[u8], options: &LoadOptions) -> Result<Scene, LoadError> {
     let mut budget = Budget(options.max_work);
     let animated = nodes::animated(&hierarchy, &timeline.tracks);
     let frame_count = timeline.frames.count as u64;
-    budget.spend(animated.iter().filter(|a| **a).count() as u64 * frame_count, || {
-        format!("animating the scene's nodes over {frame_count} frames")
-    })?;
+    budget.spend(
+        animated.iter().filter(|a| **a).count() as u64 * frame_count,
+        || format!("animating the scene's nodes over {frame_count} frames"),
+    )?;
     let poses = nodes::evaluate(&hierarchy, &timeline, &animated, &wanted);
     let frames = timeline.frames;
 

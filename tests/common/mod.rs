@@ -1,6 +1,5 @@
 //! A tiny glTF writer for tests: build a document piece by piece, get `.gltf` or `.glb` bytes.
 
-
 use base64::Engine as _;
 use serde_json::{Value, json};
 
@@ -86,7 +85,10 @@ impl Doc {
     pub fn indices(&mut self, data: &[u32], component: u32) -> usize {
         let bytes: Vec<u8> = match component {
             5121 => data.iter().map(|&v| v as u8).collect(),
-            5123 => data.iter().flat_map(|&v| (v as u16).to_le_bytes()).collect(),
+            5123 => data
+                .iter()
+                .flat_map(|&v| (v as u16).to_le_bytes())
+                .collect(),
             _ => data.iter().flat_map(|v| v.to_le_bytes()).collect(),
         };
         let view = self.view(&bytes);
@@ -97,7 +99,12 @@ impl Doc {
     }
 
     /// A mesh with one triangle primitive; returns the mesh index.
-    pub fn mesh(&mut self, positions: &[[f32; 3]], indices: Option<&[u32]>, material: Option<usize>) -> usize {
+    pub fn mesh(
+        &mut self,
+        positions: &[[f32; 3]],
+        indices: Option<&[u32]>,
+        material: Option<usize>,
+    ) -> usize {
         let flat: Vec<f32> = positions.iter().flatten().copied().collect();
         let pos = self.floats(&flat, "VEC3");
         let mut prim = json!({"attributes": {"POSITION": pos}});
@@ -123,7 +130,11 @@ impl Doc {
     }
 
     /// An animation with one channel per (node, path, times, values, interpolation).
-    pub fn animation(&mut self, name: &str, channels: &[(usize, &str, &[f32], &[f32], &str)]) -> usize {
+    pub fn animation(
+        &mut self,
+        name: &str,
+        channels: &[(usize, &str, &[f32], &[f32], &str)],
+    ) -> usize {
         let mut samplers = Vec::new();
         let mut chans = Vec::new();
         for (i, &(node, path, times, values, interp)) in channels.iter().enumerate() {
@@ -137,7 +148,10 @@ impl Doc {
             samplers.push(json!({"input": input, "output": output, "interpolation": interp}));
             chans.push(json!({"sampler": i, "target": {"node": node, "path": path}}));
         }
-        self.push("animations", json!({"name": name, "samplers": samplers, "channels": chans}))
+        self.push(
+            "animations",
+            json!({"name": name, "samplers": samplers, "channels": chans}),
+        )
     }
 
     fn with_buffer(&self, uri: Option<String>) -> Value {
@@ -189,5 +203,10 @@ impl Doc {
 }
 
 /// Corners of an axis-aligned quad in the XY plane facing +Z: two triangles.
-pub const QUAD: [[f32; 3]; 4] = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]];
+pub const QUAD: [[f32; 3]; 4] = [
+    [0.0, 0.0, 0.0],
+    [1.0, 0.0, 0.0],
+    [1.0, 1.0, 0.0],
+    [0.0, 1.0, 0.0],
+];
 pub const QUAD_INDICES: [u32; 6] = [0, 1, 2, 0, 2, 3];
