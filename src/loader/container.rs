@@ -68,15 +68,15 @@ fn precheck(root: &gltf::json::Root) -> Result<(), LoadError> {
     let position = Checked::Valid(gltf::json::mesh::Semantic::Positions);
     for (m, mesh) in root.meshes.iter().enumerate() {
         for (p, primitive) in mesh.primitives.iter().enumerate() {
-            if let Some(index) = primitive.attributes.get(&position) {
-                if index.value() >= root.accessors.len() {
-                    return Err(LoadError::Validation(format!(
-                        "meshes[{m}].primitives[{p}].attributes[\"POSITION\"]: index {} out of \
+            if let Some(index) = primitive.attributes.get(&position)
+                && index.value() >= root.accessors.len()
+            {
+                return Err(LoadError::Validation(format!(
+                    "meshes[{m}].primitives[{p}].attributes[\"POSITION\"]: index {} out of \
                          range ({} accessors)",
-                        index.value(),
-                        root.accessors.len()
-                    )));
-                }
+                    index.value(),
+                    root.accessors.len()
+                )));
             }
         }
     }

@@ -205,18 +205,16 @@ pub fn load(bytes: &[u8], options: &LoadOptions) -> Result<Scene, LoadError> {
     let poses = nodes::evaluate(&hierarchy, &timeline, &animated, &wanted);
     let frames = timeline.frames;
 
+    let cx = Context {
+        document: &document,
+        buffers: &buffers,
+        poses: &poses,
+        frames,
+        default_material,
+    };
     let mut instances = Vec::with_capacity(mesh_nodes.len());
     for node in &mesh_nodes {
-        instances.push(place(
-            &document,
-            &buffers,
-            node,
-            &poses,
-            frames,
-            default_material,
-            &mut budget,
-            &mut warnings,
-        )?);
+        instances.push(place(&cx, node, &mut budget, &mut warnings)?);
     }
     if !materials_used(&instances, default_material) {
         materials.pop();
@@ -273,16 +271,29 @@ fn same_matrix(a: &DMat4, b: &DMat4) -> bool {
     a.abs_diff_eq(*b, STILL * scale)
 }
 
-fn place(
-    document: &gltf::Document,
-    buffers: &[Vec<u8>],
-    node: &gltf::Node<'_>,
-    poses: &nodes::Poses,
+/// What placing a mesh node needs to know of the file and its timeline.
+struct Context<'a> {
+    document: &'a gltf::Document,
+    buffers: &'a [Vec<u8>],
+    poses: &'a nodes::Poses,
     frames: Frames,
+    /// Material index of primitives without a material.
     default_material: u32,
+}
+
+fn place(
+    cx: &Context<'_>,
+    node: &gltf::Node<'_>,
     budget: &mut Budget,
     warnings: &mut Vec<String>,
 ) -> Result<Instance, LoadError> {
+    let Context {
+        document,
+        buffers,
+        poses,
+        frames,
+        default_material,
+    } = *cx;
     let Some(gmesh) = node.mesh() else {
         return Err(LoadError::malformed(
             format!("node {}", node.index()),

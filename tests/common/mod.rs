@@ -3,6 +3,9 @@
 use base64::Engine as _;
 use serde_json::{Value, json};
 
+/// One animation channel: (node, path, key times, values, interpolation).
+pub type Channel<'a> = (usize, &'a str, &'a [f32], &'a [f32], &'a str);
+
 /// A glTF document under construction with one binary buffer.
 pub struct Doc {
     /// The JSON, without `buffers` (added when written).
@@ -41,7 +44,7 @@ impl Doc {
     }
 
     fn view(&mut self, bytes: &[u8]) -> usize {
-        while self.bin.len() % 4 != 0 {
+        while !self.bin.len().is_multiple_of(4) {
             self.bin.push(0);
         }
         let offset = self.bin.len();
@@ -130,11 +133,7 @@ impl Doc {
     }
 
     /// An animation with one channel per (node, path, times, values, interpolation).
-    pub fn animation(
-        &mut self,
-        name: &str,
-        channels: &[(usize, &str, &[f32], &[f32], &str)],
-    ) -> usize {
+    pub fn animation(&mut self, name: &str, channels: &[Channel<'_>]) -> usize {
         let mut samplers = Vec::new();
         let mut chans = Vec::new();
         for (i, &(node, path, times, values, interp)) in channels.iter().enumerate() {
@@ -178,11 +177,11 @@ impl Doc {
     /// The document as `.glb`.
     pub fn glb(&self) -> Vec<u8> {
         let mut json = serde_json::to_vec(&self.with_buffer(None)).unwrap();
-        while json.len() % 4 != 0 {
+        while !json.len().is_multiple_of(4) {
             json.push(b' ');
         }
         let mut bin = self.bin.clone();
-        while bin.len() % 4 != 0 {
+        while !bin.len().is_multiple_of(4) {
             bin.push(0);
         }
         let mut out = Vec::new();
