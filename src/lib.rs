@@ -8,10 +8,18 @@
 //!   the frames, decides what is static and what moves, normalises to the bounding sphere.
 //! - [`scene`]: the engine's scene model: patches, static triangles, moving objects, frames. It
 //!   knows nothing of glTF or HTTP.
+//! - [`lines`]: global lines: bundles of parallel lines with uniformly distributed directions.
+//! - [`trace`]: every crossing of a line with the scene (obvhs BVHs, a watertight
+//!   line–triangle test).
+//! - [`timeline`]: the timeline's one intersection list (multiframe), frame extraction and the
+//!   scene statistics measured by the lines.
 //! - [`samples`]: the generator of the sample scenes in `scenes/`.
 //!
 //! The method is described in `METHOD.md` (shared with the team) and the README.
 
+pub mod lines;
 pub mod loader;
 pub mod samples;
 pub mod scene;
+pub mod timeline;
+pub mod trace;

@@ -16,7 +16,7 @@ use glam::{DAffine3, DMat4, DVec3, Vec3};
 
 use crate::scene::subdivide::{self, Subdivision, triangle_area};
 use crate::scene::{
-    Deformation, Faces, Frames, Material, Motion, MovingObject, Normalisation, Patch, Provenance,
+    Bounds, Deformation, Faces, Frames, Material, Motion, MovingObject, Normalisation, Patch, Provenance,
     Scene, Side, SkinBinding, TriangleMesh,
 };
 pub use animation::{Interpolation, Sampler};
@@ -502,8 +502,8 @@ fn keep_triangles(
     }
 }
 
-/// Bounding sphere (of the axis-aligned box) of every kept triangle over every frame.
-fn bounds(instances: &[Instance], frames: usize) -> Option<Normalisation> {
+/// Bounding box of every kept triangle over every frame, in scene units.
+fn bounds(instances: &[Instance], frames: usize) -> Option<Bounds> {
     let mut lo = DVec3::splat(f64::INFINITY);
     let mut hi = DVec3::splat(f64::NEG_INFINITY);
     let mut grow = |p: DVec3| {
@@ -515,16 +515,9 @@ fn bounds(instances: &[Instance], frames: usize) -> Option<Normalisation> {
         match &inst.placement {
             Placement::Static(p) => used.iter().for_each(|&v| grow(p[v])),
             Placement::Rigid(poses) => {
-                let (a, b) = local_box(&inst.geometry.positions, &used);
+                let local = local_box(&inst.geometry.positions, &used);
                 for pose in poses {
-                    for k in 0..8 {
-                        let corner = DVec3::new(
-                            if k & 1 == 0 { a.x } else { b.x },
-                            if k & 2 == 0 { a.y } else { b.y },
-                            if k & 4 == 0 { a.z } else { b.z },
-                        );
-                        grow(pose.transform_point3(corner));
-                    }
+                    local.corners().iter().for_each(|&c| grow(pose.transform_point3(c)));
                 }
             }
             Placement::Deforming(d) => {
@@ -535,14 +528,8 @@ fn bounds(instances: &[Instance], frames: usize) -> Option<Normalisation> {
             }
         }
     }
-    if lo.x > hi.x {
-        return None;
-    }
     let radius = 0.5 * (hi - lo).length();
-    (radius > 0.0 && radius.is_finite()).then(|| Normalisation {
-        center: 0.5 * (lo + hi),
-        radius,
-    })
+    (lo.x <= hi.x && radius > 0.0 && radius.is_finite()).then_some(Bounds { min: lo, max: hi })
 }
 
 /// Vertices referenced by kept triangles, sorted.
@@ -560,10 +547,16 @@ fn used_vertices(inst: &Instance) -> Vec<usize> {
     used
 }
 
-fn local_box(positions: &[DVec3], used: &[usize]) -> (DVec3, DVec3) {
+fn local_box(positions: &[DVec3], used: &[usize]) -> Bounds {
     used.iter().fold(
-        (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
-        |(lo, hi), &v| (lo.min(positions[v]), hi.max(positions[v])),
+        Bounds {
+            min: DVec3::INFINITY,
+            max: DVec3::NEG_INFINITY,
+        },
+        |b, &v| Bounds {
+            min: b.min.min(positions[v]),
+            max: b.max.max(positions[v]),
+        },
     )
 }
 
@@ -572,10 +565,14 @@ fn build(
     instances: Vec<Instance>,
     materials: Vec<Material>,
     frames: Frames,
-    normalisation: Normalisation,
+    bounds: Bounds,
     options: &LoadOptions,
     warnings: Vec<String>,
 ) -> Result<Scene, LoadError> {
+    let normalisation = Normalisation {
+        center: 0.5 * (bounds.min + bounds.max),
+        radius: 0.5 * (bounds.max - bounds.min).length(),
+    };
     let to_norm = normalisation.to_normalised();
     let to_norm_mat = DMat4::from(to_norm);
     let mut patches: Vec<Patch> = Vec::new();
@@ -595,6 +592,9 @@ fn build(
     };
     for inst in instances {
         let kept: Vec<usize> = (0..inst.kept.len()).filter(|&t| inst.kept[t]).collect();
+        if kept.is_empty() {
+            continue;
+        }
         source_triangles += kept.len();
         let triangles: Vec<[u32; 3]> = kept.iter().map(|&t| inst.geometry.triangles[t]).collect();
         // Positions (scene units) that decide the subdivision, and where areas are measured.
@@ -688,8 +688,8 @@ fn build(
             }
             Placement::Rigid(poses) => {
                 let used: Vec<usize> = (0..inst.geometry.positions.len()).collect();
-                let (lo, hi) = local_box(&inst.geometry.positions, &used);
-                let centre = 0.5 * (lo + hi);
+                let local_bounds = local_box(&inst.geometry.positions, &used);
+                let centre = 0.5 * (local_bounds.min + local_bounds.max);
                 let mut local = inst.geometry.positions.clone();
                 subdivide::apply_midpoints(&mut local, &split.midpoints);
                 mesh.positions = local.iter().map(|&p| (p - centre).as_vec3()).collect();
@@ -727,6 +727,10 @@ fn build(
         objects,
         frames,
         normalisation,
+        bounds: Bounds {
+            min: to_norm.transform_point3(bounds.min),
+            max: to_norm.transform_point3(bounds.max),
+        },
         source_triangles,
         warnings,
     })

@@ -279,6 +279,37 @@ impl Normalisation {
     }
 }
 
+/// An axis-aligned box.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Bounds {
+    /// Smallest corner.
+    pub min: DVec3,
+    /// Largest corner.
+    pub max: DVec3,
+}
+
+impl Bounds {
+    /// Surface area of the box (the `A(W)` of METHOD.md §1 when the box is the convex hull
+    /// lines are drawn against).
+    #[must_use]
+    pub fn surface_area(&self) -> f64 {
+        let d = self.max - self.min;
+        2.0 * (d.x * d.y + d.y * d.z + d.z * d.x)
+    }
+
+    /// The eight corners.
+    #[must_use]
+    pub fn corners(&self) -> [DVec3; 8] {
+        std::array::from_fn(|k| {
+            DVec3::new(
+                if k & 1 == 0 { self.min.x } else { self.max.x },
+                if k & 2 == 0 { self.min.y } else { self.max.y },
+                if k & 4 == 0 { self.min.z } else { self.max.z },
+            )
+        })
+    }
+}
+
 /// A loaded scene, ready for the engine.
 #[derive(Clone, Debug)]
 pub struct Scene {
@@ -294,6 +325,9 @@ pub struct Scene {
     pub frames: Frames,
     /// Scene units to normalised space.
     pub normalisation: Normalisation,
+    /// Box around all geometry over all frames, in normalised space (inside the unit sphere):
+    /// lines are drawn against it.
+    pub bounds: Bounds,
     /// Source triangles kept (before subdivision), for the summary.
     pub source_triangles: usize,
     /// Things the loader ignored or repaired, one line each.

@@ -1,0 +1,290 @@
+//! The timeline's intersection list (METHOD.md §5): one list of global-line crossings for the
+//! whole animation.
+//!
+//! Static geometry is intersected once; moving objects once per frame, each crossing tagged with
+//! its frame. The crossings of frame f along a line are the static ones plus those tagged f, in
+//! order along the line ([`IntersectionList::frame_hits`]). Storage is two CSR arrays (one offset
+//! per line, hits of all lines in one array): 8 bytes per static crossing, 12 per moving one.
+//! Memory grows with the static crossings plus the moving crossings summed over frames, never
+//! with frames × scene.
+
+pub mod stats;
+
+use rayon::prelude::*;
+
+use crate::lines::{Batch, Bundle};
+use crate::scene::Scene;
+use crate::trace::{FrameMeshes, Hit, Line, SceneTracer};
+
+/// How many lines to trace, and from which seed.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LineParams {
+    /// Total number of lines (approximately: the grids' random offsets move it by a fraction of
+    /// a percent).
+    pub lines: u64,
+    /// Number of bundles (directions); defaults to √lines.
+    pub bundles: Option<u32>,
+    /// Seed of the line set: the same seed gives the same lines, whatever the thread count.
+    pub seed: u64,
+}
+
+/// A crossing with a moving object, tagged with its frame: 12 bytes.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FrameHit {
+    /// The frame the crossing belongs to.
+    pub frame: u32,
+    /// The crossing.
+    pub hit: Hit,
+}
+
+/// The list would hold more crossings than its 32-bit offsets address (about 32 GiB of
+/// crossings: far beyond any memory budget, so a caller's budget check comes first).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("more than 2^32 crossings in one intersection list: use fewer lines")]
+pub struct TooManyHits;
+
+/// A batch of lines in the list and where its lines start.
+#[derive(Clone, Debug)]
+struct BatchLines {
+    batch: Batch,
+    /// Number of lines of each bundle, in bundle order.
+    bundle_lines: Vec<u32>,
+}
+
+/// The intersection list of a timeline.
+pub struct IntersectionList {
+    batches: Vec<BatchLines>,
+    frames: usize,
+    /// `static_hits[static_offsets[l]..static_offsets[l + 1]]` are line l's static crossings,
+    /// sorted along the line.
+    static_offsets: Vec<u32>,
+    static_hits: Vec<Hit>,
+    /// `dynamic_hits[dynamic_offsets[l]..dynamic_offsets[l + 1]]` are line l's moving crossings,
+    /// sorted by frame, then along the line.
+    dynamic_offsets: Vec<u32>,
+    dynamic_hits: Vec<FrameHit>,
+}
+
+/// What the list holds and the memory it takes.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct Memory {
+    /// Lines in the list.
+    pub lines: usize,
+    /// Crossings with static geometry (stored once for all frames).
+    pub static_hits: usize,
+    /// Crossings with moving objects, summed over frames.
+    pub moving_hits: usize,
+    /// Bytes of all the arrays.
+    pub bytes: usize,
+}
+
+impl Memory {
+    /// Bytes per stored crossing, offsets included.
+    #[must_use]
+    pub fn bytes_per_hit(&self) -> f64 {
+        self.bytes as f64 / (self.static_hits + self.moving_hits).max(1) as f64
+    }
+}
+
+impl IntersectionList {
+    /// Traces a first batch of lines through the whole timeline of `scene`.
+    pub fn build(scene: &Scene, tracer: &SceneTracer, params: &LineParams) -> Result<Self, TooManyHits> {
+        let mut list = Self {
+            batches: Vec::new(),
+            frames: scene.frames.count,
+            static_offsets: vec![0],
+            static_hits: Vec::new(),
+            dynamic_offsets: vec![0],
+            dynamic_hits: Vec::new(),
+        };
+        list.add_lines(scene, tracer, params)?;
+        Ok(list)
+    }
+
+    /// Traces another batch of lines (progressive refinement): the lines already traced are
+    /// kept as they are. Batch `i` of a list uses the seed's `i`-th independent rotation.
+    pub fn add_lines(
+        &mut self,
+        scene: &Scene,
+        tracer: &SceneTracer,
+        params: &LineParams,
+    ) -> Result<(), TooManyHits> {
+        let index = self.batches.len() as u32;
+        let batch = Batch::for_budget(params.lines, params.bundles, &scene.bounds, params.seed, index);
+        let bundles: Vec<Bundle> = (0..batch.bundles)
+            .into_par_iter()
+            .map(|k| batch.bundle(k, &scene.bounds))
+            .collect();
+
+        let traced: Vec<(Vec<u32>, Vec<Hit>)> = bundles
+            .par_iter()
+            .map(|bundle| {
+                let mut counts = Vec::with_capacity(bundle.origins.len());
+                let mut hits = Vec::new();
+                for line in lines_of(bundle) {
+                    let start = hits.len();
+                    tracer.trace_static(&line, &mut hits);
+                    hits[start..].sort_unstable_by(Hit::order);
+                    counts.push((hits.len() - start) as u32);
+                }
+                (counts, hits)
+            })
+            .collect();
+        for (counts, hits) in &traced {
+            append_csr(&mut self.static_offsets, counts)?;
+            self.static_hits.extend_from_slice(hits);
+        }
+        drop(traced);
+
+        // Moving objects, frame by frame: per bundle, (line within bundle, crossing) in frame
+        // order, then grouped by line with a stable sort.
+        let mut moving: Vec<Vec<(u32, FrameHit)>> = vec![Vec::new(); bundles.len()];
+        if !scene.objects.is_empty() {
+            for frame in 0..self.frames {
+                let deformed = tracer.deformed_at(scene, frame);
+                let traced: Vec<Vec<(u32, FrameHit)>> = bundles
+                    .par_iter()
+                    .map(|bundle| trace_moving_bundle(tracer, bundle, frame, &deformed))
+                    .collect();
+                for (all, new) in moving.iter_mut().zip(traced) {
+                    all.extend(new);
+                }
+            }
+        }
+        for (bundle, mut hits) in bundles.iter().zip(moving) {
+            hits.sort_by_key(|&(line, _)| line);
+            let mut counts = vec![0u32; bundle.origins.len()];
+            hits.iter().for_each(|&(line, _)| counts[line as usize] += 1);
+            append_csr(&mut self.dynamic_offsets, &counts)?;
+            self.dynamic_hits.extend(hits.into_iter().map(|(_, h)| h));
+        }
+        self.batches.push(BatchLines {
+            batch,
+            bundle_lines: bundles.iter().map(|b| b.origins.len() as u32).collect(),
+        });
+        Ok(())
+    }
+
+    /// Number of lines.
+    #[must_use]
+    pub fn lines(&self) -> usize {
+        self.static_offsets.len() - 1
+    }
+
+    /// Number of frames of the timeline.
+    #[must_use]
+    pub fn frames(&self) -> usize {
+        self.frames
+    }
+
+    /// The batches of lines, in the order their lines are numbered.
+    #[must_use]
+    pub fn batches(&self) -> Vec<Batch> {
+        self.batches.iter().map(|b| b.batch).collect()
+    }
+
+    /// The static crossings of `line`, sorted along it.
+    #[must_use]
+    pub fn static_hits(&self, line: usize) -> &[Hit] {
+        &self.static_hits[self.static_offsets[line] as usize..self.static_offsets[line + 1] as usize]
+    }
+
+    /// The moving crossings of `line` at every frame, sorted by frame then along the line.
+    #[must_use]
+    pub fn moving_hits(&self, line: usize) -> &[FrameHit] {
+        &self.dynamic_hits[self.dynamic_offsets[line] as usize..self.dynamic_offsets[line + 1] as usize]
+    }
+
+    /// The crossings of `line` at `frame`, sorted along the line, into `out` (cleared first):
+    /// the static crossings merged with the moving ones tagged `frame`.
+    pub fn frame_hits(&self, line: usize, frame: usize, out: &mut Vec<Hit>) {
+        out.clear();
+        let statics = self.static_hits(line);
+        let moving = self.moving_hits(line);
+        let frame = frame as u32;
+        let start = moving.partition_point(|h| h.frame < frame);
+        let end = start + moving[start..].partition_point(|h| h.frame == frame);
+        let moving = &moving[start..end];
+        let (mut i, mut j) = (0, 0);
+        while i < statics.len() && j < moving.len() {
+            if Hit::order(&statics[i], &moving[j].hit).is_le() {
+                out.push(statics[i]);
+                i += 1;
+            } else {
+                out.push(moving[j].hit);
+                j += 1;
+            }
+        }
+        out.extend_from_slice(&statics[i..]);
+        out.extend(moving[j..].iter().map(|h| h.hit));
+    }
+
+    /// The lines of the list, regenerated from their batches (they are not stored), in line
+    /// order.
+    pub fn regenerate_lines<'a>(&'a self, scene: &'a Scene) -> impl Iterator<Item = Line> + 'a {
+        self.batches.iter().flat_map(move |b| {
+            (0..b.batch.bundles).flat_map(move |k| {
+                let bundle = b.batch.bundle(k, &scene.bounds);
+                debug_assert_eq!(bundle.origins.len(), b.bundle_lines[k as usize] as usize);
+                lines_of(&bundle).collect::<Vec<_>>()
+            })
+        })
+    }
+
+    /// What the list holds and its size in bytes.
+    #[must_use]
+    pub fn memory(&self) -> Memory {
+        use std::mem::size_of;
+        Memory {
+            lines: self.lines(),
+            static_hits: self.static_hits.len(),
+            moving_hits: self.dynamic_hits.len(),
+            bytes: (self.static_offsets.len() + self.dynamic_offsets.len()) * size_of::<u32>()
+                + self.static_hits.len() * size_of::<Hit>()
+                + self.dynamic_hits.len() * size_of::<FrameHit>(),
+        }
+    }
+}
+
+/// The lines of a bundle.
+fn lines_of(bundle: &Bundle) -> impl Iterator<Item = Line> + '_ {
+    bundle.origins.iter().map(|&origin| Line {
+        origin,
+        direction: bundle.direction,
+    })
+}
+
+fn trace_moving_bundle(
+    tracer: &SceneTracer,
+    bundle: &Bundle,
+    frame: usize,
+    deformed: &FrameMeshes,
+) -> Vec<(u32, FrameHit)> {
+    let mut out = Vec::new();
+    let mut scratch = Vec::new();
+    for (i, line) in lines_of(bundle).enumerate() {
+        scratch.clear();
+        tracer.trace_moving(&line, frame, deformed, &mut scratch);
+        scratch.sort_unstable_by(Hit::order);
+        out.extend(scratch.iter().map(|&hit| {
+            (
+                i as u32,
+                FrameHit {
+                    frame: frame as u32,
+                    hit,
+                },
+            )
+        }));
+    }
+    out
+}
+
+/// Appends one offset per count to a CSR offset array.
+fn append_csr(offsets: &mut Vec<u32>, counts: &[u32]) -> Result<(), TooManyHits> {
+    let mut last = *offsets.last().unwrap_or(&0);
+    for &c in counts {
+        last = last.checked_add(c).ok_or(TooManyHits)?;
+        offsets.push(last);
+    }
+    Ok(())
+}

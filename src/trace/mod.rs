@@ -1,0 +1,286 @@
+//! Tracing global lines through the scene: every crossing along a line, not just the first.
+//!
+//! One BVH (obvhs) over the static triangles; one per rigid moving object, in the object's own
+//! space, traced by moving the line into that space at each frame; deforming objects get a BVH
+//! per frame ([`FrameMeshes`]). Each crossing is a [`Hit`]: where along the line, which traced
+//! triangle, and from which side.
+
+pub mod triangle;
+
+use std::time::Duration;
+
+use glam::{Affine3A, DAffine3, Vec3, Vec3A};
+use obvhs::BvhBuildParams;
+use obvhs::aabb::Aabb;
+use obvhs::bvh2::Bvh2;
+use obvhs::bvh2::builder::build_bvh2;
+use obvhs::ray::Ray;
+
+use crate::lines::LINE_LENGTH;
+use crate::scene::{Faces, Motion, Scene};
+use triangle::ShearedLine;
+
+/// One crossing of a line with a traced triangle: 8 bytes.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Hit {
+    /// Distance along the line from its starting point (normalised units).
+    pub t: f32,
+    /// The traced triangle (its global index, see [`SceneTracer::faces`]) in the low 31 bits;
+    /// the top bit is set when the line arrives at the triangle's back face.
+    code: u32,
+}
+
+const BACK: u32 = 1 << 31;
+
+impl Hit {
+    /// A crossing of triangle `surface` at `t`, arriving at its front face if `front`.
+    #[must_use]
+    pub fn new(t: f32, surface: u32, front: bool) -> Self {
+        debug_assert!(surface < BACK);
+        Self {
+            t,
+            code: surface | if front { 0 } else { BACK },
+        }
+    }
+
+    /// The traced triangle crossed.
+    #[must_use]
+    pub fn surface(self) -> u32 {
+        self.code & !BACK
+    }
+
+    /// Whether the line arrives at the triangle's front face (travelling against its normal).
+    #[must_use]
+    pub fn front(self) -> bool {
+        self.code & BACK == 0
+    }
+
+    /// Orders hits along the line; equal distances (coincident surfaces) by triangle, so the
+    /// order never depends on traversal order.
+    #[must_use]
+    pub fn order(a: &Self, b: &Self) -> std::cmp::Ordering {
+        a.t.total_cmp(&b.t).then(a.code.cmp(&b.code))
+    }
+}
+
+/// A line to trace: a starting point and a unit direction, running [`LINE_LENGTH`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Line {
+    /// Starting point, outside the scene.
+    pub origin: Vec3,
+    /// Unit direction.
+    pub direction: Vec3,
+}
+
+/// Triangles with a BVH over them, in BVH order.
+pub struct TraceMesh {
+    /// Triangle corners, in the BVH's primitive order.
+    corners: Vec<[Vec3; 3]>,
+    /// Global triangle index of each, in the same order.
+    ids: Vec<u32>,
+    bvh: Bvh2,
+}
+
+/// Boxes are padded by this much (normalised units, the scale of the whole scene being 1) so
+/// that the BVH's float slab test never misses a triangle that a line touches at the edge of
+/// its box.
+const BOX_PADDING: f32 = 1e-6;
+
+impl TraceMesh {
+    /// Builds a BVH over `triangles` (corners in any space), which have global indices
+    /// `first_id..`. `None` when there are no triangles.
+    #[must_use]
+    pub fn new(triangles: impl Iterator<Item = [Vec3; 3]>, first_id: u32) -> Option<Self> {
+        let corners: Vec<[Vec3; 3]> = triangles.collect();
+        if corners.is_empty() {
+            return None;
+        }
+        let pad = Vec3A::splat(BOX_PADDING);
+        let boxes: Vec<Aabb> = corners
+            .iter()
+            .map(|c| {
+                let (lo, hi) = (c[0].min(c[1]).min(c[2]), c[0].max(c[1]).max(c[2]));
+                Aabb::new(Vec3A::from(lo) - pad, Vec3A::from(hi) + pad)
+            })
+            .collect();
+        let mut build_time = Duration::ZERO;
+        let bvh = build_bvh2(&boxes, BvhBuildParams::medium_build(), &mut build_time);
+        let order = &bvh.primitive_indices;
+        Some(Self {
+            corners: order.iter().map(|&i| corners[i as usize]).collect(),
+            ids: order.iter().map(|&i| first_id + i).collect(),
+            bvh,
+        })
+    }
+
+    /// Appends every crossing of the line `origin + t·direction`, `0 < t < LINE_LENGTH`, in
+    /// traversal order.
+    pub fn trace(&self, origin: Vec3, direction: Vec3, out: &mut Vec<Hit>) {
+        let sheared = ShearedLine::new(origin, direction);
+        let ray = Ray::new(origin.into(), direction.into(), 0.0, LINE_LENGTH);
+        self.bvh.ray_traverse_anyhit(ray, |_, k| {
+            let [a, b, c] = self.corners[k];
+            if let Some((t, front)) = sheared.intersect(a, b, c, LINE_LENGTH) {
+                out.push(Hit::new(t, self.ids[k], front));
+            }
+        });
+    }
+
+    /// The same crossings found by testing every triangle, for checking the BVH path.
+    pub fn trace_brute_force(&self, origin: Vec3, direction: Vec3, out: &mut Vec<Hit>) {
+        let sheared = ShearedLine::new(origin, direction);
+        for (k, &[a, b, c]) in self.corners.iter().enumerate() {
+            if let Some((t, front)) = sheared.intersect(a, b, c, LINE_LENGTH) {
+                out.push(Hit::new(t, self.ids[k], front));
+            }
+        }
+    }
+}
+
+/// A rigid moving object ready for tracing: its BVH in object space and, per frame, the map from
+/// normalised space into object space.
+struct RigidTracer {
+    mesh: TraceMesh,
+    /// Normalised space to object space per frame; `None` where the pose is singular (scaled
+    /// to nothing), which no line can hit.
+    inverse: Vec<Option<Affine3A>>,
+}
+
+/// Everything needed to trace lines through a scene at any frame.
+pub struct SceneTracer {
+    /// The static triangles, global indices `0..statics`.
+    statics: Option<TraceMesh>,
+    /// Per moving object: its tracer if rigid and not empty (deforming objects are in
+    /// [`FrameMeshes`]).
+    rigid: Vec<Option<RigidTracer>>,
+    /// First global triangle index of each moving object.
+    first_ids: Vec<u32>,
+    /// The faces (patches) of every traced triangle, by global index.
+    faces: Vec<Faces>,
+}
+
+impl SceneTracer {
+    /// Builds the BVHs of the static geometry and of every rigid object.
+    #[must_use]
+    pub fn new(scene: &Scene) -> Self {
+        let statics = &scene.statics;
+        let corners = |positions: &[Vec3], t: &[u32; 3]| t.map(|i| positions[i as usize]);
+        let mut faces = statics.faces.clone();
+        let mut first_ids = Vec::with_capacity(scene.objects.len());
+        let mut rigid = Vec::with_capacity(scene.objects.len());
+        for object in &scene.objects {
+            let first = faces.len() as u32;
+            first_ids.push(first);
+            faces.extend_from_slice(&object.mesh.faces);
+            rigid.push(match &object.motion {
+                Motion::Rigid { poses } => TraceMesh::new(
+                    object.mesh.triangles.iter().map(|t| corners(&object.mesh.positions, t)),
+                    first,
+                )
+                .map(|mesh| RigidTracer {
+                    mesh,
+                    inverse: poses.iter().map(invert).collect(),
+                }),
+                Motion::Deforming(_) => None,
+            });
+        }
+        Self {
+            statics: TraceMesh::new(
+                statics.triangles.iter().map(|t| corners(&statics.positions, t)),
+                0,
+            ),
+            rigid,
+            first_ids,
+            faces,
+        }
+    }
+
+    /// The faces of every traced triangle, indexed by [`Hit::surface`].
+    #[must_use]
+    pub fn faces(&self) -> &[Faces] {
+        &self.faces
+    }
+
+    /// Number of traced triangles (static and moving).
+    #[must_use]
+    pub fn surfaces(&self) -> usize {
+        self.faces.len()
+    }
+
+    /// Appends the crossings of `line` with the static geometry.
+    pub fn trace_static(&self, line: &Line, out: &mut Vec<Hit>) {
+        if let Some(mesh) = &self.statics {
+            mesh.trace(line.origin, line.direction, out);
+        }
+    }
+
+    /// Appends the crossings of `line` with the moving objects as posed at `frame`; `deformed`
+    /// holds the deforming objects' meshes for that frame.
+    pub fn trace_moving(&self, line: &Line, frame: usize, deformed: &FrameMeshes, out: &mut Vec<Hit>) {
+        for rigid in self.rigid.iter().flatten() {
+            if let Some(inv) = rigid.inverse[frame] {
+                let origin = inv.transform_point3(line.origin);
+                let direction = inv.transform_vector3(line.direction);
+                rigid.mesh.trace(origin, direction, out);
+            }
+        }
+        for mesh in deformed.meshes.iter().flatten() {
+            mesh.trace(line.origin, line.direction, out);
+        }
+    }
+
+    /// Every crossing of `line` with the scene as posed at `frame`, sorted along the line: the
+    /// scene traced alone at one frame.
+    pub fn trace_frame(&self, line: &Line, frame: usize, deformed: &FrameMeshes, out: &mut Vec<Hit>) {
+        out.clear();
+        self.trace_static(line, out);
+        self.trace_moving(line, frame, deformed, out);
+        out.sort_unstable_by(Hit::order);
+    }
+
+    /// Builds the BVHs of the deforming objects posed at `frame` (none if nothing deforms).
+    #[must_use]
+    pub fn deformed_at(&self, scene: &Scene, frame: usize) -> FrameMeshes {
+        let meshes = scene
+            .objects
+            .iter()
+            .zip(&self.first_ids)
+            .map(|(object, &first)| match object.motion {
+                Motion::Deforming(_) => {
+                    let positions = object.positions_at(frame);
+                    TraceMesh::new(
+                        object.mesh.triangles.iter().map(|t| t.map(|i| positions[i as usize])),
+                        first,
+                    )
+                }
+                Motion::Rigid { .. } => None,
+            })
+            .collect();
+        FrameMeshes { meshes }
+    }
+}
+
+/// The deforming objects' meshes as posed at one frame (rebuilt for every frame).
+pub struct FrameMeshes {
+    /// Per moving object: its mesh at this frame if it deforms.
+    meshes: Vec<Option<TraceMesh>>,
+}
+
+impl FrameMeshes {
+    /// No deforming meshes: for scenes where nothing deforms.
+    #[must_use]
+    pub fn none() -> Self {
+        Self { meshes: Vec::new() }
+    }
+}
+
+/// Object space to normalised space, inverted and narrowed to f32; `None` if singular.
+fn invert(pose: &DAffine3) -> Option<Affine3A> {
+    let det = pose.matrix3.determinant();
+    let scale = pose.matrix3.to_cols_array().iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    if !(det.abs() > 1e-12 * scale.powi(3)) {
+        return None;
+    }
+    let inv = pose.inverse();
+    inv.is_finite().then(|| Affine3A::from_mat4(glam::DMat4::from(inv).as_mat4()))
+}

@@ -1,0 +1,214 @@
+//! The watertight line–triangle test (Woop, Benthin, Wald, "Watertight Ray/Triangle
+//! Intersection", JCGT 2013), with a tie rule so that a line through a shared edge or vertex
+//! hits exactly one of the triangles there.
+//!
+//! The line is sheared so that it runs along +z through the origin; each triangle is projected
+//! onto that plane and tested with three 2D edge functions. Neighbouring triangles compute the
+//! edge functions of a shared edge from the same two projected vertices, so their values are
+//! exact negations of each other: no line slips between them. An edge function exactly zero
+//! (recomputed in f64 first) means the line passes through the edge; the hit then counts only
+//! for the triangle that *owns* the edge under a top-left rule applied to the edge as traversed
+//! counter-clockwise in projection. Across an edge where the surface continues, exactly one of
+//! the two triangles owns it; at a silhouette edge (the line grazes a fold) both or neither do,
+//! which keeps the number of crossings of a closed surface even.
+
+use glam::Vec3;
+
+/// A line prepared for the watertight test: the shear that maps its direction to +z.
+#[derive(Clone, Copy, Debug)]
+pub struct ShearedLine {
+    origin: Vec3,
+    kx: usize,
+    ky: usize,
+    kz: usize,
+    sx: f32,
+    sy: f32,
+    sz: f32,
+}
+
+impl ShearedLine {
+    /// Prepares the line `origin + t·direction`.
+    #[must_use]
+    pub fn new(origin: Vec3, direction: Vec3) -> Self {
+        let kz = direction.abs().max_position();
+        let mut kx = (kz + 1) % 3;
+        let mut ky = (kx + 1) % 3;
+        // Keep the winding: a negative dominant component mirrors the projection.
+        if direction[kz] < 0.0 {
+            std::mem::swap(&mut kx, &mut ky);
+        }
+        Self {
+            origin,
+            kx,
+            ky,
+            kz,
+            sx: direction[kx] / direction[kz],
+            sy: direction[ky] / direction[kz],
+            sz: 1.0 / direction[kz],
+        }
+    }
+
+    /// The crossing of this line with triangle (a, b, c), as `(t, front)`: `t` along the line
+    /// (in units of its direction's length) and whether the line arrives at the triangle's front
+    /// face (the side its counter-clockwise winding faces). `None` if it does not cross, or if
+    /// `t` is outside `(0, t_max)`.
+    #[must_use]
+    #[inline]
+    pub fn intersect(&self, a: Vec3, b: Vec3, c: Vec3, t_max: f32) -> Option<(f32, bool)> {
+        let (kx, ky, kz) = (self.kx, self.ky, self.kz);
+        let (a, b, c) = (a - self.origin, b - self.origin, c - self.origin);
+        let ax = a[kx] - self.sx * a[kz];
+        let ay = a[ky] - self.sy * a[kz];
+        let bx = b[kx] - self.sx * b[kz];
+        let by = b[ky] - self.sy * b[kz];
+        let cx = c[kx] - self.sx * c[kz];
+        let cy = c[ky] - self.sy * c[kz];
+        // Edge functions of the edges b→c, c→a and a→b.
+        let mut u = cx * by - cy * bx;
+        let mut v = ax * cy - ay * cx;
+        let mut w = bx * ay - by * ax;
+        if u == 0.0 || v == 0.0 || w == 0.0 {
+            let f = f64::from;
+            u = (f(cx) * f(by) - f(cy) * f(bx)) as f32;
+            v = (f(ax) * f(cy) - f(ay) * f(cx)) as f32;
+            w = (f(bx) * f(ay) - f(by) * f(ax)) as f32;
+        }
+        if (u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0) {
+            return None;
+        }
+        let det = u + v + w;
+        if det == 0.0 {
+            return None;
+        }
+        let ccw = det > 0.0;
+        if (u == 0.0 && !owns(bx, by, cx, cy, ccw))
+            || (v == 0.0 && !owns(cx, cy, ax, ay, ccw))
+            || (w == 0.0 && !owns(ax, ay, bx, by, ccw))
+        {
+            return None;
+        }
+        let (az, bz, cz) = (self.sz * a[kz], self.sz * b[kz], self.sz * c[kz]);
+        let t = (u * az + v * bz + w * cz) / det;
+        (t > 0.0 && t < t_max).then_some((t, ccw))
+    }
+}
+
+/// Top-left rule: whether a triangle owns its edge from (px, py) to (qx, qy), taking the edge in
+/// the triangle's counter-clockwise order in projection (reversed when the projection is
+/// clockwise). Exactly one of an edge's two directions is owned.
+#[inline]
+fn owns(px: f32, py: f32, qx: f32, qy: f32, ccw: bool) -> bool {
+    let (dx, dy) = if ccw { (qx - px, qy - py) } else { (px - qx, py - qy) };
+    dy > 0.0 || (dy == 0.0 && dx < 0.0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::rngs::Xoshiro256PlusPlus;
+    use rand::{RngExt, SeedableRng};
+
+    #[test]
+    fn a_line_through_the_middle_hits_at_the_right_distance_and_side() {
+        let (a, b, c) = (Vec3::ZERO, Vec3::X, Vec3::Y);
+        let down = ShearedLine::new(Vec3::new(0.2, 0.2, 1.0), Vec3::NEG_Z);
+        assert_eq!(down.intersect(a, b, c, 10.0), Some((1.0, true)));
+        let up = ShearedLine::new(Vec3::new(0.2, 0.2, -2.0), Vec3::Z * 2.0);
+        assert_eq!(up.intersect(a, b, c, 10.0), Some((1.0, false)));
+        assert_eq!(up.intersect(a, b, c, 0.5), None);
+        let miss = ShearedLine::new(Vec3::new(0.8, 0.8, 1.0), Vec3::NEG_Z);
+        assert_eq!(miss.intersect(a, b, c, 10.0), None);
+    }
+
+    #[test]
+    fn front_means_arriving_against_the_normal() {
+        let mut rng = Xoshiro256PlusPlus::seed_from_u64(1);
+        let mut p = || Vec3::new(rng.random::<f32>() - 0.5, rng.random::<f32>() - 0.5, rng.random::<f32>() - 0.5);
+        let mut checked = 0;
+        for _ in 0..20_000 {
+            let (a, b, c) = (p(), p(), p());
+            let target = (a + b + c) / 3.0;
+            let d = p().normalize();
+            let line = ShearedLine::new(target - d * 3.0, d);
+            if let Some((t, front)) = line.intersect(a, b, c, 10.0) {
+                let n = (b - a).cross(c - a);
+                assert_eq!(front, n.dot(d) < 0.0);
+                assert!((t - 3.0).abs() < 1e-3, "{t}");
+                checked += 1;
+            }
+        }
+        assert!(checked > 19_000, "{checked}");
+    }
+
+    #[test]
+    fn lines_through_shared_edges_and_vertices_hit_exactly_one_triangle() {
+        // A fan of triangles around the origin in the plane z = 0 covering the disc, plus a
+        // square split along its diagonal: lines aimed exactly at vertices and edge points.
+        let ring: Vec<Vec3> = (0..7)
+            .map(|k| {
+                let a = k as f32 / 7.0 * std::f32::consts::TAU;
+                Vec3::new(a.cos(), a.sin(), 0.0)
+            })
+            .collect();
+        let fan: Vec<[Vec3; 3]> = (0..7).map(|k| [Vec3::ZERO, ring[k], ring[(k + 1) % 7]]).collect();
+        let square = [
+            [Vec3::ZERO, Vec3::X, Vec3::new(1.0, 1.0, 0.0)],
+            [Vec3::ZERO, Vec3::new(1.0, 1.0, 0.0), Vec3::Y],
+        ];
+        // Interior points only: the fan's centre and its spokes' midpoints; points of the
+        // square's diagonal. (On an open mesh's boundary either answer is right.)
+        let mut fan_targets = vec![Vec3::ZERO];
+        fan_targets.extend(ring.iter().map(|&r| r * 0.5));
+        let square_targets = [0.25f32, 0.5, 0.9].map(|x| Vec3::new(x, x, 0.0));
+        let directions = [
+            Vec3::NEG_Z,
+            Vec3::new(0.3, -0.2, -1.0).normalize(),
+            Vec3::new(-1.0, 0.0, -1e-3).normalize(),
+            Vec3::new(1.0, 1.0, -0.5).normalize(),
+        ];
+        for d in directions {
+            for (name, tris, targets) in [("fan", &fan[..], &fan_targets[..]), ("square", &square[..], &square_targets[..])] {
+                for &target in targets {
+                    let line = ShearedLine::new(target - d * 2.0, d);
+                    let hits = tris.iter().filter(|t| line.intersect(t[0], t[1], t[2], 10.0).is_some()).count();
+                    assert_eq!(hits, 1, "{name}: line along {d} through {target}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn a_closed_tetrahedron_is_crossed_an_even_number_of_times() {
+        let v = [Vec3::new(0.0, 0.0, 0.0), Vec3::new(1.0, 0.0, 0.0), Vec3::new(0.0, 1.0, 0.0), Vec3::new(0.0, 0.0, 1.0)];
+        let faces = [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]];
+        let mut rng = Xoshiro256PlusPlus::seed_from_u64(5);
+        // Lines aimed at vertices, edge midpoints and random points.
+        let mut targets: Vec<Vec3> = v.to_vec();
+        for i in 0..4 {
+            for j in i + 1..4 {
+                targets.push((v[i] + v[j]) * 0.5);
+            }
+        }
+        for _ in 0..200 {
+            targets.push(Vec3::new(rng.random(), rng.random(), rng.random()) * 0.4);
+        }
+        for &target in &targets {
+            for _ in 0..50 {
+                let d = Vec3::new(rng.random::<f32>() - 0.5, rng.random::<f32>() - 0.5, rng.random::<f32>() - 0.5)
+                    .normalize();
+                let line = ShearedLine::new(target - d * 3.0, d);
+                let hits: Vec<(f32, bool)> = faces
+                    .iter()
+                    .filter_map(|f| line.intersect(v[f[0]], v[f[1]], v[f[2]], 10.0))
+                    .collect();
+                assert!(hits.len() % 2 == 0, "{} hits through {target} along {d}", hits.len());
+                if hits.len() == 2 {
+                    // In through a front face, out through a back face (unless the line only
+                    // grazes an edge or vertex, where both crossings are at the same point).
+                    let (first, second) = if hits[0].0 < hits[1].0 { (hits[0], hits[1]) } else { (hits[1], hits[0]) };
+                    assert!(first.1 && !second.1 || second.0 - first.0 < 1e-5, "{hits:?}");
+                }
+            }
+        }
+    }
+}
