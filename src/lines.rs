@@ -47,9 +47,17 @@ impl Batch {
     /// projected area of a convex box is A(W)/4 (Cauchy), so Δ = B·A(W) / (4·lines).
     /// `bundles` defaults to √lines (at least 8): as many directions as lines per direction.
     #[must_use]
-    pub fn for_budget(lines: u64, bundles: Option<u32>, bounds: &Bounds, seed: u64, index: u32) -> Self {
+    pub fn for_budget(
+        lines: u64,
+        bundles: Option<u32>,
+        bounds: &Bounds,
+        seed: u64,
+        index: u32,
+    ) -> Self {
         let lines = lines.max(1) as f64;
-        let bundles = bundles.unwrap_or_else(|| (lines.sqrt().round() as u32).max(8)).max(1);
+        let bundles = bundles
+            .unwrap_or_else(|| (lines.sqrt().round() as u32).max(8))
+            .max(1);
         let cell_area = f64::from(bundles) * bounds.surface_area() / (4.0 * lines);
         Self {
             seed,
@@ -61,12 +69,18 @@ impl Batch {
 
     /// The uniformly random rotation of this batch's direction lattice (Shoemake's method).
     fn rotation(&self) -> DQuat {
-        let mut rng = Xoshiro256PlusPlus::seed_from_u64(mix(self.seed, u64::from(self.index), u64::MAX));
+        let mut rng =
+            Xoshiro256PlusPlus::seed_from_u64(mix(self.seed, u64::from(self.index), u64::MAX));
         let (u1, u2, u3): (f64, f64, f64) = (rng.random(), rng.random(), rng.random());
         let tau = std::f64::consts::TAU;
         let (a, b) = ((1.0 - u1).sqrt(), u1.sqrt());
-        DQuat::from_xyzw(a * (tau * u2).sin(), a * (tau * u2).cos(), b * (tau * u3).sin(), b * (tau * u3).cos())
-            .normalize()
+        DQuat::from_xyzw(
+            a * (tau * u2).sin(),
+            a * (tau * u2).cos(),
+            b * (tau * u3).sin(),
+            b * (tau * u3).cos(),
+        )
+        .normalize()
     }
 
     /// Direction of bundle `k`: the k-th point of a spherical Fibonacci lattice on the half
@@ -81,15 +95,18 @@ impl Batch {
     pub fn bundle(&self, k: u32, bounds: &Bounds) -> Bundle {
         let w = self.direction(k);
         let (u, v) = w.any_orthonormal_pair();
-        let mut rng = Xoshiro256PlusPlus::seed_from_u64(mix(self.seed, u64::from(self.index), u64::from(k)));
+        let mut rng =
+            Xoshiro256PlusPlus::seed_from_u64(mix(self.seed, u64::from(self.index), u64::from(k)));
         let (offset_u, offset_v): (f64, f64) = (rng.random(), rng.random());
         // The projection of the box onto the plane (u, v): a rectangle around it.
         let corners = bounds.corners();
         let project = |axis: DVec3| {
-            corners.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), c| {
-                let x = c.dot(axis);
-                (lo.min(x), hi.max(x))
-            })
+            corners
+                .iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), c| {
+                    let x = c.dot(axis);
+                    (lo.min(x), hi.max(x))
+                })
         };
         let ((u0, u1), (v0, v1)) = (project(u), project(v));
         let step = self.cell_area.sqrt();
@@ -119,7 +136,13 @@ fn direction(rotation: DQuat, k: u32, n: u32) -> DVec3 {
     let phi = std::f64::consts::TAU * (f64::from(k) * golden).fract();
     let r = (1.0 - z * z).max(0.0).sqrt();
     let d = rotation * DVec3::new(r * phi.cos(), r * phi.sin(), z);
-    let nudge = |c: f64| if c.abs() < MIN_COMPONENT { MIN_COMPONENT.copysign(c) } else { c };
+    let nudge = |c: f64| {
+        if c.abs() < MIN_COMPONENT {
+            MIN_COMPONENT.copysign(c)
+        } else {
+            c
+        }
+    };
     DVec3::new(nudge(d.x), nudge(d.y), nudge(d.z)).normalize()
 }
 
@@ -173,7 +196,9 @@ mod tests {
         let b = unit_box();
         let batch = Batch::for_budget(100_000, None, &b, 1, 0);
         assert_eq!(batch.bundles, 316);
-        let total: usize = (0..batch.bundles).map(|k| batch.bundle(k, &b).origins.len()).sum();
+        let total: usize = (0..batch.bundles)
+            .map(|k| batch.bundle(k, &b).origins.len())
+            .sum();
         // Only the grid's random offset varies the count: well within 2%.
         assert!((total as f64 / 100_000.0 - 1.0).abs() < 0.02, "{total}");
     }
@@ -185,7 +210,12 @@ mod tests {
         assert!(dirs.iter().all(|d| (d.length() - 1.0).abs() < 1e-12));
         // Lines are unoriented: ±d are the same line. The mean of |d·a| over the sphere is 1/2
         // for any axis a; the lattice is stratified, so it lands much closer than random points.
-        for axis in [DVec3::X, DVec3::Y, DVec3::Z, DVec3::new(1.0, 2.0, 3.0).normalize()] {
+        for axis in [
+            DVec3::X,
+            DVec3::Y,
+            DVec3::Z,
+            DVec3::new(1.0, 2.0, 3.0).normalize(),
+        ] {
             let mean = dirs.iter().map(|d| d.dot(axis).abs()).sum::<f64>() / 4096.0;
             assert!((mean - 0.5).abs() < 2e-3, "{axis}: {mean}");
         }
@@ -224,7 +254,10 @@ mod tests {
             let n = bundle.origins.len() as f64;
             // The grid count differs from area/Δ by at most the cells along the outline.
             let perimeter_cells = 2.0 * (d.x + d.y + d.z) * 2.0 / batch.cell_area.sqrt();
-            assert!((n - expected).abs() <= perimeter_cells, "bundle {k}: {n} vs {expected}");
+            assert!(
+                (n - expected).abs() <= perimeter_cells,
+                "bundle {k}: {n} vs {expected}"
+            );
         }
     }
 }

@@ -16,8 +16,8 @@ use glam::{DAffine3, DMat4, DVec3, Vec3};
 
 use crate::scene::subdivide::{self, Subdivision, triangle_area};
 use crate::scene::{
-    Bounds, Deformation, Faces, Frames, Material, Motion, MovingObject, Normalisation, Patch, Provenance,
-    Scene, Side, SkinBinding, TriangleMesh,
+    Bounds, Deformation, Faces, Frames, Material, Motion, MovingObject, Normalisation, Patch,
+    Provenance, Scene, Side, SkinBinding, TriangleMesh,
 };
 pub use animation::{Interpolation, Sampler};
 
@@ -517,7 +517,10 @@ fn bounds(instances: &[Instance], frames: usize) -> Option<Bounds> {
             Placement::Rigid(poses) => {
                 let local = local_box(&inst.geometry.positions, &used);
                 for pose in poses {
-                    local.corners().iter().for_each(|&c| grow(pose.transform_point3(c)));
+                    local
+                        .corners()
+                        .iter()
+                        .for_each(|&c| grow(pose.transform_point3(c)));
                 }
             }
             Placement::Deforming(d) => {

@@ -88,7 +88,11 @@ impl Memory {
 
 impl IntersectionList {
     /// Traces a first batch of lines through the whole timeline of `scene`.
-    pub fn build(scene: &Scene, tracer: &SceneTracer, params: &LineParams) -> Result<Self, TooManyHits> {
+    pub fn build(
+        scene: &Scene,
+        tracer: &SceneTracer,
+        params: &LineParams,
+    ) -> Result<Self, TooManyHits> {
         let mut list = Self {
             batches: Vec::new(),
             frames: scene.frames.count,
@@ -110,7 +114,13 @@ impl IntersectionList {
         params: &LineParams,
     ) -> Result<(), TooManyHits> {
         let index = self.batches.len() as u32;
-        let batch = Batch::for_budget(params.lines, params.bundles, &scene.bounds, params.seed, index);
+        let batch = Batch::for_budget(
+            params.lines,
+            params.bundles,
+            &scene.bounds,
+            params.seed,
+            index,
+        );
         let bundles: Vec<Bundle> = (0..batch.bundles)
             .into_par_iter()
             .map(|k| batch.bundle(k, &scene.bounds))
@@ -154,7 +164,8 @@ impl IntersectionList {
         for (bundle, mut hits) in bundles.iter().zip(moving) {
             hits.sort_by_key(|&(line, _)| line);
             let mut counts = vec![0u32; bundle.origins.len()];
-            hits.iter().for_each(|&(line, _)| counts[line as usize] += 1);
+            hits.iter()
+                .for_each(|&(line, _)| counts[line as usize] += 1);
             append_csr(&mut self.dynamic_offsets, &counts)?;
             self.dynamic_hits.extend(hits.into_iter().map(|(_, h)| h));
         }
@@ -186,13 +197,15 @@ impl IntersectionList {
     /// The static crossings of `line`, sorted along it.
     #[must_use]
     pub fn static_hits(&self, line: usize) -> &[Hit] {
-        &self.static_hits[self.static_offsets[line] as usize..self.static_offsets[line + 1] as usize]
+        &self.static_hits
+            [self.static_offsets[line] as usize..self.static_offsets[line + 1] as usize]
     }
 
     /// The moving crossings of `line` at every frame, sorted by frame then along the line.
     #[must_use]
     pub fn moving_hits(&self, line: usize) -> &[FrameHit] {
-        &self.dynamic_hits[self.dynamic_offsets[line] as usize..self.dynamic_offsets[line + 1] as usize]
+        &self.dynamic_hits
+            [self.dynamic_offsets[line] as usize..self.dynamic_offsets[line + 1] as usize]
     }
 
     /// The crossings of `line` at `frame`, sorted along the line, into `out` (cleared first):

@@ -61,7 +61,11 @@ impl SceneStats {
             mean_hits_per_line: hits as f64 / lines,
             predicted_hits_per_line: 2.0 * area / scene.bounds.surface_area(),
             histogram: counts.iter().map(|&c| c as f64 / lines).collect(),
-            mean_segment: if segments == 0 { 0.0 } else { length / segments as f64 * scene.normalisation.radius },
+            mean_segment: if segments == 0 {
+                0.0
+            } else {
+                length / segments as f64 * scene.normalisation.radius
+            },
             segments,
         }
     }

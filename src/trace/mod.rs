@@ -174,7 +174,11 @@ impl SceneTracer {
             faces.extend_from_slice(&object.mesh.faces);
             rigid.push(match &object.motion {
                 Motion::Rigid { poses } => TraceMesh::new(
-                    object.mesh.triangles.iter().map(|t| corners(&object.mesh.positions, t)),
+                    object
+                        .mesh
+                        .triangles
+                        .iter()
+                        .map(|t| corners(&object.mesh.positions, t)),
                     first,
                 )
                 .map(|mesh| RigidTracer {
@@ -186,7 +190,10 @@ impl SceneTracer {
         }
         Self {
             statics: TraceMesh::new(
-                statics.triangles.iter().map(|t| corners(&statics.positions, t)),
+                statics
+                    .triangles
+                    .iter()
+                    .map(|t| corners(&statics.positions, t)),
                 0,
             ),
             rigid,
@@ -216,7 +223,13 @@ impl SceneTracer {
 
     /// Appends the crossings of `line` with the moving objects as posed at `frame`; `deformed`
     /// holds the deforming objects' meshes for that frame.
-    pub fn trace_moving(&self, line: &Line, frame: usize, deformed: &FrameMeshes, out: &mut Vec<Hit>) {
+    pub fn trace_moving(
+        &self,
+        line: &Line,
+        frame: usize,
+        deformed: &FrameMeshes,
+        out: &mut Vec<Hit>,
+    ) {
         for rigid in self.rigid.iter().flatten() {
             if let Some(inv) = rigid.inverse[frame] {
                 let origin = inv.transform_point3(line.origin);
@@ -231,7 +244,13 @@ impl SceneTracer {
 
     /// Every crossing of `line` with the scene as posed at `frame`, sorted along the line: the
     /// scene traced alone at one frame.
-    pub fn trace_frame(&self, line: &Line, frame: usize, deformed: &FrameMeshes, out: &mut Vec<Hit>) {
+    pub fn trace_frame(
+        &self,
+        line: &Line,
+        frame: usize,
+        deformed: &FrameMeshes,
+        out: &mut Vec<Hit>,
+    ) {
         out.clear();
         self.trace_static(line, out);
         self.trace_moving(line, frame, deformed, out);
@@ -249,7 +268,11 @@ impl SceneTracer {
                 Motion::Deforming(_) => {
                     let positions = object.positions_at(frame);
                     TraceMesh::new(
-                        object.mesh.triangles.iter().map(|t| t.map(|i| positions[i as usize])),
+                        object
+                            .mesh
+                            .triangles
+                            .iter()
+                            .map(|t| t.map(|i| positions[i as usize])),
                         first,
                     )
                 }
@@ -277,10 +300,15 @@ impl FrameMeshes {
 /// Object space to normalised space, inverted and narrowed to f32; `None` if singular.
 fn invert(pose: &DAffine3) -> Option<Affine3A> {
     let det = pose.matrix3.determinant();
-    let scale = pose.matrix3.to_cols_array().iter().fold(0.0f64, |m, v| m.max(v.abs()));
-    if !(det.abs() > 1e-12 * scale.powi(3)) {
+    let scale = pose
+        .matrix3
+        .to_cols_array()
+        .iter()
+        .fold(0.0f64, |m, v| m.max(v.abs()));
+    if det.is_nan() || det.abs() <= 1e-12 * scale.powi(3) {
         return None;
     }
     let inv = pose.inverse();
-    inv.is_finite().then(|| Affine3A::from_mat4(glam::DMat4::from(inv).as_mat4()))
+    inv.is_finite()
+        .then(|| Affine3A::from_mat4(glam::DMat4::from(inv).as_mat4()))
 }

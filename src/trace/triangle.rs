@@ -98,7 +98,11 @@ impl ShearedLine {
 /// clockwise). Exactly one of an edge's two directions is owned.
 #[inline]
 fn owns(px: f32, py: f32, qx: f32, qy: f32, ccw: bool) -> bool {
-    let (dx, dy) = if ccw { (qx - px, qy - py) } else { (px - qx, py - qy) };
+    let (dx, dy) = if ccw {
+        (qx - px, qy - py)
+    } else {
+        (px - qx, py - qy)
+    };
     dy > 0.0 || (dy == 0.0 && dx < 0.0)
 }
 
@@ -123,7 +127,13 @@ mod tests {
     #[test]
     fn front_means_arriving_against_the_normal() {
         let mut rng = Xoshiro256PlusPlus::seed_from_u64(1);
-        let mut p = || Vec3::new(rng.random::<f32>() - 0.5, rng.random::<f32>() - 0.5, rng.random::<f32>() - 0.5);
+        let mut p = || {
+            Vec3::new(
+                rng.random::<f32>() - 0.5,
+                rng.random::<f32>() - 0.5,
+                rng.random::<f32>() - 0.5,
+            )
+        };
         let mut checked = 0;
         for _ in 0..20_000 {
             let (a, b, c) = (p(), p(), p());
@@ -150,7 +160,9 @@ mod tests {
                 Vec3::new(a.cos(), a.sin(), 0.0)
             })
             .collect();
-        let fan: Vec<[Vec3; 3]> = (0..7).map(|k| [Vec3::ZERO, ring[k], ring[(k + 1) % 7]]).collect();
+        let fan: Vec<[Vec3; 3]> = (0..7)
+            .map(|k| [Vec3::ZERO, ring[k], ring[(k + 1) % 7]])
+            .collect();
         let square = [
             [Vec3::ZERO, Vec3::X, Vec3::new(1.0, 1.0, 0.0)],
             [Vec3::ZERO, Vec3::new(1.0, 1.0, 0.0), Vec3::Y],
@@ -167,10 +179,16 @@ mod tests {
             Vec3::new(1.0, 1.0, -0.5).normalize(),
         ];
         for d in directions {
-            for (name, tris, targets) in [("fan", &fan[..], &fan_targets[..]), ("square", &square[..], &square_targets[..])] {
+            for (name, tris, targets) in [
+                ("fan", &fan[..], &fan_targets[..]),
+                ("square", &square[..], &square_targets[..]),
+            ] {
                 for &target in targets {
                     let line = ShearedLine::new(target - d * 2.0, d);
-                    let hits = tris.iter().filter(|t| line.intersect(t[0], t[1], t[2], 10.0).is_some()).count();
+                    let hits = tris
+                        .iter()
+                        .filter(|t| line.intersect(t[0], t[1], t[2], 10.0).is_some())
+                        .count();
                     assert_eq!(hits, 1, "{name}: line along {d} through {target}");
                 }
             }
@@ -179,7 +197,12 @@ mod tests {
 
     #[test]
     fn a_closed_tetrahedron_is_crossed_an_even_number_of_times() {
-        let v = [Vec3::new(0.0, 0.0, 0.0), Vec3::new(1.0, 0.0, 0.0), Vec3::new(0.0, 1.0, 0.0), Vec3::new(0.0, 0.0, 1.0)];
+        let v = [
+            Vec3::new(0.0, 0.0, 0.0),
+            Vec3::new(1.0, 0.0, 0.0),
+            Vec3::new(0.0, 1.0, 0.0),
+            Vec3::new(0.0, 0.0, 1.0),
+        ];
         let faces = [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]];
         let mut rng = Xoshiro256PlusPlus::seed_from_u64(5);
         // Lines aimed at vertices, edge midpoints and random points.
@@ -194,19 +217,34 @@ mod tests {
         }
         for &target in &targets {
             for _ in 0..50 {
-                let d = Vec3::new(rng.random::<f32>() - 0.5, rng.random::<f32>() - 0.5, rng.random::<f32>() - 0.5)
-                    .normalize();
+                let d = Vec3::new(
+                    rng.random::<f32>() - 0.5,
+                    rng.random::<f32>() - 0.5,
+                    rng.random::<f32>() - 0.5,
+                )
+                .normalize();
                 let line = ShearedLine::new(target - d * 3.0, d);
                 let hits: Vec<(f32, bool)> = faces
                     .iter()
                     .filter_map(|f| line.intersect(v[f[0]], v[f[1]], v[f[2]], 10.0))
                     .collect();
-                assert!(hits.len() % 2 == 0, "{} hits through {target} along {d}", hits.len());
+                assert!(
+                    hits.len().is_multiple_of(2),
+                    "{} hits through {target} along {d}",
+                    hits.len()
+                );
                 if hits.len() == 2 {
                     // In through a front face, out through a back face (unless the line only
                     // grazes an edge or vertex, where both crossings are at the same point).
-                    let (first, second) = if hits[0].0 < hits[1].0 { (hits[0], hits[1]) } else { (hits[1], hits[0]) };
-                    assert!(first.1 && !second.1 || second.0 - first.0 < 1e-5, "{hits:?}");
+                    let (first, second) = if hits[0].0 < hits[1].0 {
+                        (hits[0], hits[1])
+                    } else {
+                        (hits[1], hits[0])
+                    };
+                    assert!(
+                        first.1 && !second.1 || second.0 - first.0 < 1e-5,
+                        "{hits:?}"
+                    );
                 }
             }
         }
