@@ -13,10 +13,12 @@
 //!   line–triangle test).
 //! - [`timeline`]: the timeline's one intersection list (multiframe), frame extraction and the
 //!   scene statistics measured by the lines.
+//! - [`bench`]: the measurements behind the README's figures (`radiosity bench`).
 //! - [`samples`]: the generator of the sample scenes in `scenes/`.
 //!
 //! The method is described in `METHOD.md` (shared with the team) and the README.
 
+pub mod bench;
 pub mod lines;
 pub mod loader;
 pub mod samples;

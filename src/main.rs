@@ -59,6 +59,23 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Measure tracing on a scene: the multiframe intersection list against tracing every frame
+    /// independently (throughput, bytes per crossing, time and memory ratios).
+    Bench {
+        /// A .glb, or a .gltf with embedded (data:) buffers.
+        file: PathBuf,
+        #[command(flatten)]
+        args: SceneArgs,
+        /// Number of lines.
+        #[arg(long, default_value_t = 1_000_000)]
+        lines: u64,
+        /// Seed of the lines.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Print the report as JSON.
+        #[arg(long)]
+        json: bool,
+    },
     /// Write the sample scenes (deterministic) into a directory.
     Samples {
         /// Output directory.
@@ -89,6 +106,25 @@ fn run(cli: Cli) -> Result<(), String> {
                 println!("{text}");
             } else {
                 print!("{summary}");
+            }
+            Ok(())
+        }
+        Command::Bench {
+            file,
+            args,
+            lines,
+            seed,
+            json,
+        } => {
+            let bytes = std::fs::read(&file).map_err(|e| format!("{}: {e}", file.display()))?;
+            let scene = loader::load(&bytes, &args.into())
+                .map_err(|e| format!("{}: {e}", file.display()))?;
+            let report = radiosity::bench::trace(&scene, lines, seed).map_err(|e| e.to_string())?;
+            if json {
+                let text = serde_json::to_string_pretty(&report).map_err(|e| e.to_string())?;
+                println!("{text}");
+            } else {
+                print!("{report}");
             }
             Ok(())
         }

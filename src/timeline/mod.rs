@@ -161,13 +161,30 @@ impl IntersectionList {
                 }
             }
         }
-        for (bundle, mut hits) in bundles.iter().zip(moving) {
-            hits.sort_by_key(|&(line, _)| line);
+        for (bundle, hits) in bundles.iter().zip(moving) {
+            // Group by line with a counting sort, which keeps the frame order within a line.
             let mut counts = vec![0u32; bundle.origins.len()];
             hits.iter()
                 .for_each(|&(line, _)| counts[line as usize] += 1);
+            let mut next: Vec<usize> = counts
+                .iter()
+                .scan(self.dynamic_hits.len(), |at, &c| {
+                    let start = *at;
+                    *at += c as usize;
+                    Some(start)
+                })
+                .collect();
+            let placeholder = FrameHit {
+                frame: 0,
+                hit: Hit::new(0.0, 0, true),
+            };
+            self.dynamic_hits
+                .resize(self.dynamic_hits.len() + hits.len(), placeholder);
+            for (line, hit) in hits {
+                self.dynamic_hits[next[line as usize]] = hit;
+                next[line as usize] += 1;
+            }
             append_csr(&mut self.dynamic_offsets, &counts)?;
-            self.dynamic_hits.extend(hits.into_iter().map(|(_, h)| h));
         }
         self.batches.push(BatchLines {
             batch,
