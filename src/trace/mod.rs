@@ -126,6 +126,14 @@ impl TraceMesh {
         });
     }
 
+    /// The box around all the triangles (padded like the BVH's).
+    fn bounds(&self) -> Aabb {
+        self.bvh
+            .nodes
+            .first()
+            .map_or(Aabb::empty(), |root| root.aabb)
+    }
+
     /// The same crossings found by testing every triangle, for checking the BVH path.
     pub fn trace_brute_force(&self, origin: Vec3, direction: Vec3, out: &mut Vec<Hit>) {
         let sheared = ShearedLine::new(origin, direction);
@@ -141,9 +149,11 @@ impl TraceMesh {
 /// normalised space into object space.
 struct RigidTracer {
     mesh: TraceMesh,
-    /// Normalised space to object space per frame; `None` where the pose is singular (scaled
-    /// to nothing), which no line can hit.
-    inverse: Vec<Option<Affine3A>>,
+    /// Per frame: the object's box in normalised space, and the map from normalised space to
+    /// object space; `None` where the pose is singular (scaled to nothing), which no line can
+    /// hit. Most lines miss a small moving object: the box test spares them the transform and
+    /// the traversal.
+    frames: Vec<Option<(Aabb, Affine3A)>>,
 }
 
 /// Everything needed to trace lines through a scene at any frame.
@@ -181,9 +191,13 @@ impl SceneTracer {
                         .map(|t| corners(&object.mesh.positions, t)),
                     first,
                 )
-                .map(|mesh| RigidTracer {
-                    mesh,
-                    inverse: poses.iter().map(invert).collect(),
+                .map(|mesh| {
+                    let local = mesh.bounds();
+                    let frames = poses
+                        .iter()
+                        .map(|pose| invert(pose).map(|inv| (world_box(&local, pose), inv)))
+                        .collect();
+                    RigidTracer { mesh, frames }
                 }),
                 Motion::Deforming(_) => None,
             });
@@ -230,8 +244,12 @@ impl SceneTracer {
         deformed: &FrameMeshes,
         out: &mut Vec<Hit>,
     ) {
+        let ray = Ray::new(line.origin.into(), line.direction.into(), 0.0, LINE_LENGTH);
         for rigid in self.rigid.iter().flatten() {
-            if let Some(inv) = rigid.inverse[frame] {
+            if let Some((bounds, inv)) = &rigid.frames[frame] {
+                if bounds.intersect_ray(&ray) == f32::INFINITY {
+                    continue;
+                }
                 let origin = inv.transform_point3(line.origin);
                 let direction = inv.transform_vector3(line.direction);
                 rigid.mesh.trace(origin, direction, out);
@@ -295,6 +313,21 @@ impl FrameMeshes {
     pub fn none() -> Self {
         Self { meshes: Vec::new() }
     }
+}
+
+/// The box around `local` (object space) moved by `pose`, padded.
+fn world_box(local: &Aabb, pose: &DAffine3) -> Aabb {
+    let pad = Vec3A::splat(BOX_PADDING);
+    let mut out = Aabb::empty();
+    for k in 0..8 {
+        let corner = glam::DVec3::new(
+            f64::from(if k & 1 == 0 { local.min.x } else { local.max.x }),
+            f64::from(if k & 2 == 0 { local.min.y } else { local.max.y }),
+            f64::from(if k & 4 == 0 { local.min.z } else { local.max.z }),
+        );
+        out.extend(Vec3A::from(pose.transform_point3(corner).as_vec3()));
+    }
+    Aabb::new(out.min - pad, out.max + pad)
 }
 
 /// Object space to normalised space, inverted and narrowed to f32; `None` if singular.
