@@ -13,15 +13,20 @@
 //!   line–triangle test).
 //! - [`timeline`]: the timeline's one intersection list (multiframe), frame extraction and the
 //!   scene statistics measured by the lines.
+//! - [`solve`]: tallies of the list per frame (`N_i`, `S_ij`, with per-frame changes only for
+//!   what moves) and the radiosity solve with per-patch error bars.
+//! - [`bake`]: a traced scene ready to solve, refine and relight any frame.
 //! - [`bench`]: the measurements behind the README's figures (`radiosity bench`).
 //! - [`samples`]: the generator of the sample scenes in `scenes/`.
 //!
 //! The method is described in `METHOD.md` (shared with the team) and the README.
 
+pub mod bake;
 pub mod bench;
 pub mod lines;
 pub mod loader;
 pub mod samples;
 pub mod scene;
+pub mod solve;
 pub mod timeline;
 pub mod trace;

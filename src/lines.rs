@@ -29,6 +29,9 @@ pub const LINE_LENGTH: f32 = 4.0;
 /// 1e-6 radians on a set of directions of measure ~1e-6.
 const MIN_COMPONENT: f64 = 1e-6;
 
+/// Independent replicas of the direction lattice in a batch (see [`Batch::direction`]).
+pub const REPLICAS: u32 = 16;
+
 /// A batch of bundles: B directions and a grid cell area.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Batch {
@@ -67,10 +70,11 @@ impl Batch {
         }
     }
 
-    /// The uniformly random rotation of this batch's direction lattice (Shoemake's method).
-    fn rotation(&self) -> DQuat {
+    /// The uniformly random rotation of one replica's direction lattice (Shoemake's method).
+    fn rotation(&self, replica: u32) -> DQuat {
+        let stream = u64::MAX - u64::from(replica);
         let mut rng =
-            Xoshiro256PlusPlus::seed_from_u64(mix(self.seed, u64::from(self.index), u64::MAX));
+            Xoshiro256PlusPlus::seed_from_u64(mix(self.seed, u64::from(self.index), stream));
         let (u1, u2, u3): (f64, f64, f64) = (rng.random(), rng.random(), rng.random());
         let tau = std::f64::consts::TAU;
         let (a, b) = ((1.0 - u1).sqrt(), u1.sqrt());
@@ -83,11 +87,16 @@ impl Batch {
         .normalize()
     }
 
-    /// Direction of bundle `k`: the k-th point of a spherical Fibonacci lattice on the half
-    /// sphere (uniform in z, golden-angle steps in azimuth), rotated.
+    /// Direction of bundle `k`. The bundles form [`REPLICAS`] independent replicas (bundle k
+    /// belongs to replica k mod REPLICAS), each a spherical Fibonacci lattice on the half sphere
+    /// (uniform in z, golden-angle steps in azimuth) under its own random rotation. Every
+    /// replica is an unbiased, stratified estimate on its own; the spread between them is an
+    /// honest measure of the error (randomised quasi-Monte Carlo).
     #[must_use]
     pub fn direction(&self, k: u32) -> DVec3 {
-        direction(self.rotation(), k, self.bundles)
+        let replica = k % REPLICAS;
+        let in_replica = self.bundles / REPLICAS + u32::from(replica < self.bundles % REPLICAS);
+        direction(self.rotation(replica), k / REPLICAS, in_replica)
     }
 
     /// Bundle `k` of this batch: its direction and the lines of its grid that meet `bounds`.

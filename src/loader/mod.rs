@@ -730,9 +730,14 @@ fn build(
         objects,
         frames,
         normalisation,
-        bounds: Bounds {
-            min: to_norm.transform_point3(bounds.min),
-            max: to_norm.transform_point3(bounds.max),
+        // Symmetric about the centre by construction, and independent of where the scene
+        // sits: the same scene moved far from the origin gets bit-identical lines.
+        bounds: {
+            let half = 0.5 * (bounds.max - bounds.min) / normalisation.radius;
+            Bounds {
+                min: -half,
+                max: half,
+            }
         },
         source_triangles,
         warnings,

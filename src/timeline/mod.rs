@@ -211,6 +211,19 @@ impl IntersectionList {
         self.batches.iter().map(|b| b.batch).collect()
     }
 
+    /// The group of every line: its bundle's index modulo `groups`. Every group is a stratified
+    /// set of directions of its own (every `groups`-th point of each batch's lattice).
+    #[must_use]
+    pub fn line_groups(&self, groups: u32) -> Vec<u8> {
+        let mut out = Vec::with_capacity(self.lines());
+        for b in &self.batches {
+            for (k, &n) in b.bundle_lines.iter().enumerate() {
+                out.extend(std::iter::repeat_n((k as u32 % groups) as u8, n as usize));
+            }
+        }
+        out
+    }
+
     /// The static crossings of `line`, sorted along it.
     #[must_use]
     pub fn static_hits(&self, line: usize) -> &[Hit] {

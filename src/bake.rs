@@ -1,0 +1,113 @@
+//! A bake: a scene, its timeline's lines and tallies, and the radiosity of any frame.
+//!
+//! Tracing happens once (and again only for refinement); relighting — new emission or
+//! reflectance per material — re-solves from the kept tallies without tracing a line.
+
+use std::sync::Arc;
+
+use rayon::prelude::*;
+
+use crate::scene::{Material, Scene};
+use crate::solve::tally::Tallies;
+use crate::solve::{FrameSolution, SolveParams, solve};
+use crate::timeline::{IntersectionList, LineParams, TooManyHits};
+use crate::trace::SceneTracer;
+
+/// A traced scene, ready to solve any frame with any materials.
+pub struct Bake {
+    /// The scene (its materials are the defaults for [`Bake::solve_frame`]).
+    pub scene: Scene,
+    tracer: SceneTracer,
+    list: IntersectionList,
+    tallies: Tallies,
+    /// Seed of the line set, reused (with the next batch index) by refinement.
+    seed: u64,
+}
+
+impl Bake {
+    /// Traces `params.lines` lines through the whole timeline and tallies them.
+    pub fn trace(scene: Scene, params: &LineParams) -> Result<Self, TooManyHits> {
+        let tracer = SceneTracer::new(&scene);
+        let list = IntersectionList::build(&scene, &tracer, params)?;
+        let mut tallies = Tallies::default();
+        tallies.update(&list, tracer.faces());
+        Ok(Self {
+            scene,
+            tracer,
+            list,
+            tallies,
+            seed: params.seed,
+        })
+    }
+
+    /// Progressive refinement: traces about `lines` more lines (a new batch of directions) and
+    /// adds their tallies; the lines already traced are kept.
+    pub fn refine(&mut self, lines: u64) -> Result<(), TooManyHits> {
+        let params = LineParams {
+            lines,
+            bundles: None,
+            seed: self.seed,
+        };
+        self.list.add_lines(&self.scene, &self.tracer, &params)?;
+        self.tallies.update(&self.list, self.tracer.faces());
+        Ok(())
+    }
+
+    /// The intersection list.
+    #[must_use]
+    pub fn list(&self) -> &IntersectionList {
+        &self.list
+    }
+
+    /// The tallies.
+    #[must_use]
+    pub fn tallies(&self) -> &Tallies {
+        &self.tallies
+    }
+
+    /// Material index of every patch.
+    fn patch_materials(&self) -> Vec<u32> {
+        self.scene.patches.iter().map(|p| p.material).collect()
+    }
+
+    /// Solves one frame with `materials` (the scene's own, or new ones for relighting).
+    #[must_use]
+    pub fn solve_frame(
+        &self,
+        frame: usize,
+        materials: &[Material],
+        params: &SolveParams,
+    ) -> FrameSolution {
+        let tally = self.tallies.frame(frame, self.scene.patches.len());
+        solve(&tally, &self.patch_materials(), materials, params)
+    }
+
+    /// Solves every frame; frames with identical tallies share one solution.
+    #[must_use]
+    pub fn solve_all(
+        &self,
+        materials: &[Material],
+        params: &SolveParams,
+    ) -> Vec<Arc<FrameSolution>> {
+        let representatives = self.tallies.representatives();
+        let distinct: Vec<usize> = (0..representatives.len())
+            .filter(|&f| representatives[f] == f)
+            .collect();
+        let solved: Vec<(usize, Arc<FrameSolution>)> = distinct
+            .par_iter()
+            .map(|&f| (f, Arc::new(self.solve_frame(f, materials, params))))
+            .collect();
+        let mut by_frame: Vec<Option<Arc<FrameSolution>>> = vec![None; representatives.len()];
+        for (f, s) in solved {
+            by_frame[f] = Some(s);
+        }
+        representatives
+            .iter()
+            .map(|&r| {
+                by_frame[r]
+                    .clone()
+                    .unwrap_or_else(|| Arc::new(self.solve_frame(r, materials, params)))
+            })
+            .collect()
+    }
+}

@@ -1,0 +1,413 @@
+//! Tallies of the intersection list (METHOD.md §3, §5): per patch, the crossings `N_i`, and per
+//! pair of patches the segments `S_ij` that leave i's face and enter j's.
+//!
+//! Every segment between two consecutive crossings is used in both directions, and the segments
+//! before the first and after the last crossing of a line see the sky. A segment that arrives at
+//! the back of a one-sided triangle is absorbed there. `N_i` is the row sum of `S` (sky and
+//! absorbed columns included), so the two can never disagree.
+//!
+//! The static segments are tallied once. A frame stores only what its moving objects change:
+//! for each line that crosses a moving object at frame f, its static segments are removed and
+//! the segments of its frame-f list added (`S^f = S^static − R^f + D^f`). Memory grows with the
+//! lines the moving objects touch, not with frames × scene.
+
+use std::collections::HashMap;
+use std::ops::Range;
+
+use rayon::prelude::*;
+
+use crate::scene::Faces;
+use crate::timeline::IntersectionList;
+use crate::trace::Hit;
+
+/// Column of the segments that leave the scene.
+pub const SKY: u32 = (1 << 27) - 1;
+/// Column of the segments absorbed by the back of a one-sided triangle.
+pub const ABSORBED: u32 = (1 << 27) - 2;
+/// Patches are numbered below this (the columns have 27 bits in a key).
+pub const MAX_PATCHES: usize = ABSORBED as usize;
+/// Lines fall into this many groups, the independent replicas of the line set
+/// ([`crate::lines::REPLICAS`]): the spread of the estimates between them measures the error
+/// honestly, stratification included (METHOD.md §6).
+pub const GROUPS: u32 = crate::lines::REPLICAS;
+
+/// Sorted (row, column, group) keys with counts.
+type Entries = Vec<(u64, i64)>;
+
+fn key(row: u32, column: u32, group: u8) -> u64 {
+    debug_assert!(column <= SKY && u32::from(group) < GROUPS);
+    (u64::from(row) << 32) | (u64::from(column) << 4) | u64::from(group)
+}
+
+/// The row, column and group of a key.
+#[must_use]
+pub fn unkey(k: u64) -> (u32, u32, u8) {
+    ((k >> 32) as u32, ((k >> 4) as u32) & SKY, (k & 15) as u8)
+}
+
+/// Crossings closer than this along a line (normalised units, the scene's radius being 1) are
+/// one place: coplanar surfaces in contact, such as a box standing on a floor, whose computed
+/// distances differ by a few ulps.
+const COINCIDENT: f32 = 4e-6;
+
+/// Orders each run of coincident crossings so that arrivals at back faces come before arrivals
+/// at front faces: at a contact the line leaves one region before it enters the next (out of
+/// the floor's underside, into the box's bottom), so the touching faces see each other instead
+/// of the sky or the other solid's inside. `None` when no crossings coincide.
+fn order_contacts(hits: &[Hit]) -> Option<Vec<Hit>> {
+    if !hits.windows(2).any(|w| w[1].t - w[0].t <= COINCIDENT) {
+        return None;
+    }
+    let mut out = hits.to_vec();
+    let mut start = 0;
+    while start < out.len() {
+        let mut end = start + 1;
+        while end < out.len() && out[end].t - out[end - 1].t <= COINCIDENT {
+            end += 1;
+        }
+        out[start..end].sort_by_key(|h| (h.front(), h.surface()));
+        start = end;
+    }
+    Some(out)
+}
+
+/// Calls `visit(from, to)` for every segment of a line in both directions, `from` being a patch
+/// and `to` a patch, [`SKY`] or [`ABSORBED`].
+fn walk(hits: &[Hit], faces: &[Faces], mut visit: impl FnMut(u32, u32)) {
+    let reordered = order_contacts(hits);
+    let hits = reordered.as_deref().unwrap_or(hits);
+    let Some(first) = hits.first() else { return };
+    // The face the line arrives at, and the face it leaves from, at a crossing.
+    let entry = |h: &Hit| {
+        let f = faces[h.surface() as usize];
+        if h.front() { Some(f.front) } else { f.back }
+    };
+    let exit = |h: &Hit| {
+        let f = faces[h.surface() as usize];
+        if h.front() { f.back } else { Some(f.front) }
+    };
+    if let Some(a) = entry(first) {
+        visit(a, SKY);
+    }
+    for w in hits.windows(2) {
+        // `a` faces the segment from one end, `b` from the other; a missing face absorbs.
+        let (a, b) = (exit(&w[0]), entry(&w[1]));
+        if let Some(a) = a {
+            visit(a, b.unwrap_or(ABSORBED));
+        }
+        if let Some(b) = b {
+            visit(b, a.unwrap_or(ABSORBED));
+        }
+    }
+    if let Some(a) = hits.last().and_then(exit) {
+        visit(a, SKY);
+    }
+}
+
+/// Sorts and merges equal keys, dropping zero counts.
+fn aggregate(mut raw: Vec<(u64, i64)>) -> Entries {
+    raw.sort_unstable_by_key(|e| e.0);
+    let mut out: Entries = Vec::with_capacity(raw.len() / 2);
+    for (k, c) in raw {
+        match out.last_mut() {
+            Some(last) if last.0 == k => last.1 += c,
+            _ => out.push((k, c)),
+        }
+    }
+    out.retain(|e| e.1 != 0);
+    out
+}
+
+/// Adds two sorted entry lists.
+fn merge(a: &[(u64, i64)], b: &[(u64, i64)]) -> Entries {
+    let mut out = Vec::with_capacity(a.len() + b.len());
+    let (mut i, mut j) = (0, 0);
+    while i < a.len() && j < b.len() {
+        match a[i].0.cmp(&b[j].0) {
+            std::cmp::Ordering::Less => {
+                out.push(a[i]);
+                i += 1;
+            }
+            std::cmp::Ordering::Greater => {
+                out.push(b[j]);
+                j += 1;
+            }
+            std::cmp::Ordering::Equal => {
+                if a[i].1 + b[j].1 != 0 {
+                    out.push((a[i].0, a[i].1 + b[j].1));
+                }
+                i += 1;
+                j += 1;
+            }
+        }
+    }
+    out.extend_from_slice(&a[i..]);
+    out.extend_from_slice(&b[j..]);
+    out
+}
+
+/// The tallies of a timeline: static counts and per-frame changes.
+#[derive(Clone, Debug, Default)]
+pub struct Tallies {
+    /// Segment counts of every line's static crossings, sorted by (row, column).
+    statics: Entries,
+    /// Per frame: what the moving objects change, sorted by (row, column).
+    deltas: Vec<Entries>,
+    /// Lines tallied so far.
+    lines: usize,
+}
+
+/// One frame's tallies, assembled.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FrameTally {
+    /// Crossings of each patch (the row sums of `S`).
+    pub crossings: Vec<u64>,
+    /// Row starts of `S` in `columns` / `counts` (length patches + 1).
+    pub offsets: Vec<usize>,
+    /// Column of each entry: a patch, [`SKY`] or [`ABSORBED`].
+    pub columns: Vec<u32>,
+    /// Segment count of each entry (> 0).
+    pub counts: Vec<u64>,
+    /// Row starts of the per-group entries (length patches + 1).
+    pub group_offsets: Vec<usize>,
+    /// Per-group entries of each row: (column, group, count), for the error estimate.
+    pub group_entries: Vec<(u32, u8, u32)>,
+}
+
+impl Tallies {
+    /// Tallies the lines `list` holds beyond those already tallied (all of them the first
+    /// time): call again after [`IntersectionList::add_lines`] to refine.
+    pub fn update(&mut self, list: &IntersectionList, faces: &[Faces]) {
+        let lines = self.lines..list.lines();
+        if self.deltas.is_empty() {
+            self.deltas = vec![Vec::new(); list.frames()];
+        }
+        let groups = list.line_groups(GROUPS);
+        let statics = tally_static(list, faces, lines.clone(), &groups);
+        self.statics = merge(&self.statics, &statics);
+        for (frame, delta) in tally_moving(list, faces, lines.clone(), &groups) {
+            self.deltas[frame] = merge(&self.deltas[frame], &delta);
+        }
+        self.lines = lines.end;
+    }
+
+    /// Lines tallied.
+    #[must_use]
+    pub fn lines(&self) -> usize {
+        self.lines
+    }
+
+    /// Frames whose tallies equal an earlier frame's: `representative[f]` is the first frame
+    /// with the same tallies (itself if none). Such frames have the same solution.
+    #[must_use]
+    pub fn representatives(&self) -> Vec<usize> {
+        let mut first: HashMap<&[(u64, i64)], usize> = HashMap::new();
+        (0..self.deltas.len())
+            .map(|f| *first.entry(self.deltas[f].as_slice()).or_insert(f))
+            .collect()
+    }
+
+    /// Bytes held: the static entries and the per-frame changes.
+    #[must_use]
+    pub fn bytes(&self) -> usize {
+        let entry = size_of::<(u64, i64)>();
+        (self.statics.len() + self.deltas.iter().map(Vec::len).sum::<usize>()) * entry
+    }
+
+    /// The tallies of `frame` for `patches` patches.
+    #[must_use]
+    pub fn frame(&self, frame: usize, patches: usize) -> FrameTally {
+        let entries = match self.deltas.get(frame) {
+            Some(delta) if !delta.is_empty() => merge(&self.statics, delta),
+            _ => self.statics.clone(),
+        };
+        let mut t = FrameTally {
+            crossings: vec![0; patches],
+            offsets: Vec::with_capacity(patches + 1),
+            columns: Vec::with_capacity(entries.len()),
+            counts: Vec::with_capacity(entries.len()),
+            group_offsets: Vec::with_capacity(patches + 1),
+            group_entries: Vec::with_capacity(entries.len()),
+        };
+        let mut row = 0;
+        t.offsets.push(0);
+        t.group_offsets.push(0);
+        for (k, c) in entries {
+            let (r, col, group) = unkey(k);
+            debug_assert!(c > 0, "a frame's segment count went negative");
+            while row < r as usize {
+                t.offsets.push(t.columns.len());
+                t.group_offsets.push(t.group_entries.len());
+                row += 1;
+            }
+            let c = c as u64;
+            if t.columns.len() > t.offsets[row] && t.columns.last() == Some(&col) {
+                *t.counts.last_mut().unwrap_or(&mut 0) += c;
+            } else {
+                t.columns.push(col);
+                t.counts.push(c);
+            }
+            t.group_entries.push((col, group, c as u32));
+            t.crossings[r as usize] += c;
+        }
+        while t.offsets.len() <= patches {
+            t.offsets.push(t.columns.len());
+            t.group_offsets.push(t.group_entries.len());
+        }
+        t
+    }
+}
+
+impl FrameTally {
+    /// The tallies of arbitrary per-line crossing lists (each sorted along its line, with the
+    /// line's group): for checking the multiframe tallies against a frame traced alone.
+    #[must_use]
+    pub fn from_lines<'h>(
+        lines: impl Iterator<Item = (u8, &'h [Hit])>,
+        faces: &[Faces],
+        patches: usize,
+    ) -> Self {
+        let mut raw = Vec::new();
+        for (group, hits) in lines {
+            walk(hits, faces, |a, b| raw.push((key(a, b, group), 1)));
+        }
+        let tallies = Tallies {
+            statics: aggregate(raw),
+            deltas: Vec::new(),
+            lines: 0,
+        };
+        tallies.frame(0, patches)
+    }
+
+    /// Whether `S` is symmetric between patches (reciprocity, `A_i F_ij = A_j F_ji`): true by
+    /// construction, since every segment is tallied in both directions.
+    #[must_use]
+    pub fn is_symmetric(&self) -> bool {
+        let count = |i: usize, j: u32| {
+            let range = self.offsets[i]..self.offsets[i + 1];
+            self.columns[range.clone()]
+                .iter()
+                .position(|&c| c == j)
+                .map(|k| self.counts[range.start + k])
+        };
+        (0..self.crossings.len()).all(|i| {
+            (self.offsets[i]..self.offsets[i + 1])
+                .filter(|&k| self.columns[k] < ABSORBED)
+                .all(|k| count(self.columns[k] as usize, i as u32) == Some(self.counts[k]))
+        })
+    }
+}
+
+/// Static segments of `lines`.
+fn tally_static(
+    list: &IntersectionList,
+    faces: &[Faces],
+    lines: Range<usize>,
+    groups: &[u8],
+) -> Entries {
+    let chunks: Vec<Entries> = lines
+        .collect::<Vec<_>>()
+        .par_chunks(4096)
+        .map(|chunk| {
+            let mut raw = Vec::new();
+            for &l in chunk {
+                walk(list.static_hits(l), faces, |a, b| {
+                    raw.push((key(a, b, groups[l]), 1))
+                });
+            }
+            aggregate(raw)
+        })
+        .collect();
+    aggregate(chunks.into_iter().flatten().collect())
+}
+
+/// Per-frame changes of `lines`: for each line crossing a moving object at frame f, minus its
+/// static segments, plus its frame-f segments.
+fn tally_moving(
+    list: &IntersectionList,
+    faces: &[Faces],
+    lines: Range<usize>,
+    groups: &[u8],
+) -> Vec<(usize, Entries)> {
+    let chunks: Vec<Vec<(u64, u64, i64)>> = lines
+        .collect::<Vec<_>>()
+        .par_chunks(4096)
+        .map(|chunk| {
+            let mut raw = Vec::new();
+            let mut merged = Vec::new();
+            for &l in chunk {
+                let moving = list.moving_hits(l);
+                let mut at = 0;
+                while at < moving.len() {
+                    let frame = moving[at].frame;
+                    at += moving[at..].partition_point(|h| h.frame == frame);
+                    let f = u64::from(frame);
+                    let g = groups[l];
+                    walk(list.static_hits(l), faces, |a, b| {
+                        raw.push((f, key(a, b, g), -1))
+                    });
+                    list.frame_hits(l, frame as usize, &mut merged);
+                    walk(&merged, faces, |a, b| raw.push((f, key(a, b, g), 1)));
+                }
+            }
+            raw
+        })
+        .collect();
+    let mut by_frame: HashMap<u64, Vec<(u64, i64)>> = HashMap::new();
+    for (f, k, c) in chunks.into_iter().flatten() {
+        by_frame.entry(f).or_default().push((k, c));
+    }
+    by_frame
+        .into_iter()
+        .map(|(f, raw)| (f as usize, aggregate(raw)))
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn segments_are_used_both_ways_and_the_ends_see_the_sky() {
+        // Triangle 0 one-sided (patch 0), triangle 1 double-sided (patches 1, 2).
+        let faces = [
+            Faces {
+                front: 0,
+                back: None,
+            },
+            Faces {
+                front: 1,
+                back: Some(2),
+            },
+        ];
+        // The line arrives at triangle 0's front, then at triangle 1's back.
+        let hits = [Hit::new(1.0, 0, true), Hit::new(2.0, 1, false)];
+        let mut seen = Vec::new();
+        walk(&hits, &faces, |a, b| seen.push((a, b)));
+        seen.sort_unstable();
+        // Patch 0 sees the sky behind it; the segment between leaves 0's back (absorbed: it is
+        // one-sided) and enters 1's back (patch 2); patch 1 (front) sees the sky beyond.
+        assert_eq!(seen, vec![(0, SKY), (1, SKY), (2, ABSORBED)]);
+    }
+
+    #[test]
+    fn crossings_are_the_row_sums() {
+        let faces = [
+            Faces {
+                front: 0,
+                back: Some(1),
+            },
+            Faces {
+                front: 2,
+                back: Some(3),
+            },
+        ];
+        let hits = [Hit::new(1.0, 0, true), Hit::new(2.0, 1, true)];
+        let mut raw = Vec::new();
+        walk(&hits, &faces, |a, b| raw.push((key(a, b, 0), 1)));
+        let entries = aggregate(raw);
+        // 0 sees the sky, 1 sees 2 and 2 sees 1, 3 sees the sky: each face crossed once.
+        let expected = [(0, SKY), (1, 2), (2, 1), (3, SKY)].map(|(a, b)| (key(a, b, 0), 1));
+        assert_eq!(entries, expected.to_vec());
+    }
+}

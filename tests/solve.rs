@@ -1,0 +1,378 @@
+//! The radiosity solve against cases with known answers (METHOD.md §7), and its error bars.
+
+use radiosity::bake::Bake;
+use radiosity::loader::{LoadOptions, load};
+use radiosity::scene::{Material, Scene};
+use radiosity::solve::SolveParams;
+use radiosity::timeline::LineParams;
+
+fn sample(name: &str, options: &LoadOptions) -> Scene {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("scenes")
+        .join(name);
+    load(&std::fs::read(path).unwrap(), options).unwrap()
+}
+
+fn lines(n: u64, seed: u64) -> LineParams {
+    LineParams {
+        lines: n,
+        bundles: None,
+        seed,
+    }
+}
+
+#[test]
+fn the_furnace_is_exact_for_any_number_of_lines() {
+    for (rho, n) in [(0.999, 300), (0.999, 20_000), (0.9, 300), (0.9, 5_000)] {
+        let scene = sample("furnace.gltf", &LoadOptions::default());
+        let materials: Vec<Material> = scene
+            .materials
+            .iter()
+            .map(|m| Material {
+                reflectance: [rho; 3],
+                emission: [1.0, 2.0, 0.5],
+                ..m.clone()
+            })
+            .collect();
+        let bake = Bake::trace(scene, &lines(n, 1)).unwrap();
+        let s = bake.solve_frame(0, &materials, &SolveParams::default());
+        assert!(s.converged, "rho {rho}: residual {}", s.residual);
+        let mut sampled = 0;
+        for (i, l) in s.radiance.iter().enumerate() {
+            // A patch no line crossed has no estimate (and says so).
+            if s.samples[i] == 0 {
+                assert!(s.stderr[i].is_none());
+                continue;
+            }
+            sampled += 1;
+            for (c, e) in [1.0, 2.0, 0.5].iter().enumerate() {
+                let exact = e / (1.0 - rho);
+                assert!(
+                    (l[c] / exact - 1.0).abs() < 1e-3,
+                    "rho {rho}, {n} lines, patch {i}: {} vs {exact}",
+                    l[c]
+                );
+            }
+        }
+        assert!(sampled * 10 > s.radiance.len() * 8, "{sampled} sampled");
+        eprintln!(
+            "rho {rho} lines {n}: {} iterations, {sampled} patches sampled",
+            s.iterations
+        );
+    }
+}
+
+/// Energy balance of the estimated system in a closed scene of uniform reflectance:
+/// `(1 − ρ) Σ N_i L_i = Σ N_i Le_i` exactly, whatever the lines: it checks that the solver
+/// converged at ρ = 0.999 with an emission far from uniform.
+#[test]
+fn conjugate_gradients_converge_at_rho_0_999() {
+    let scene = sample("furnace.gltf", &LoadOptions::default());
+    let bake = Bake::trace(scene, &lines(20_000, 2)).unwrap();
+    let rho = 0.999;
+    // Emission only on the patches of one face (the first 32 patches: one side of the cube).
+    let mut materials = vec![Material {
+        reflectance: [rho; 3],
+        emission: [0.0; 3],
+        ..bake.scene.materials[0].clone()
+    }];
+    materials.push(Material {
+        emission: [1.0; 3],
+        ..materials[0].clone()
+    });
+    let mut scene_materials = bake
+        .scene
+        .patches
+        .iter()
+        .map(|p| p.material)
+        .collect::<Vec<_>>();
+    for m in scene_materials.iter_mut().take(32) {
+        *m = 1;
+    }
+    let tally = bake.tallies().frame(0, bake.scene.patches.len());
+    let s = radiosity::solve::solve(
+        &tally,
+        &scene_materials,
+        &materials,
+        &SolveParams::default(),
+    );
+    assert!(
+        s.converged,
+        "residual {} after {} iterations",
+        s.residual, s.iterations
+    );
+    assert!(
+        s.iterations > 20,
+        "{} iterations: not a hard case",
+        s.iterations
+    );
+    let emitted: f64 = (0..32).map(|i| s.samples[i] as f64).sum();
+    let balance: f64 = s
+        .radiance
+        .iter()
+        .zip(&s.samples)
+        .map(|(l, &n)| (1.0 - rho) * n as f64 * l[0])
+        .sum();
+    assert!(
+        (balance / emitted - 1.0).abs() < 1e-6,
+        "{balance} vs {emitted}"
+    );
+    eprintln!("rho 0.999, one emitting face: {} iterations", s.iterations);
+}
+
+/// Form factor from a point to a parallel rectangle [x0, x1] × [z0, z1] at height c, by
+/// superposition of corner rectangles (Howell's catalogue, C-11).
+fn point_to_rectangle(p: (f64, f64), x: (f64, f64), z: (f64, f64), c: f64) -> f64 {
+    let corner = |a: f64, b: f64| {
+        let (u, v) = (a.abs() / c, b.abs() / c);
+        let f = (u / (1.0 + u * u).sqrt() * (v / (1.0 + u * u).sqrt()).atan()
+            + v / (1.0 + v * v).sqrt() * (u / (1.0 + v * v).sqrt()).atan())
+            / (2.0 * std::f64::consts::PI);
+        a.signum() * b.signum() * f
+    };
+    corner(x.1 - p.0, z.1 - p.1) - corner(x.0 - p.0, z.1 - p.1) - corner(x.1 - p.0, z.0 - p.1)
+        + corner(x.0 - p.0, z.0 - p.1)
+}
+
+/// The receiver of the parallel squares, subdivided: each patch's radiance is exactly
+/// ρ · Le · F(patch → emitter), since the emitter is black. The error bars must cover it.
+#[test]
+fn parallel_squares_match_the_closed_form_within_the_error_bars() {
+    let options = LoadOptions {
+        patch_size: Some(0.3),
+        ..LoadOptions::default()
+    };
+    let scene = sample("parallel_squares.gltf", &options);
+    let n = scene.normalisation;
+    let bake = Bake::trace(scene, &lines(400_000, 3)).unwrap();
+    let s = bake.solve_frame(0, &bake.scene.materials, &SolveParams::default());
+    let tracer_positions = |p: usize| -> [glam::DVec3; 3] {
+        // Patch p is the front face of static triangle p (one-sided scene).
+        let t = bake.scene.statics.triangles[p];
+        t.map(|i| n.to_scene(bake.scene.statics.positions[i as usize].as_dvec3()))
+    };
+    let (mut within_1, mut within_2, mut receivers) = (0, 0, 0);
+    let mut whole = (0.0, 0.0);
+    for (p, patch) in bake.scene.patches.iter().enumerate() {
+        if bake.scene.materials[patch.material as usize].is_emitter() {
+            continue;
+        }
+        assert_eq!(bake.scene.statics.faces[p].front as usize, p);
+        let [a, b, c] = tracer_positions(p);
+        // Mean of the point form factor over the triangle (15 × 15 barycentric grid).
+        let (mut f, mut k) = (0.0, 0.0);
+        for i in 0..15 {
+            for j in 0..15 - i {
+                let (u, v) = ((i as f64 + 1.0 / 3.0) / 15.0, (j as f64 + 1.0 / 3.0) / 15.0);
+                let q = a + (b - a) * u + (c - a) * v;
+                f += point_to_rectangle((q.x, q.z), (-0.5, 0.5), (-0.5, 0.5), q.y);
+                k += 1.0;
+            }
+        }
+        let exact = 0.5 * f / k;
+        let sigma = s.stderr[p].expect("every receiver patch is sampled")[0];
+        let error = (s.radiance[p][0] - exact).abs();
+        within_1 += usize::from(error <= sigma);
+        within_2 += usize::from(error <= 2.0 * sigma);
+        receivers += 1;
+        whole.0 += s.radiance[p][0] * patch.area;
+        whole.1 += exact * patch.area;
+    }
+    let (f1, f2) = (
+        within_1 as f64 / receivers as f64,
+        within_2 as f64 / receivers as f64,
+    );
+    eprintln!("{receivers} receiver patches: {f1:.2} within 1σ, {f2:.2} within 2σ");
+    assert!(f2 >= 0.9, "only {f2} of patches within 2σ");
+    // Honest, not inflated: a Gaussian error has 68% within 1σ.
+    assert!(f1 <= 0.9, "{f1} within 1σ: the error bars are too wide");
+    // The whole receiver (area 1): radiance 0.5 × 0.19982.
+    assert!(
+        (whole.0 / 0.5 - 0.19982).abs() < 0.003,
+        "F = {}",
+        whole.0 / 0.5
+    );
+    assert!(
+        (whole.1 / 0.5 - 0.19982).abs() < 1e-4,
+        "quadrature F = {}",
+        whole.1 / 0.5
+    );
+}
+
+#[test]
+fn frames_from_the_multiframe_list_equal_each_frame_traced_alone() {
+    use radiosity::solve::tally::FrameTally;
+    use radiosity::trace::SceneTracer;
+    let scene = sample(
+        "cornell_moving.gltf",
+        &LoadOptions {
+            fps: 4.0,
+            ..LoadOptions::default()
+        },
+    );
+    let bake = Bake::trace(scene, &lines(20_000, 4)).unwrap();
+    let tracer = SceneTracer::new(&bake.scene);
+    let all_lines: Vec<_> = bake.list().regenerate_lines(&bake.scene).collect();
+    let patches = bake.scene.patches.len();
+    for frame in 0..bake.scene.frames.count {
+        let deformed = tracer.deformed_at(&bake.scene, frame);
+        let per_line: Vec<Vec<_>> = all_lines
+            .iter()
+            .map(|l| {
+                let mut h = Vec::new();
+                tracer.trace_frame(l, frame, &deformed, &mut h);
+                h
+            })
+            .collect();
+        let groups = bake.list().line_groups(radiosity::solve::tally::GROUPS);
+        let alone = FrameTally::from_lines(
+            groups
+                .iter()
+                .zip(&per_line)
+                .map(|(&g, h)| (g, h.as_slice())),
+            tracer.faces(),
+            patches,
+        );
+        let multiframe = bake.tallies().frame(frame, patches);
+        assert_eq!(alone, multiframe, "frame {frame}");
+        assert!(multiframe.is_symmetric());
+        // A closed scene: nothing reaches the sky, every row of F sums to 1.
+        assert!(!multiframe.columns.contains(&radiosity::solve::tally::SKY));
+        let params = SolveParams::default();
+        let a = radiosity::solve::solve(
+            &alone,
+            &bake
+                .scene
+                .patches
+                .iter()
+                .map(|p| p.material)
+                .collect::<Vec<_>>(),
+            &bake.scene.materials,
+            &params,
+        );
+        assert_eq!(a, bake.solve_frame(frame, &bake.scene.materials, &params));
+    }
+}
+
+#[test]
+fn relighting_needs_no_tracing_and_is_linear() {
+    let scene = sample(
+        "cornell_moving.gltf",
+        &LoadOptions {
+            fps: 2.0,
+            ..LoadOptions::default()
+        },
+    );
+    let bake = Bake::trace(scene, &lines(20_000, 5)).unwrap();
+    let params = SolveParams::default();
+    let before = bake.solve_all(&bake.scene.materials, &params);
+    let brighter: Vec<Material> = bake
+        .scene
+        .materials
+        .iter()
+        .map(|m| Material {
+            emission: m.emission.map(|e| e * 2.0),
+            ..m.clone()
+        })
+        .collect();
+    let lines_before = bake.list().lines();
+    let after = bake.solve_all(&brighter, &params);
+    assert_eq!(bake.list().lines(), lines_before);
+    for (b, a) in before.iter().zip(&after) {
+        for (x, y) in b.radiance.iter().zip(&a.radiance) {
+            for c in 0..3 {
+                assert!(
+                    (y[c] - 2.0 * x[c]).abs() <= 1e-9 * x[c].abs().max(1e-300),
+                    "{} vs {}",
+                    y[c],
+                    x[c]
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn refinement_lowers_the_error() {
+    let scene = sample("parallel_squares.gltf", &LoadOptions::default());
+    let mut bake = Bake::trace(scene, &lines(2_000, 6)).unwrap();
+    let receiver = |b: &Bake| {
+        let s = b.solve_frame(0, &b.scene.materials, &SolveParams::default());
+        let p = b
+            .scene
+            .patches
+            .iter()
+            .position(|p| !b.scene.materials[p.material as usize].is_emitter())
+            .unwrap();
+        (s.radiance[p][0], s.stderr[p].unwrap()[0])
+    };
+    let (_, coarse) = receiver(&bake);
+    bake.refine(30_000).unwrap();
+    let (value, fine) = receiver(&bake);
+    assert!(fine < coarse / 3.0, "error {coarse} → {fine}");
+    assert!(
+        (value - 0.5 * 0.19982).abs() < 4.0 * fine,
+        "{value} ± {fine}"
+    );
+}
+
+#[test]
+fn scale_placement_and_emission_magnitude_do_not_change_the_answer() {
+    let reference = {
+        let scene = sample("cornell_box.gltf", &LoadOptions::default());
+        let bake = Bake::trace(scene, &lines(10_000, 7)).unwrap();
+        bake.solve_frame(0, &bake.scene.materials, &SolveParams::default())
+    };
+    let bytes = std::fs::read(
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/cornell_box.gltf"),
+    )
+    .unwrap();
+    let json: serde_json::Value = serde_json::from_slice(&bytes).unwrap();
+    let roots = json["scenes"][0]["nodes"].clone();
+    for (scale, offset) in [(1e-4, 0.0), (1e5, 0.0), (1.0, 1e6)] {
+        // Wrap the scene in a node that scales and moves it.
+        let mut j = json.clone();
+        let wrapper = j["nodes"].as_array().unwrap().len();
+        j["nodes"].as_array_mut().unwrap().push(serde_json::json!({"children": roots, "scale": [scale, scale, scale], "translation": [offset, 0.0, 0.0]}));
+        j["scenes"][0]["nodes"] = serde_json::json!([wrapper]);
+        let scene = load(&serde_json::to_vec(&j).unwrap(), &LoadOptions::default()).unwrap();
+        let bake = Bake::trace(scene, &lines(10_000, 7)).unwrap();
+        let s = bake.solve_frame(0, &bake.scene.materials, &SolveParams::default());
+        for (a, b) in s.radiance.iter().zip(&reference.radiance) {
+            for c in 0..3 {
+                assert!(
+                    (a[c] - b[c]).abs() <= 1e-4 * b[c].abs().max(1e-3),
+                    "scale {scale} offset {offset}: {} vs {}",
+                    a[c],
+                    b[c]
+                );
+            }
+        }
+    }
+    // Emission from 1e-30 to 1e30: the same picture, scaled.
+    let scene = sample("cornell_box.gltf", &LoadOptions::default());
+    let bake = Bake::trace(scene, &lines(10_000, 7)).unwrap();
+    for factor in [1e-30, 1e30] {
+        let materials: Vec<Material> = bake
+            .scene
+            .materials
+            .iter()
+            .map(|m| Material {
+                emission: m.emission.map(|e| e * factor),
+                ..m.clone()
+            })
+            .collect();
+        let s = bake.solve_frame(0, &materials, &SolveParams::default());
+        for (a, b) in s.radiance.iter().zip(&reference.radiance) {
+            for c in 0..3 {
+                assert!(
+                    a[c].is_finite()
+                        && (a[c] / factor - b[c]).abs() <= 1e-9 * b[c].abs().max(1e-300),
+                    "{factor}: {} vs {}",
+                    a[c],
+                    b[c]
+                );
+            }
+        }
+    }
+}
