@@ -8,7 +8,7 @@ use std::sync::Arc;
 use rayon::prelude::*;
 
 use crate::scene::{Material, Scene};
-use crate::solve::tally::Tallies;
+use crate::solve::tally::{FrameTally, Tallies};
 use crate::solve::{FrameSolution, SolveParams, solve};
 use crate::timeline::{IntersectionList, LineParams, TooManyHits};
 use crate::trace::SceneTracer;
@@ -65,6 +65,31 @@ impl Bake {
         &self.tallies
     }
 
+    /// The tracer (BVHs and the faces of every traced triangle).
+    #[must_use]
+    pub fn tracer(&self) -> &SceneTracer {
+        &self.tracer
+    }
+
+    /// The tallies of one frame.
+    #[must_use]
+    pub fn frame_tally(&self, frame: usize) -> FrameTally {
+        self.tallies.frame(
+            &self.list,
+            self.tracer.faces(),
+            frame,
+            self.scene.patches.len(),
+        )
+    }
+
+    /// Frames that share their solution: `representatives()[f]` is the first frame with the
+    /// same tallies as f.
+    #[must_use]
+    pub fn representatives(&self) -> Vec<usize> {
+        self.tallies
+            .representatives(&self.list, self.tracer.faces())
+    }
+
     /// Material index of every patch.
     fn patch_materials(&self) -> Vec<u32> {
         self.scene.patches.iter().map(|p| p.material).collect()
@@ -78,8 +103,12 @@ impl Bake {
         materials: &[Material],
         params: &SolveParams,
     ) -> FrameSolution {
-        let tally = self.tallies.frame(frame, self.scene.patches.len());
-        solve(&tally, &self.patch_materials(), materials, params)
+        solve(
+            &self.frame_tally(frame),
+            &self.patch_materials(),
+            materials,
+            params,
+        )
     }
 
     /// Solves every frame; frames with identical tallies share one solution.
@@ -89,7 +118,9 @@ impl Bake {
         materials: &[Material],
         params: &SolveParams,
     ) -> Vec<Arc<FrameSolution>> {
-        let representatives = self.tallies.representatives();
+        let representatives = self
+            .tallies
+            .representatives(&self.list, self.tracer.faces());
         let distinct: Vec<usize> = (0..representatives.len())
             .filter(|&f| representatives[f] == f)
             .collect();

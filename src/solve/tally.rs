@@ -146,13 +146,20 @@ fn merge(a: &[(u64, i64)], b: &[(u64, i64)]) -> Entries {
     out
 }
 
-/// The tallies of a timeline: static counts and per-frame changes.
+/// The tallies of a timeline: the static counts, and what each frame's moving objects change,
+/// recomputed when a frame is solved from the lines they touch (cheaper to redo than to keep:
+/// a frame's changes take more memory than the moving crossings they come from).
 #[derive(Clone, Debug, Default)]
 pub struct Tallies {
-    /// Segment counts of every line's static crossings, sorted by (row, column).
+    /// Segment counts of every line's static crossings, sorted by (row, column, group).
     statics: Entries,
-    /// Per frame: what the moving objects change, sorted by (row, column).
-    deltas: Vec<Entries>,
+    /// Lines crossing a moving object at frame f: `touched[touched_offsets[f]..touched_offsets[f + 1]]`.
+    touched_offsets: Vec<u32>,
+    touched: Vec<u32>,
+    /// Per frame, a fingerprint of its changes: frames with equal changes have equal solutions.
+    fingerprints: Vec<u64>,
+    /// Group of each line (see [`GROUPS`]).
+    groups: Vec<u8>,
     /// Lines tallied so far.
     lines: usize,
 }
@@ -178,17 +185,37 @@ impl Tallies {
     /// Tallies the lines `list` holds beyond those already tallied (all of them the first
     /// time): call again after [`IntersectionList::add_lines`] to refine.
     pub fn update(&mut self, list: &IntersectionList, faces: &[Faces]) {
-        let lines = self.lines..list.lines();
-        if self.deltas.is_empty() {
-            self.deltas = vec![Vec::new(); list.frames()];
-        }
-        let groups = list.line_groups(GROUPS);
-        let statics = tally_static(list, faces, lines.clone(), &groups);
+        let new = self.lines..list.lines();
+        self.groups = list.line_groups(GROUPS);
+        let statics = tally_static(list, faces, new.clone(), &self.groups);
         self.statics = merge(&self.statics, &statics);
-        for (frame, delta) in tally_moving(list, faces, lines.clone(), &groups) {
-            self.deltas[frame] = merge(&self.deltas[frame], &delta);
+        self.lines = new.end;
+        // Which lines each frame's moving objects touch, over all lines.
+        let mut pairs: Vec<(u32, u32)> = (0..list.lines())
+            .flat_map(|l| {
+                let mut frames: Vec<u32> = list.moving_hits(l).iter().map(|h| h.frame).collect();
+                frames.dedup();
+                frames.into_iter().map(move |f| (f, l as u32))
+            })
+            .collect();
+        pairs.sort_unstable();
+        self.touched_offsets = vec![0; list.frames() + 1];
+        for &(f, _) in &pairs {
+            self.touched_offsets[f as usize + 1] += 1;
         }
-        self.lines = lines.end;
+        for f in 0..list.frames() {
+            self.touched_offsets[f + 1] += self.touched_offsets[f];
+        }
+        self.touched = pairs.into_iter().map(|(_, l)| l).collect();
+        self.fingerprints = (0..list.frames())
+            .into_par_iter()
+            .map(|f| {
+                use std::hash::{Hash, Hasher};
+                let mut h = std::collections::hash_map::DefaultHasher::new();
+                self.changes(list, faces, f).hash(&mut h);
+                h.finish()
+            })
+            .collect();
     }
 
     /// Lines tallied.
@@ -197,65 +224,107 @@ impl Tallies {
         self.lines
     }
 
+    /// What the moving objects change at `frame`: minus the static segments of the lines they
+    /// touch, plus those lines' frame segments.
+    fn changes(&self, list: &IntersectionList, faces: &[Faces], frame: usize) -> Entries {
+        let touched = &self.touched
+            [self.touched_offsets[frame] as usize..self.touched_offsets[frame + 1] as usize];
+        let mut raw = Vec::new();
+        let mut merged = Vec::new();
+        for &l in touched {
+            let l = l as usize;
+            let g = self.groups[l];
+            walk(list.static_hits(l), faces, |a, b| {
+                raw.push((key(a, b, g), -1))
+            });
+            list.frame_hits(l, frame, &mut merged);
+            walk(&merged, faces, |a, b| raw.push((key(a, b, g), 1)));
+        }
+        aggregate(raw)
+    }
+
     /// Frames whose tallies equal an earlier frame's: `representative[f]` is the first frame
     /// with the same tallies (itself if none). Such frames have the same solution.
     #[must_use]
-    pub fn representatives(&self) -> Vec<usize> {
-        let mut first: HashMap<&[(u64, i64)], usize> = HashMap::new();
-        (0..self.deltas.len())
-            .map(|f| *first.entry(self.deltas[f].as_slice()).or_insert(f))
+    pub fn representatives(&self, list: &IntersectionList, faces: &[Faces]) -> Vec<usize> {
+        let mut first: HashMap<u64, usize> = HashMap::new();
+        (0..self.fingerprints.len())
+            .map(|f| {
+                let r = *first.entry(self.fingerprints[f]).or_insert(f);
+                // A fingerprint is a hash: share only what is verified equal.
+                if r != f && self.changes(list, faces, r) != self.changes(list, faces, f) {
+                    f
+                } else {
+                    r
+                }
+            })
             .collect()
     }
 
-    /// Bytes held: the static entries and the per-frame changes.
+    /// Bytes held: the static entries, the touched lines per frame, the line groups.
     #[must_use]
     pub fn bytes(&self) -> usize {
-        let entry = size_of::<(u64, i64)>();
-        (self.statics.len() + self.deltas.iter().map(Vec::len).sum::<usize>()) * entry
+        self.statics.len() * size_of::<(u64, i64)>()
+            + (self.touched.len() + self.touched_offsets.len()) * size_of::<u32>()
+            + self.fingerprints.len() * size_of::<u64>()
+            + self.groups.len()
     }
 
     /// The tallies of `frame` for `patches` patches.
     #[must_use]
-    pub fn frame(&self, frame: usize, patches: usize) -> FrameTally {
-        let entries = match self.deltas.get(frame) {
-            Some(delta) if !delta.is_empty() => merge(&self.statics, delta),
-            _ => self.statics.clone(),
+    pub fn frame(
+        &self,
+        list: &IntersectionList,
+        faces: &[Faces],
+        frame: usize,
+        patches: usize,
+    ) -> FrameTally {
+        let changes = self.changes(list, faces, frame);
+        let entries = if changes.is_empty() {
+            self.statics.clone()
+        } else {
+            merge(&self.statics, &changes)
         };
-        let mut t = FrameTally {
-            crossings: vec![0; patches],
-            offsets: Vec::with_capacity(patches + 1),
-            columns: Vec::with_capacity(entries.len()),
-            counts: Vec::with_capacity(entries.len()),
-            group_offsets: Vec::with_capacity(patches + 1),
-            group_entries: Vec::with_capacity(entries.len()),
-        };
-        let mut row = 0;
-        t.offsets.push(0);
-        t.group_offsets.push(0);
-        for (k, c) in entries {
-            let (r, col, group) = unkey(k);
-            debug_assert!(c > 0, "a frame's segment count went negative");
-            while row < r as usize {
-                t.offsets.push(t.columns.len());
-                t.group_offsets.push(t.group_entries.len());
-                row += 1;
-            }
-            let c = c as u64;
-            if t.columns.len() > t.offsets[row] && t.columns.last() == Some(&col) {
-                *t.counts.last_mut().unwrap_or(&mut 0) += c;
-            } else {
-                t.columns.push(col);
-                t.counts.push(c);
-            }
-            t.group_entries.push((col, group, c as u32));
-            t.crossings[r as usize] += c;
-        }
-        while t.offsets.len() <= patches {
+        assemble(entries, patches)
+    }
+}
+
+/// A frame's CSR from its sorted entries.
+fn assemble(entries: Entries, patches: usize) -> FrameTally {
+    let mut t = FrameTally {
+        crossings: vec![0; patches],
+        offsets: Vec::with_capacity(patches + 1),
+        columns: Vec::with_capacity(entries.len()),
+        counts: Vec::with_capacity(entries.len()),
+        group_offsets: Vec::with_capacity(patches + 1),
+        group_entries: Vec::with_capacity(entries.len()),
+    };
+    let mut row = 0;
+    t.offsets.push(0);
+    t.group_offsets.push(0);
+    for (k, c) in entries {
+        let (r, col, group) = unkey(k);
+        debug_assert!(c > 0, "a frame's segment count went negative");
+        while row < r as usize {
             t.offsets.push(t.columns.len());
             t.group_offsets.push(t.group_entries.len());
+            row += 1;
         }
-        t
+        let c = c as u64;
+        if t.columns.len() > t.offsets[row] && t.columns.last() == Some(&col) {
+            *t.counts.last_mut().unwrap_or(&mut 0) += c;
+        } else {
+            t.columns.push(col);
+            t.counts.push(c);
+        }
+        t.group_entries.push((col, group, c as u32));
+        t.crossings[r as usize] += c;
     }
+    while t.offsets.len() <= patches {
+        t.offsets.push(t.columns.len());
+        t.group_offsets.push(t.group_entries.len());
+    }
+    t
 }
 
 impl FrameTally {
@@ -271,12 +340,7 @@ impl FrameTally {
         for (group, hits) in lines {
             walk(hits, faces, |a, b| raw.push((key(a, b, group), 1)));
         }
-        let tallies = Tallies {
-            statics: aggregate(raw),
-            deltas: Vec::new(),
-            lines: 0,
-        };
-        tallies.frame(0, patches)
+        assemble(aggregate(raw), patches)
     }
 
     /// Whether `S` is symmetric between patches (reciprocity, `A_i F_ij = A_j F_ji`): true by
@@ -319,48 +383,6 @@ fn tally_static(
         })
         .collect();
     aggregate(chunks.into_iter().flatten().collect())
-}
-
-/// Per-frame changes of `lines`: for each line crossing a moving object at frame f, minus its
-/// static segments, plus its frame-f segments.
-fn tally_moving(
-    list: &IntersectionList,
-    faces: &[Faces],
-    lines: Range<usize>,
-    groups: &[u8],
-) -> Vec<(usize, Entries)> {
-    let chunks: Vec<Vec<(u64, u64, i64)>> = lines
-        .collect::<Vec<_>>()
-        .par_chunks(4096)
-        .map(|chunk| {
-            let mut raw = Vec::new();
-            let mut merged = Vec::new();
-            for &l in chunk {
-                let moving = list.moving_hits(l);
-                let mut at = 0;
-                while at < moving.len() {
-                    let frame = moving[at].frame;
-                    at += moving[at..].partition_point(|h| h.frame == frame);
-                    let f = u64::from(frame);
-                    let g = groups[l];
-                    walk(list.static_hits(l), faces, |a, b| {
-                        raw.push((f, key(a, b, g), -1))
-                    });
-                    list.frame_hits(l, frame as usize, &mut merged);
-                    walk(&merged, faces, |a, b| raw.push((f, key(a, b, g), 1)));
-                }
-            }
-            raw
-        })
-        .collect();
-    let mut by_frame: HashMap<u64, Vec<(u64, i64)>> = HashMap::new();
-    for (f, k, c) in chunks.into_iter().flatten() {
-        by_frame.entry(f).or_default().push((k, c));
-    }
-    by_frame
-        .into_iter()
-        .map(|(f, raw)| (f as usize, aggregate(raw)))
-        .collect()
 }
 
 #[cfg(test)]
