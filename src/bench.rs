@@ -172,3 +172,216 @@ impl std::fmt::Display for TraceReport {
         )
     }
 }
+
+/// One point of the speed/accuracy trade: a scene baked with a line budget.
+#[derive(Clone, Debug, Serialize)]
+pub struct AccuracyPoint {
+    /// Scene file.
+    pub scene: String,
+    /// What the error is measured against.
+    pub reference: String,
+    /// Frames baked.
+    pub frames: usize,
+    /// Lines traced.
+    pub lines: usize,
+    /// Wall time: tracing, tallying and solving every frame.
+    pub seconds: f64,
+    /// Relative RMS error of the radiance (area-weighted, over patches, channels and frames).
+    pub rms_error: f64,
+    /// Fraction of (patch, channel, frame) values within 2σ of the reference (σ combining the
+    /// reported errors of the bake and of a reference run).
+    pub coverage: f64,
+}
+
+/// A scene's reference radiance per frame, with its own standard error (0 for closed forms).
+struct Reference {
+    name: String,
+    values: Vec<Vec<[f64; 3]>>,
+    sigma: Vec<Vec<[f64; 3]>>,
+}
+
+/// A bake timed from tracing to the last frame solved.
+struct Timed {
+    solved: Vec<crate::solve::FrameSolution>,
+    lines: usize,
+    seconds: f64,
+}
+
+/// Bakes `scene` with `lines` lines and solves every frame.
+fn timed_bake(scene: &Scene, lines: u64, seed: u64) -> Result<Timed, TooManyHits> {
+    let start = Instant::now();
+    let bake = crate::bake::Bake::trace(
+        scene.clone(),
+        &LineParams {
+            lines,
+            bundles: None,
+            seed,
+        },
+    )?;
+    let solved = bake.solve_all(&scene.materials, &crate::solve::SolveParams::default());
+    let seconds = start.elapsed().as_secs_f64();
+    Ok(Timed {
+        solved: solved.iter().map(|s| (**s).clone()).collect(),
+        lines: bake.list().lines(),
+        seconds,
+    })
+}
+
+/// Closed-form references where the sample scenes have one: the furnace (L = Le / (1 − ρ)) and
+/// the parallel squares' receiver (ρ · F, the emitter being black).
+fn closed_form(name: &str, scene: &Scene) -> Option<Reference> {
+    let frames = scene.frames.count;
+    let per_patch: Vec<[f64; 3]> = match name {
+        "furnace.gltf" => scene
+            .patches
+            .iter()
+            .map(|p| {
+                let m = &scene.materials[p.material as usize];
+                [0, 1, 2].map(|c| m.emission[c] / (1.0 - m.reflectance[c]))
+            })
+            .collect(),
+        "parallel_squares.gltf" => scene
+            .patches
+            .iter()
+            .enumerate()
+            .map(|(i, p)| {
+                let m = &scene.materials[p.material as usize];
+                if m.is_emitter() {
+                    return m.emission;
+                }
+                let n = scene.normalisation;
+                let t = scene.statics.triangles[i];
+                let corners = t.map(|v| n.to_scene(scene.statics.positions[v as usize].as_dvec3()));
+                let f = crate::solve::analytic::triangle_to_parallel_rectangle(
+                    corners,
+                    (-0.5, 0.5),
+                    (-0.5, 0.5),
+                    0.0,
+                );
+                m.reflectance.map(|r| r * f)
+            })
+            .collect(),
+        _ => return None,
+    };
+    Some(Reference {
+        name: "closed form".into(),
+        sigma: vec![vec![[0.0; 3]; per_patch.len()]; frames],
+        values: vec![per_patch; frames],
+    })
+}
+
+/// Error and error-bar coverage of `solved` against `reference`, over patches that reflect.
+fn compare(
+    scene: &Scene,
+    solved: &[crate::solve::FrameSolution],
+    reference: &Reference,
+) -> (f64, f64) {
+    let (mut num, mut den, mut within, mut total) = (0.0, 0.0, 0usize, 0usize);
+    for (f, s) in solved.iter().enumerate() {
+        for (i, p) in scene.patches.iter().enumerate() {
+            let m = &scene.materials[p.material as usize];
+            for c in 0..3 {
+                if m.reflectance[c] == 0.0 {
+                    continue;
+                }
+                let (l, r) = (s.radiance[i][c], reference.values[f][i][c]);
+                num += p.area * (l - r).powi(2);
+                den += p.area * r * r;
+                let sigma = s.stderr[i]
+                    .map_or(f64::INFINITY, |e| e[c])
+                    .hypot(reference.sigma[f][i][c]);
+                within += usize::from((l - r).abs() <= 2.0 * sigma + 1e-9 * r.abs());
+                total += 1;
+            }
+        }
+    }
+    (
+        (num / den.max(f64::MIN_POSITIVE)).sqrt(),
+        within as f64 / total.max(1) as f64,
+    )
+}
+
+/// Sweeps the line budget on each scene and measures error against time. Scenes without a
+/// closed form are measured against a bake with `reference_factor` times the largest budget
+/// (another seed).
+pub fn accuracy(
+    scenes: &[(String, Scene)],
+    budgets: &[u64],
+    reference_factor: u64,
+    mut progress: impl FnMut(&AccuracyPoint),
+) -> Result<Vec<AccuracyPoint>, TooManyHits> {
+    let mut points = Vec::new();
+    for (name, scene) in scenes {
+        let reference = match closed_form(name, scene) {
+            Some(r) => r,
+            None => {
+                let lines = reference_factor * budgets.iter().copied().max().unwrap_or(1);
+                let solved = timed_bake(scene, lines, 0x5EED)?.solved;
+                Reference {
+                    name: format!("{lines} lines"),
+                    values: solved.iter().map(|s| s.radiance.clone()).collect(),
+                    sigma: solved
+                        .iter()
+                        .map(|s| s.stderr.iter().map(|e| e.unwrap_or([0.0; 3])).collect())
+                        .collect(),
+                }
+            }
+        };
+        for &lines in budgets {
+            let run = timed_bake(scene, lines, 1)?;
+            let (rms_error, coverage) = compare(scene, &run.solved, &reference);
+            let point = AccuracyPoint {
+                scene: name.clone(),
+                reference: reference.name.clone(),
+                frames: scene.frames.count,
+                lines: run.lines,
+                seconds: run.seconds,
+                rms_error,
+                coverage,
+            };
+            progress(&point);
+            points.push(point);
+        }
+    }
+    Ok(points)
+}
+
+/// The multiframe gain at equal error: one bake of the whole timeline against one bake per
+/// frame with the same lines (each frame's scene loaded alone, everything static).
+#[derive(Clone, Debug, Serialize)]
+pub struct MultiframeGain {
+    /// Frames of the timeline.
+    pub frames: usize,
+    /// Lines per bake.
+    pub lines: usize,
+    /// The multiframe bake, seconds.
+    pub multiframe_seconds: f64,
+    /// The per-frame bakes together, seconds.
+    pub independent_seconds: f64,
+    /// independent / multiframe.
+    pub ratio: f64,
+}
+
+/// Measures [`MultiframeGain`]: `load_frame(t)` loads the scene with its one frame at time t.
+pub fn multiframe_gain(
+    scene: &Scene,
+    lines: u64,
+    load_frame: impl Fn(f64) -> Option<Scene>,
+) -> Result<Option<MultiframeGain>, TooManyHits> {
+    let whole = timed_bake(scene, lines, 1)?;
+    let start = Instant::now();
+    for f in 0..scene.frames.count {
+        let Some(single) = load_frame(scene.frames.time(f)) else {
+            return Ok(None);
+        };
+        timed_bake(&single, lines, 1)?;
+    }
+    let independent_seconds = start.elapsed().as_secs_f64();
+    Ok(Some(MultiframeGain {
+        frames: scene.frames.count,
+        lines: whole.lines,
+        multiframe_seconds: whole.seconds,
+        independent_seconds,
+        ratio: independent_seconds / whole.seconds,
+    }))
+}

@@ -76,6 +76,32 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Measure the speed/accuracy trade on the sample scenes: error against lines and seconds,
+    /// error-bar coverage, and the multiframe gain at equal error.
+    BenchAccuracy {
+        /// Directory of the sample scenes.
+        #[arg(long, default_value = "scenes")]
+        scenes: PathBuf,
+        /// Line budgets to sweep, comma-separated.
+        #[arg(
+            long,
+            value_delimiter = ',',
+            default_value = "10000,30000,100000,300000,1000000"
+        )]
+        budgets: Vec<u64>,
+        /// Lines of the reference bake, as a multiple of the largest budget.
+        #[arg(long, default_value_t = 16)]
+        reference_factor: u64,
+        /// Frames per second for the animated scenes.
+        #[arg(long, default_value_t = 12.0)]
+        fps: f64,
+        /// Lines for the multiframe gain measurement.
+        #[arg(long, default_value_t = 100_000)]
+        gain_lines: u64,
+        /// Scene of the multiframe gain measurement (60 frames over its 2 s animation).
+        #[arg(long, default_value = "level.gltf")]
+        gain_scene: String,
+    },
     /// Write the sample scenes (deterministic) into a directory.
     Samples {
         /// Output directory.
@@ -126,6 +152,67 @@ fn run(cli: Cli) -> Result<(), String> {
             } else {
                 print!("{report}");
             }
+            Ok(())
+        }
+        Command::BenchAccuracy {
+            scenes,
+            budgets,
+            reference_factor,
+            fps,
+            gain_lines,
+            gain_scene,
+        } => {
+            let load_scene = |name: &str,
+                              options: LoadOptions|
+             -> Result<radiosity::scene::Scene, String> {
+                let path = scenes.join(name);
+                let bytes = std::fs::read(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+                loader::load(&bytes, &options).map_err(|e| format!("{}: {e}", path.display()))
+            };
+            let mut set = Vec::new();
+            for (name, patch_size) in [
+                ("furnace.gltf", None),
+                ("parallel_squares.gltf", Some(0.2)),
+                ("cornell_moving.gltf", None),
+                ("level.gltf", None),
+            ] {
+                let options = LoadOptions {
+                    fps,
+                    patch_size,
+                    ..LoadOptions::default()
+                };
+                set.push((name.to_string(), load_scene(name, options)?));
+            }
+            let points = radiosity::bench::accuracy(&set, &budgets, reference_factor, |p| {
+                eprintln!(
+                    "{:<22} {:>9} lines {:>8.3} s  error {:.4}  coverage {:.3}",
+                    p.scene, p.lines, p.seconds, p.rms_error, p.coverage
+                );
+            })
+            .map_err(|e| e.to_string())?;
+            // 60 frames: the samples' animations last 2 s.
+            let moving = LoadOptions {
+                fps: 29.5,
+                ..LoadOptions::default()
+            };
+            let scene = load_scene(&gain_scene, moving.clone())?;
+            let gain = radiosity::bench::multiframe_gain(&scene, gain_lines, |t| {
+                load_scene(
+                    &gain_scene,
+                    LoadOptions {
+                        start: Some(t),
+                        end: Some(t),
+                        ..moving.clone()
+                    },
+                )
+                .ok()
+            })
+            .map_err(|e| e.to_string())?;
+            let report = serde_json::json!({ "points": points, "multiframe_gain": gain });
+            println!(
+                "{}",
+                serde_json::to_string_pretty(&report).map_err(|e| e.to_string())?
+            );
             Ok(())
         }
         Command::Samples { out } => {

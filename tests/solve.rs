@@ -4,6 +4,7 @@ use radiosity::bake::Bake;
 use radiosity::loader::{LoadOptions, load};
 use radiosity::scene::{Material, Scene};
 use radiosity::solve::SolveParams;
+use radiosity::solve::analytic::triangle_to_parallel_rectangle;
 use radiosity::timeline::LineParams;
 
 fn sample(name: &str, options: &LoadOptions) -> Scene {
@@ -120,20 +121,6 @@ fn conjugate_gradients_converge_at_rho_0_999() {
     eprintln!("rho 0.999, one emitting face: {} iterations", s.iterations);
 }
 
-/// Form factor from a point to a parallel rectangle [x0, x1] × [z0, z1] at height c, by
-/// superposition of corner rectangles (Howell's catalogue, C-11).
-fn point_to_rectangle(p: (f64, f64), x: (f64, f64), z: (f64, f64), c: f64) -> f64 {
-    let corner = |a: f64, b: f64| {
-        let (u, v) = (a.abs() / c, b.abs() / c);
-        let f = (u / (1.0 + u * u).sqrt() * (v / (1.0 + u * u).sqrt()).atan()
-            + v / (1.0 + v * v).sqrt() * (u / (1.0 + v * v).sqrt()).atan())
-            / (2.0 * std::f64::consts::PI);
-        a.signum() * b.signum() * f
-    };
-    corner(x.1 - p.0, z.1 - p.1) - corner(x.0 - p.0, z.1 - p.1) - corner(x.1 - p.0, z.0 - p.1)
-        + corner(x.0 - p.0, z.0 - p.1)
-}
-
 /// The receiver of the parallel squares, subdivided: each patch's radiance is exactly
 /// ρ · Le · F(patch → emitter), since the emitter is black. The error bars must cover it.
 #[test]
@@ -159,17 +146,7 @@ fn parallel_squares_match_the_closed_form_within_the_error_bars() {
         }
         assert_eq!(bake.scene.statics.faces[p].front as usize, p);
         let [a, b, c] = tracer_positions(p);
-        // Mean of the point form factor over the triangle (15 × 15 barycentric grid).
-        let (mut f, mut k) = (0.0, 0.0);
-        for i in 0..15 {
-            for j in 0..15 - i {
-                let (u, v) = ((i as f64 + 1.0 / 3.0) / 15.0, (j as f64 + 1.0 / 3.0) / 15.0);
-                let q = a + (b - a) * u + (c - a) * v;
-                f += point_to_rectangle((q.x, q.z), (-0.5, 0.5), (-0.5, 0.5), q.y);
-                k += 1.0;
-            }
-        }
-        let exact = 0.5 * f / k;
+        let exact = 0.5 * triangle_to_parallel_rectangle([a, b, c], (-0.5, 0.5), (-0.5, 0.5), 0.0);
         let sigma = s.stderr[p].expect("every receiver patch is sampled")[0];
         let error = (s.radiance[p][0] - exact).abs();
         within_1 += usize::from(error <= sigma);

@@ -15,6 +15,7 @@
 //! `a` in place of the emission, which adds the neighbours' errors as if they were fully
 //! correlated (an upper bound of the propagated part).
 
+pub mod analytic;
 pub mod tally;
 
 use serde::Serialize;
