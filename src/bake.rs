@@ -30,7 +30,7 @@ impl Bake {
         let tracer = SceneTracer::new(&scene);
         let list = IntersectionList::build(&scene, &tracer, params)?;
         let mut tallies = Tallies::default();
-        tallies.update(&list, tracer.faces());
+        tallies.update(&list, &tracer.surfaces());
         Ok(Self {
             scene,
             tracer,
@@ -49,7 +49,7 @@ impl Bake {
             seed: self.seed,
         };
         self.list.add_lines(&self.scene, &self.tracer, &params)?;
-        self.tallies.update(&self.list, self.tracer.faces());
+        self.tallies.update(&self.list, &self.tracer.surfaces());
         Ok(())
     }
 
@@ -76,7 +76,7 @@ impl Bake {
     pub fn frame_tally(&self, frame: usize) -> FrameTally {
         self.tallies.frame(
             &self.list,
-            self.tracer.faces(),
+            &self.tracer.surfaces(),
             frame,
             self.scene.patches.len(),
         )
@@ -87,7 +87,7 @@ impl Bake {
     #[must_use]
     pub fn representatives(&self) -> Vec<usize> {
         self.tallies
-            .representatives(&self.list, self.tracer.faces())
+            .representatives(&self.list, &self.tracer.surfaces())
     }
 
     /// Material index of every patch.
@@ -120,7 +120,7 @@ impl Bake {
     ) -> Vec<Arc<FrameSolution>> {
         let representatives = self
             .tallies
-            .representatives(&self.list, self.tracer.faces());
+            .representatives(&self.list, &self.tracer.surfaces());
         let distinct: Vec<usize> = (0..representatives.len())
             .filter(|&f| representatives[f] == f)
             .collect();

@@ -108,7 +108,7 @@ pub fn trace(scene: &Scene, lines: u64, seed: u64) -> Result<TraceReport, TooMan
         independent_hits * size_of::<Hit>() + scene.frames.count * (list.lines() + 1) * 4;
     let moving_triangles = scene.objects.iter().map(|o| o.mesh.triangles.len()).sum();
     Ok(TraceReport {
-        triangles: tracer.surfaces(),
+        triangles: tracer.triangles(),
         moving_triangles,
         frames: scene.frames.count,
         lines: list.lines(),

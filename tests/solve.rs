@@ -207,7 +207,7 @@ fn frames_from_the_multiframe_list_equal_each_frame_traced_alone() {
                 .iter()
                 .zip(&per_line)
                 .map(|(&g, h)| (g, h.as_slice())),
-            tracer.faces(),
+            &tracer.surfaces(),
             patches,
         );
         let multiframe = bake.frame_tally(frame);
@@ -663,4 +663,65 @@ fn two_thousand_frames_stay_within_the_memory_budget() {
     assert!(total < 32 << 20, "{total} bytes");
     let last = bake.solve_frame(2000, &bake.scene.materials, &SolveParams::default());
     assert!(last.converged);
+}
+
+/// A closed room (faces inward) with `boxes` closed boxes (faces outward) in separate cells.
+fn room_with_boxes(boxes: &[(f32, f32, f32)]) -> Scene {
+    let mut positions: Vec<[f32; 3]> = Vec::new();
+    let mut indices: Vec<u32> = Vec::new();
+    let mut cube = |center: [f32; 3], size: f32, inward: bool| {
+        let base = positions.len() as u32;
+        for k in 0..8 {
+            let s = |bit: usize, axis: usize| {
+                center[axis] + if k & bit == 0 { -0.5 } else { 0.5 } * size
+            };
+            positions.push([s(1, 0), s(2, 1), s(4, 2)]);
+        }
+        for q in [
+            [0, 2, 3, 1],
+            [4, 5, 7, 6],
+            [0, 1, 5, 4],
+            [2, 6, 7, 3],
+            [0, 4, 6, 2],
+            [1, 3, 7, 5],
+        ] {
+            let t = [q[0], q[1], q[2], q[0], q[2], q[3]];
+            if inward {
+                indices.extend(
+                    t.chunks(3)
+                        .flat_map(|c| [base + c[0], base + c[2], base + c[1]]),
+                );
+            } else {
+                indices.extend(t.iter().map(|&v| base + v));
+            }
+        }
+    };
+    cube([0.0; 3], 4.0, true);
+    for (k, &(x, y, size)) in boxes.iter().enumerate() {
+        // Cell k of a 3 × 3 grid in the room's middle layer, the box inside its cell.
+        let (cx, cz) = ((k % 3) as f32 - 1.0, (k / 3) as f32 - 1.0);
+        cube([cx + x * 0.3, y, cz], size, false);
+    }
+    mesh_scene(&positions, &indices)
+}
+
+proptest::proptest! {
+    #![proptest_config(proptest::prelude::ProptestConfig { cases: 12, ..Default::default() })]
+    /// Reciprocity (`S_ij = S_ji`, i.e. `A_i F_ij = A_j F_ji`) and closure (`Σ_j F_ij = 1`: no
+    /// segment leaves a closed scene or is absorbed) for any arrangement of closed boxes.
+    #[test]
+    fn reciprocity_and_closure_hold_in_closed_scenes(
+        boxes in proptest::collection::vec((-1.0f32..1.0, -1.5f32..1.5, 0.05f32..0.6), 1..9),
+        seed in 0u64..1000,
+    ) {
+        let scene = room_with_boxes(&boxes);
+        let bake = Bake::trace(scene, &lines(4_000, seed)).unwrap();
+        let tally = bake.frame_tally(0);
+        proptest::prop_assert!(tally.is_symmetric());
+        proptest::prop_assert!(!tally.columns.iter().any(|&c| c >= radiosity::solve::tally::ABSORBED));
+        for i in 0..tally.crossings.len() {
+            let row: u64 = tally.counts[tally.offsets[i]..tally.offsets[i + 1]].iter().sum();
+            proptest::prop_assert_eq!(row, tally.crossings[i]);
+        }
+    }
 }

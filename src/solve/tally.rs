@@ -50,12 +50,17 @@ pub fn unkey(k: u64) -> (u32, u32, u8) {
 /// distances differ by a few ulps.
 const COINCIDENT: f32 = 4e-6;
 
-/// Orders each run of coincident crossings so that arrivals at back faces come before arrivals
-/// at front faces: at a contact the line leaves one region before it enters the next (out of
-/// the floor's underside, into the box's bottom), so the touching faces see each other instead
-/// of the sky or the other solid's inside. `None` when no crossings coincide.
-fn order_contacts(hits: &[Hit]) -> Option<Vec<Hit>> {
-    if !hits.windows(2).any(|w| w[1].t - w[0].t <= COINCIDENT) {
+/// Orders each run of coincident crossings of different nodes so that arrivals at back faces
+/// come before arrivals at front faces: at a contact the line leaves one region before it enters
+/// the next (out of the floor's underside, into the box's bottom), so the touching faces see
+/// each other instead of the sky or the other solid's inside. A run within one node is a line
+/// clipping an edge of one surface, whose order is already right. `None` when nothing changes.
+fn order_contacts(hits: &[Hit], nodes: &[u32]) -> Option<Vec<Hit>> {
+    let node = |h: &Hit| nodes[h.surface() as usize];
+    if !hits
+        .windows(2)
+        .any(|w| w[1].t - w[0].t <= COINCIDENT && node(&w[0]) != node(&w[1]))
+    {
         return None;
     }
     let mut out = hits.to_vec();
@@ -65,16 +70,29 @@ fn order_contacts(hits: &[Hit]) -> Option<Vec<Hit>> {
         while end < out.len() && out[end].t - out[end - 1].t <= COINCIDENT {
             end += 1;
         }
-        out[start..end].sort_by_key(|h| (h.front(), h.surface()));
+        let run = &mut out[start..end];
+        if run.iter().any(|h| node(h) != node(&run[0])) {
+            run.sort_by_key(|h| (h.front(), h.surface()));
+        }
         start = end;
     }
     Some(out)
 }
 
+/// What the tallies need to know of the traced triangles.
+#[derive(Clone, Copy, Debug)]
+pub struct Surfaces<'a> {
+    /// The patches on the faces of each traced triangle.
+    pub faces: &'a [Faces],
+    /// The node each traced triangle comes from.
+    pub nodes: &'a [u32],
+}
+
 /// Calls `visit(from, to)` for every segment of a line in both directions, `from` being a patch
 /// and `to` a patch, [`SKY`] or [`ABSORBED`].
-fn walk(hits: &[Hit], faces: &[Faces], mut visit: impl FnMut(u32, u32)) {
-    let reordered = order_contacts(hits);
+fn walk(hits: &[Hit], surfaces: &Surfaces<'_>, mut visit: impl FnMut(u32, u32)) {
+    let faces = surfaces.faces;
+    let reordered = order_contacts(hits, surfaces.nodes);
     let hits = reordered.as_deref().unwrap_or(hits);
     let Some(first) = hits.first() else { return };
     // The face the line arrives at, and the face it leaves from, at a crossing.
@@ -184,10 +202,10 @@ pub struct FrameTally {
 impl Tallies {
     /// Tallies the lines `list` holds beyond those already tallied (all of them the first
     /// time): call again after [`IntersectionList::add_lines`] to refine.
-    pub fn update(&mut self, list: &IntersectionList, faces: &[Faces]) {
+    pub fn update(&mut self, list: &IntersectionList, surfaces: &Surfaces<'_>) {
         let new = self.lines..list.lines();
         self.groups = list.line_groups(GROUPS);
-        let statics = tally_static(list, faces, new.clone(), &self.groups);
+        let statics = tally_static(list, surfaces, new.clone(), &self.groups);
         self.statics = merge(&self.statics, &statics);
         self.lines = new.end;
         // Which lines each frame's moving objects touch, over all lines.
@@ -212,7 +230,7 @@ impl Tallies {
             .map(|f| {
                 use std::hash::{Hash, Hasher};
                 let mut h = std::collections::hash_map::DefaultHasher::new();
-                self.changes(list, faces, f).hash(&mut h);
+                self.changes(list, surfaces, f).hash(&mut h);
                 h.finish()
             })
             .collect();
@@ -226,7 +244,7 @@ impl Tallies {
 
     /// What the moving objects change at `frame`: minus the static segments of the lines they
     /// touch, plus those lines' frame segments.
-    fn changes(&self, list: &IntersectionList, faces: &[Faces], frame: usize) -> Entries {
+    fn changes(&self, list: &IntersectionList, surfaces: &Surfaces<'_>, frame: usize) -> Entries {
         let touched = &self.touched
             [self.touched_offsets[frame] as usize..self.touched_offsets[frame + 1] as usize];
         let mut raw = Vec::new();
@@ -234,11 +252,11 @@ impl Tallies {
         for &l in touched {
             let l = l as usize;
             let g = self.groups[l];
-            walk(list.static_hits(l), faces, |a, b| {
+            walk(list.static_hits(l), surfaces, |a, b| {
                 raw.push((key(a, b, g), -1))
             });
             list.frame_hits(l, frame, &mut merged);
-            walk(&merged, faces, |a, b| raw.push((key(a, b, g), 1)));
+            walk(&merged, surfaces, |a, b| raw.push((key(a, b, g), 1)));
         }
         aggregate(raw)
     }
@@ -246,13 +264,13 @@ impl Tallies {
     /// Frames whose tallies equal an earlier frame's: `representative[f]` is the first frame
     /// with the same tallies (itself if none). Such frames have the same solution.
     #[must_use]
-    pub fn representatives(&self, list: &IntersectionList, faces: &[Faces]) -> Vec<usize> {
+    pub fn representatives(&self, list: &IntersectionList, surfaces: &Surfaces<'_>) -> Vec<usize> {
         let mut first: HashMap<u64, usize> = HashMap::new();
         (0..self.fingerprints.len())
             .map(|f| {
                 let r = *first.entry(self.fingerprints[f]).or_insert(f);
                 // A fingerprint is a hash: share only what is verified equal.
-                if r != f && self.changes(list, faces, r) != self.changes(list, faces, f) {
+                if r != f && self.changes(list, surfaces, r) != self.changes(list, surfaces, f) {
                     f
                 } else {
                     r
@@ -275,11 +293,11 @@ impl Tallies {
     pub fn frame(
         &self,
         list: &IntersectionList,
-        faces: &[Faces],
+        surfaces: &Surfaces<'_>,
         frame: usize,
         patches: usize,
     ) -> FrameTally {
-        let changes = self.changes(list, faces, frame);
+        let changes = self.changes(list, surfaces, frame);
         let entries = if changes.is_empty() {
             self.statics.clone()
         } else {
@@ -333,12 +351,12 @@ impl FrameTally {
     #[must_use]
     pub fn from_lines<'h>(
         lines: impl Iterator<Item = (u8, &'h [Hit])>,
-        faces: &[Faces],
+        surfaces: &Surfaces<'_>,
         patches: usize,
     ) -> Self {
         let mut raw = Vec::new();
         for (group, hits) in lines {
-            walk(hits, faces, |a, b| raw.push((key(a, b, group), 1)));
+            walk(hits, surfaces, |a, b| raw.push((key(a, b, group), 1)));
         }
         assemble(aggregate(raw), patches)
     }
@@ -365,7 +383,7 @@ impl FrameTally {
 /// Static segments of `lines`.
 fn tally_static(
     list: &IntersectionList,
-    faces: &[Faces],
+    surfaces: &Surfaces<'_>,
     lines: Range<usize>,
     groups: &[u8],
 ) -> Entries {
@@ -375,7 +393,7 @@ fn tally_static(
         .map(|chunk| {
             let mut raw = Vec::new();
             for &l in chunk {
-                walk(list.static_hits(l), faces, |a, b| {
+                walk(list.static_hits(l), surfaces, |a, b| {
                     raw.push((key(a, b, groups[l]), 1))
                 });
             }
@@ -405,7 +423,11 @@ mod tests {
         // The line arrives at triangle 0's front, then at triangle 1's back.
         let hits = [Hit::new(1.0, 0, true), Hit::new(2.0, 1, false)];
         let mut seen = Vec::new();
-        walk(&hits, &faces, |a, b| seen.push((a, b)));
+        let surfaces = Surfaces {
+            faces: &faces,
+            nodes: &[0, 0],
+        };
+        walk(&hits, &surfaces, |a, b| seen.push((a, b)));
         seen.sort_unstable();
         // Patch 0 sees the sky behind it; the segment between leaves 0's back (absorbed: it is
         // one-sided) and enters 1's back (patch 2); patch 1 (front) sees the sky beyond.
@@ -426,7 +448,11 @@ mod tests {
         ];
         let hits = [Hit::new(1.0, 0, true), Hit::new(2.0, 1, true)];
         let mut raw = Vec::new();
-        walk(&hits, &faces, |a, b| raw.push((key(a, b, 0), 1)));
+        let surfaces = Surfaces {
+            faces: &faces,
+            nodes: &[0, 1],
+        };
+        walk(&hits, &surfaces, |a, b| raw.push((key(a, b, 0), 1)));
         let entries = aggregate(raw);
         // 0 sees the sky, 1 sees 2 and 2 sees 1, 3 sees the sky: each face crossed once.
         let expected = [(0, SKY), (1, 2), (2, 1), (3, SKY)].map(|(a, b)| (key(a, b, 0), 1));

@@ -167,6 +167,8 @@ pub struct SceneTracer {
     first_ids: Vec<u32>,
     /// The faces (patches) of every traced triangle, by global index.
     faces: Vec<Faces>,
+    /// The node every traced triangle comes from, by global index.
+    nodes: Vec<u32>,
 }
 
 impl SceneTracer {
@@ -202,7 +204,12 @@ impl SceneTracer {
                 Motion::Deforming(_) => None,
             });
         }
+        let nodes = faces
+            .iter()
+            .map(|f| scene.patches[f.front as usize].source.node)
+            .collect();
         Self {
+            nodes,
             statics: TraceMesh::new(
                 statics
                     .triangles
@@ -222,9 +229,18 @@ impl SceneTracer {
         &self.faces
     }
 
+    /// The faces and source nodes of every traced triangle, for the tallies.
+    #[must_use]
+    pub fn surfaces(&self) -> crate::solve::tally::Surfaces<'_> {
+        crate::solve::tally::Surfaces {
+            faces: &self.faces,
+            nodes: &self.nodes,
+        }
+    }
+
     /// Number of traced triangles (static and moving).
     #[must_use]
-    pub fn surfaces(&self) -> usize {
+    pub fn triangles(&self) -> usize {
         self.faces.len()
     }
 
