@@ -4,9 +4,9 @@
 //!
 //! The line is sheared so that it runs along +z through the origin; each triangle is projected
 //! onto that plane and tested with three 2D edge functions. Neighbouring triangles compute the
-//! edge functions of a shared edge from the same two projected vertices, so their values are
-//! exact negations of each other: no line slips between them. An edge function exactly zero
-//! (recomputed in f64 first) means the line passes through the edge; the hit then counts only
+//! edge functions of a shared edge from the same two projected vertices, exactly (in f64), so
+//! their values are exact negations of each other: no line slips between them. An edge function
+//! exactly zero means the line passes through the edge; the hit then counts only
 //! for the triangle that *owns* the edge under a top-left rule applied to the edge as traversed
 //! counter-clockwise in projection. Across an edge where the surface continues, exactly one of
 //! the two triangles owns it; at a silhouette edge (the line grazes a fold) both or neither do,
@@ -63,16 +63,15 @@ impl ShearedLine {
         let by = b[ky] - self.sy * b[kz];
         let cx = c[kx] - self.sx * c[kz];
         let cy = c[ky] - self.sy * c[kz];
-        // Edge functions of the edges b→c, c→a and a→b.
-        let mut u = cx * by - cy * bx;
-        let mut v = ax * cy - ay * cx;
-        let mut w = bx * ay - by * ax;
-        if u == 0.0 || v == 0.0 || w == 0.0 {
-            let f = f64::from;
-            u = (f(cx) * f(by) - f(cy) * f(bx)) as f32;
-            v = (f(ax) * f(cy) - f(ay) * f(cx)) as f32;
-            w = (f(bx) * f(ay) - f(by) * f(ax)) as f32;
-        }
+        // Edge functions of the edges b→c, c→a and a→b, in f64: a product of two f32 is exact
+        // in f64, so each sign is exact and a shared edge gives its two triangles exactly
+        // opposite values. (Computing in f32 with an f64 fallback only at zero, as in the paper,
+        // is not enough: one triangle may fall back for another edge while its neighbour keeps
+        // a rounded f32 value of the wrong sign; 10 million lines found such a leak.)
+        let f = f64::from;
+        let u = f(cx) * f(by) - f(cy) * f(bx);
+        let v = f(ax) * f(cy) - f(ay) * f(cx);
+        let w = f(bx) * f(ay) - f(by) * f(ax);
         if (u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0) {
             return None;
         }
@@ -88,7 +87,7 @@ impl ShearedLine {
             return None;
         }
         let (az, bz, cz) = (self.sz * a[kz], self.sz * b[kz], self.sz * c[kz]);
-        let t = (u * az + v * bz + w * cz) / det;
+        let t = ((u * f(az) + v * f(bz) + w * f(cz)) / det) as f32;
         (t > 0.0 && t < t_max).then_some((t, ccw))
     }
 }
