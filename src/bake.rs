@@ -10,7 +10,7 @@ use rayon::prelude::*;
 use crate::scene::{Material, Scene};
 use crate::solve::tally::{FrameTally, Tallies};
 use crate::solve::{FrameSolution, SolveParams, solve};
-use crate::timeline::{IntersectionList, LineParams, TooManyHits};
+use crate::timeline::{Control, IntersectionList, LineParams, TraceError};
 use crate::trace::SceneTracer;
 
 /// A traced scene, ready to solve any frame with any materials.
@@ -26,9 +26,18 @@ pub struct Bake {
 
 impl Bake {
     /// Traces `params.lines` lines through the whole timeline and tallies them.
-    pub fn trace(scene: Scene, params: &LineParams) -> Result<Self, TooManyHits> {
+    pub fn trace(scene: Scene, params: &LineParams) -> Result<Self, TraceError> {
+        Self::trace_with(scene, params, &Control::default())
+    }
+
+    /// [`Bake::trace`] watched by `control` (progress, cancellation).
+    pub fn trace_with(
+        scene: Scene,
+        params: &LineParams,
+        control: &Control,
+    ) -> Result<Self, TraceError> {
         let tracer = SceneTracer::new(&scene);
-        let list = IntersectionList::build(&scene, &tracer, params)?;
+        let list = IntersectionList::build(&scene, &tracer, params, control)?;
         let mut tallies = Tallies::default();
         tallies.update(&list, &tracer.surfaces());
         Ok(Self {
@@ -42,13 +51,14 @@ impl Bake {
 
     /// Progressive refinement: traces about `lines` more lines (a new batch of directions) and
     /// adds their tallies; the lines already traced are kept.
-    pub fn refine(&mut self, lines: u64) -> Result<(), TooManyHits> {
+    pub fn refine(&mut self, lines: u64, control: &Control) -> Result<(), TraceError> {
         let params = LineParams {
             lines,
             bundles: None,
             seed: self.seed,
         };
-        self.list.add_lines(&self.scene, &self.tracer, &params)?;
+        self.list
+            .add_lines(&self.scene, &self.tracer, &params, control)?;
         self.tallies.update(&self.list, &self.tracer.surfaces());
         Ok(())
     }

@@ -7,7 +7,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::scene::Scene;
-use crate::timeline::{IntersectionList, LineParams, TooManyHits};
+use crate::timeline::{Control, IntersectionList, LineParams, TraceError};
 use crate::trace::{Hit, Line, SceneTracer};
 
 /// Tracing figures: the multiframe list against tracing every frame independently.
@@ -54,7 +54,7 @@ pub struct TraceReport {
 }
 
 /// Measures tracing on `scene` with about `lines` lines.
-pub fn trace(scene: &Scene, lines: u64, seed: u64) -> Result<TraceReport, TooManyHits> {
+pub fn trace(scene: &Scene, lines: u64, seed: u64) -> Result<TraceReport, TraceError> {
     let start = Instant::now();
     let tracer = SceneTracer::new(scene);
     let bvh_seconds = start.elapsed().as_secs_f64();
@@ -68,6 +68,7 @@ pub fn trace(scene: &Scene, lines: u64, seed: u64) -> Result<TraceReport, TooMan
             bundles: None,
             seed,
         },
+        &Control::default(),
     )?;
     let list_seconds = start.elapsed().as_secs_f64();
     let memory = list.memory();
@@ -208,7 +209,7 @@ struct Timed {
 }
 
 /// Bakes `scene` with `lines` lines and solves every frame.
-fn timed_bake(scene: &Scene, lines: u64, seed: u64) -> Result<Timed, TooManyHits> {
+fn timed_bake(scene: &Scene, lines: u64, seed: u64) -> Result<Timed, TraceError> {
     let start = Instant::now();
     let bake = crate::bake::Bake::trace(
         scene.clone(),
@@ -309,7 +310,7 @@ pub fn accuracy(
     budgets: &[u64],
     reference_factor: u64,
     mut progress: impl FnMut(&AccuracyPoint),
-) -> Result<Vec<AccuracyPoint>, TooManyHits> {
+) -> Result<Vec<AccuracyPoint>, TraceError> {
     let mut points = Vec::new();
     for (name, scene) in scenes {
         let reference = match closed_form(name, scene) {
@@ -367,7 +368,7 @@ pub fn multiframe_gain(
     scene: &Scene,
     lines: u64,
     load_frame: impl Fn(f64) -> Option<Scene>,
-) -> Result<Option<MultiframeGain>, TooManyHits> {
+) -> Result<Option<MultiframeGain>, TraceError> {
     let whole = timed_bake(scene, lines, 1)?;
     let start = Instant::now();
     for f in 0..scene.frames.count {

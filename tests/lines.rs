@@ -487,6 +487,7 @@ fn each_frame_extracted_from_the_list_equals_that_frame_traced_alone() {
             bundles: None,
             seed: 11,
         },
+        &radiosity::timeline::Control::default(),
     )
     .unwrap();
     let lines: Vec<Line> = list.regenerate_lines(&scene).collect();
@@ -530,6 +531,7 @@ fn the_list_does_not_depend_on_the_number_of_threads() {
                     bundles: None,
                     seed: 5,
                 },
+                &radiosity::timeline::Control::default(),
             )
             .unwrap()
         })
@@ -555,9 +557,27 @@ fn refinement_adds_lines_without_touching_the_old_ones() {
         bundles: None,
         seed: 9,
     };
-    let first = IntersectionList::build(&scene, &tracer, &params).unwrap();
-    let mut more = IntersectionList::build(&scene, &tracer, &params).unwrap();
-    more.add_lines(&scene, &tracer, &params).unwrap();
+    let first = IntersectionList::build(
+        &scene,
+        &tracer,
+        &params,
+        &radiosity::timeline::Control::default(),
+    )
+    .unwrap();
+    let mut more = IntersectionList::build(
+        &scene,
+        &tracer,
+        &params,
+        &radiosity::timeline::Control::default(),
+    )
+    .unwrap();
+    more.add_lines(
+        &scene,
+        &tracer,
+        &params,
+        &radiosity::timeline::Control::default(),
+    )
+    .unwrap();
     assert!(more.lines() > first.lines() * 19 / 10);
     let (mut a, mut b) = (Vec::new(), Vec::new());
     for l in 0..first.lines() {
@@ -584,6 +604,7 @@ fn scene_statistics_match_their_predictions() {
             bundles: None,
             seed: 1,
         },
+        &radiosity::timeline::Control::default(),
     )
     .unwrap();
     let stats = SceneStats::measure(&scene, &list, 0);
@@ -597,4 +618,31 @@ fn scene_statistics_match_their_predictions() {
         "{}",
         stats.mean_segment
     );
+}
+
+#[test]
+fn a_cancelled_trace_leaves_the_list_as_it_was() {
+    use radiosity::timeline::{Control, TraceError};
+    let scene = animated_scene(4.0);
+    let tracer = SceneTracer::new(&scene);
+    let control = Control::default();
+    let params = LineParams {
+        lines: 2_000,
+        bundles: None,
+        seed: 1,
+    };
+    let mut list = IntersectionList::build(&scene, &tracer, &params, &control).unwrap();
+    assert!(
+        (control.fraction() - 1.0).abs() < 1e-12,
+        "{}",
+        control.fraction()
+    );
+    let before = list.memory();
+    control.cancel();
+    assert_eq!(
+        list.add_lines(&scene, &tracer, &params, &control),
+        Err(TraceError::Cancelled)
+    );
+    assert_eq!(list.memory(), before);
+    assert_eq!(list.batches().len(), 1);
 }

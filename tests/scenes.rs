@@ -80,6 +80,7 @@ fn closed_scenes_are_watertight_at_every_frame() {
                 bundles: None,
                 seed: 3,
             },
+            &radiosity::timeline::Control::default(),
         )
         .unwrap();
         let mut hits = Vec::new();

@@ -284,7 +284,8 @@ fn refinement_lowers_the_error() {
         (s.radiance[p][0], s.stderr[p].unwrap()[0])
     };
     let (_, coarse) = receiver(&bake);
-    bake.refine(30_000).unwrap();
+    bake.refine(30_000, &radiosity::timeline::Control::default())
+        .unwrap();
     let (value, fine) = receiver(&bake);
     assert!(fine < coarse / 3.0, "error {coarse} → {fine}");
     assert!(

@@ -10,6 +10,8 @@
 
 pub mod stats;
 
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+
 use rayon::prelude::*;
 
 use crate::lines::{Batch, Bundle};
@@ -74,11 +76,60 @@ pub struct FrameHit {
     pub hit: Hit,
 }
 
-/// The list would hold more crossings than its 32-bit offsets address (about 32 GiB of
-/// crossings: far beyond any memory budget, so a caller's budget check comes first).
+/// Why lines could not be added.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
-#[error("more than 2^32 crossings in one intersection list: use fewer lines")]
-pub struct TooManyHits;
+pub enum TraceError {
+    /// The list would hold more crossings than its 32-bit offsets address (about 32 GiB of
+    /// crossings: far beyond any memory budget, so a caller's budget check comes first).
+    #[error("more than 2^32 crossings in one intersection list: use fewer lines")]
+    TooManyHits,
+    /// [`Control::cancel`] was called; the list is as it was before.
+    #[error("cancelled")]
+    Cancelled,
+}
+
+/// Progress and cancellation shared between a running trace and whoever watches it (another
+/// thread): checked between bundles, so a cancel takes effect within one bundle's work.
+#[derive(Debug, Default)]
+pub struct Control {
+    cancelled: AtomicBool,
+    /// Line traversals done and to do (a line counts once for the static geometry and once
+    /// per frame for the moving objects).
+    done: AtomicU64,
+    total: AtomicU64,
+}
+
+impl Control {
+    /// Asks the trace to stop.
+    pub fn cancel(&self) {
+        self.cancelled.store(true, Ordering::Relaxed);
+    }
+
+    /// Whether [`Control::cancel`] was called.
+    #[must_use]
+    pub fn is_cancelled(&self) -> bool {
+        self.cancelled.load(Ordering::Relaxed)
+    }
+
+    /// Fraction of the tracing work done, in [0, 1].
+    #[must_use]
+    pub fn fraction(&self) -> f64 {
+        let total = self.total.load(Ordering::Relaxed);
+        if total == 0 {
+            0.0
+        } else {
+            self.done.load(Ordering::Relaxed) as f64 / total as f64
+        }
+    }
+
+    fn check(&self) -> Result<(), TraceError> {
+        if self.is_cancelled() {
+            Err(TraceError::Cancelled)
+        } else {
+            Ok(())
+        }
+    }
+}
 
 /// A batch of lines in the list and where its lines start.
 #[derive(Clone, Debug)]
@@ -129,7 +180,8 @@ impl IntersectionList {
         scene: &Scene,
         tracer: &SceneTracer,
         params: &LineParams,
-    ) -> Result<Self, TooManyHits> {
+        control: &Control,
+    ) -> Result<Self, TraceError> {
         let mut list = Self {
             batches: Vec::new(),
             frames: scene.frames.count,
@@ -138,7 +190,7 @@ impl IntersectionList {
             dynamic_offsets: vec![0],
             dynamic_hits: Vec::new(),
         };
-        list.add_lines(scene, tracer, params)?;
+        list.add_lines(scene, tracer, params, control)?;
         Ok(list)
     }
 
@@ -149,7 +201,8 @@ impl IntersectionList {
         scene: &Scene,
         tracer: &SceneTracer,
         params: &LineParams,
-    ) -> Result<(), TooManyHits> {
+        control: &Control,
+    ) -> Result<(), TraceError> {
         let index = self.batches.len() as u32;
         let batch = Batch::for_budget(
             params.lines,
@@ -162,10 +215,25 @@ impl IntersectionList {
             .into_par_iter()
             .map(|k| batch.bundle(k, &scene.bounds))
             .collect();
+        let lines: u64 = bundles.iter().map(|b| b.origins.len() as u64).sum();
+        let passes = 1 + if scene.objects.is_empty() {
+            0
+        } else {
+            self.frames as u64
+        };
+        control.total.fetch_add(lines * passes, Ordering::Relaxed);
 
+        // Nothing is appended to the list until everything is traced: a cancelled or failed
+        // batch leaves the list as it was.
         let traced: Vec<(Vec<u32>, Vec<Hit>)> = bundles
             .par_iter()
             .map(|bundle| {
+                if control.is_cancelled() {
+                    return (Vec::new(), Vec::new());
+                }
+                control
+                    .done
+                    .fetch_add(bundle.origins.len() as u64, Ordering::Relaxed);
                 let mut counts = Vec::with_capacity(bundle.origins.len());
                 let mut hits = Vec::new();
                 for line in lines_of(bundle) {
@@ -177,11 +245,7 @@ impl IntersectionList {
                 (counts, hits)
             })
             .collect();
-        for (counts, hits) in &traced {
-            append_csr(&mut self.static_offsets, counts)?;
-            self.static_hits.extend_from_slice(hits);
-        }
-        drop(traced);
+        control.check()?;
 
         // Moving objects, frame by frame: per bundle, (line within bundle, crossing) in frame
         // order, then grouped by line with a stable sort.
@@ -189,14 +253,54 @@ impl IntersectionList {
         if !scene.objects.is_empty() {
             for frame in 0..self.frames {
                 let deformed = tracer.deformed_at(scene, frame);
+                control.check()?;
                 let traced: Vec<Vec<(u32, FrameHit)>> = bundles
                     .par_iter()
-                    .map(|bundle| trace_moving_bundle(tracer, bundle, frame, &deformed))
+                    .map(|bundle| {
+                        if control.is_cancelled() {
+                            return Vec::new();
+                        }
+                        control
+                            .done
+                            .fetch_add(bundle.origins.len() as u64, Ordering::Relaxed);
+                        trace_moving_bundle(tracer, bundle, frame, &deformed)
+                    })
                     .collect();
                 for (all, new) in moving.iter_mut().zip(traced) {
                     all.extend(new);
                 }
             }
+        }
+        control.check()?;
+        let (static_offsets, dynamic_offsets) =
+            (self.static_offsets.len(), self.dynamic_offsets.len());
+        let appended = self.append(&bundles, &traced, moving);
+        if appended.is_err() {
+            self.static_offsets.truncate(static_offsets);
+            self.dynamic_offsets.truncate(dynamic_offsets);
+            self.static_hits
+                .truncate(*self.static_offsets.last().unwrap_or(&0) as usize);
+            self.dynamic_hits
+                .truncate(*self.dynamic_offsets.last().unwrap_or(&0) as usize);
+            return appended;
+        }
+        self.batches.push(BatchLines {
+            batch,
+            bundle_lines: bundles.iter().map(|b| b.origins.len() as u32).collect(),
+        });
+        Ok(())
+    }
+
+    /// Appends a traced batch: static crossings per bundle, moving ones grouped by line.
+    fn append(
+        &mut self,
+        bundles: &[Bundle],
+        traced: &[(Vec<u32>, Vec<Hit>)],
+        moving: Vec<Vec<(u32, FrameHit)>>,
+    ) -> Result<(), TraceError> {
+        for (counts, hits) in traced {
+            append_csr(&mut self.static_offsets, counts)?;
+            self.static_hits.extend_from_slice(hits);
         }
         for (bundle, hits) in bundles.iter().zip(moving) {
             // Group by line with a counting sort, which keeps the frame order within a line.
@@ -223,10 +327,6 @@ impl IntersectionList {
             }
             append_csr(&mut self.dynamic_offsets, &counts)?;
         }
-        self.batches.push(BatchLines {
-            batch,
-            bundle_lines: bundles.iter().map(|b| b.origins.len() as u32).collect(),
-        });
         Ok(())
     }
 
@@ -360,10 +460,10 @@ fn trace_moving_bundle(
 }
 
 /// Appends one offset per count to a CSR offset array.
-fn append_csr(offsets: &mut Vec<u32>, counts: &[u32]) -> Result<(), TooManyHits> {
+fn append_csr(offsets: &mut Vec<u32>, counts: &[u32]) -> Result<(), TraceError> {
     let mut last = *offsets.last().unwrap_or(&0);
     for &c in counts {
-        last = last.checked_add(c).ok_or(TooManyHits)?;
+        last = last.checked_add(c).ok_or(TraceError::TooManyHits)?;
         offsets.push(last);
     }
     Ok(())
