@@ -16,6 +16,7 @@
 //! - [`solve`]: tallies of the list per frame (`N_i`, `S_ij`, with per-frame changes only for
 //!   what moves) and the radiosity solve with per-patch error bars.
 //! - [`bake`]: a traced scene ready to solve, refine and relight any frame.
+//! - [`service`]: the HTTP service (axum): jobs, their status and their frames.
 //! - [`bench`]: the measurements behind the README's figures (`radiosity bench`).
 //! - [`samples`]: the generator of the sample scenes in `scenes/`.
 //!
@@ -27,6 +28,7 @@ pub mod lines;
 pub mod loader;
 pub mod samples;
 pub mod scene;
+pub mod service;
 pub mod solve;
 pub mod timeline;
 pub mod trace;

@@ -48,6 +48,21 @@ impl From<SceneArgs> for LoadOptions {
 
 #[derive(Subcommand)]
 enum Command {
+    /// Run the HTTP service (see api/ and the README).
+    Serve {
+        /// Address to bind.
+        #[arg(long, default_value = "127.0.0.1:8080")]
+        addr: String,
+        /// Jobs traced or solved at once; the others wait `queued`.
+        #[arg(long, default_value_t = 1)]
+        max_running: usize,
+        /// Largest accepted scene, MiB.
+        #[arg(long, default_value_t = 64)]
+        max_body_mib: usize,
+        /// Memory budget of one job, GiB (estimated before tracing).
+        #[arg(long, default_value_t = 8.0)]
+        memory_budget_gib: f64,
+    },
     /// Print a summary of a glTF scene: triangles, patches, static and moving objects, frames,
     /// emitters, warnings.
     Scene {
@@ -122,6 +137,20 @@ fn main() -> ExitCode {
 
 fn run(cli: Cli) -> Result<(), String> {
     match cli.command {
+        Command::Serve {
+            addr,
+            max_running,
+            max_body_mib,
+            memory_budget_gib,
+        } => {
+            let config = radiosity::service::Config {
+                max_running,
+                max_body_bytes: max_body_mib << 20,
+                memory_budget: (memory_budget_gib * f64::from(1u32 << 30)) as u64,
+                ..radiosity::service::Config::default()
+            };
+            serve(&addr, config)
+        }
         Command::Scene { file, args, json } => {
             let bytes = std::fs::read(&file).map_err(|e| format!("{}: {e}", file.display()))?;
             let scene = loader::load(&bytes, &args.into())
@@ -226,4 +255,45 @@ fn run(cli: Cli) -> Result<(), String> {
             Ok(())
         }
     }
+}
+
+/// Runs the service until ctrl-c or SIGTERM.
+fn serve(addr: &str, config: radiosity::service::Config) -> Result<(), String> {
+    tracing_subscriber::fmt().with_target(false).init();
+    let runtime = tokio::runtime::Runtime::new().map_err(|e| e.to_string())?;
+    runtime.block_on(async {
+        let listener = tokio::net::TcpListener::bind(addr)
+            .await
+            .map_err(|e| format!("{addr}: {e}"))?;
+        tracing::info!(
+            "listening on {}",
+            listener.local_addr().map_err(|e| e.to_string())?
+        );
+        let state = radiosity::service::AppState::new(config);
+        radiosity::service::serve(listener, state, shutdown_signal())
+            .await
+            .map_err(|e| e.to_string())
+    })
+}
+
+/// Completes on ctrl-c or SIGTERM.
+async fn shutdown_signal() {
+    let ctrl_c = async {
+        if tokio::signal::ctrl_c().await.is_err() {
+            std::future::pending::<()>().await;
+        }
+    };
+    let terminate = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending::<()>().await,
+        }
+    };
+    tokio::select! {
+        () = ctrl_c => {},
+        () = terminate => {},
+    }
+    tracing::info!("shutting down");
 }

@@ -213,8 +213,17 @@ impl IntersectionList {
         );
         let bundles: Vec<Bundle> = (0..batch.bundles)
             .into_par_iter()
-            .map(|k| batch.bundle(k, &scene.bounds))
+            .map(|k| {
+                if control.is_cancelled() {
+                    return Bundle {
+                        direction: glam::Vec3::Z,
+                        origins: Vec::new(),
+                    };
+                }
+                batch.bundle(k, &scene.bounds)
+            })
             .collect();
+        control.check()?;
         let lines: u64 = bundles.iter().map(|b| b.origins.len() as u64).sum();
         let passes = 1 + if scene.objects.is_empty() {
             0

@@ -1,0 +1,306 @@
+//! Jobs: one timeline each, traced and solved off the async runtime, a bounded number at once.
+
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex, RwLock};
+use std::time::Instant;
+
+use serde::Serialize;
+use tokio::sync::{Semaphore, watch};
+
+use crate::bake::Bake;
+use crate::scene::Scene;
+use crate::solve::{FrameSolution, SolveParams};
+use crate::timeline::{Control, LineParams, TraceError};
+
+/// Where a job is in its life.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Status {
+    /// Waiting for a free slot.
+    Queued,
+    /// Tracing the lines.
+    Tracing,
+    /// Solving the frames.
+    Solving,
+    /// Every frame solved.
+    Done,
+    /// Stopped by an error (see the job's error).
+    Failed,
+    /// Stopped by a DELETE.
+    Cancelled,
+}
+
+impl Status {
+    /// Whether the job will change no more.
+    #[must_use]
+    pub fn is_final(self) -> bool {
+        matches!(self, Self::Done | Self::Failed | Self::Cancelled)
+    }
+}
+
+/// Wall time of each stage, seconds.
+#[derive(Clone, Copy, Debug, Default, Serialize)]
+pub struct Timings {
+    /// Loading and checking the scene.
+    pub load: f64,
+    /// Tracing and tallying the lines.
+    pub trace: f64,
+    /// Solving every frame.
+    pub solve: f64,
+}
+
+/// The mutable part of a job.
+#[derive(Debug)]
+pub struct JobState {
+    /// Where the job is.
+    pub status: Status,
+    /// Why it failed, if it did.
+    pub error: Option<String>,
+    /// Stage times.
+    pub timings: Timings,
+    /// Crossings stored and bytes of the list, once traced.
+    pub memory: Option<(usize, usize)>,
+    /// When the current stage started, for the ETA.
+    pub stage_started: Instant,
+}
+
+/// A timeline job.
+pub struct Job {
+    /// Its id.
+    pub id: String,
+    /// The scene, until the bake takes it.
+    scene: Mutex<Option<Scene>>,
+    /// Frame times and patch count (kept when the scene moves into the bake).
+    pub frame_times: Vec<f64>,
+    /// Number of patches.
+    pub patches: usize,
+    /// Loader warnings.
+    pub warnings: Vec<String>,
+    /// The patch table, as served.
+    pub patch_table: serde_json::Value,
+    /// Lines and seed.
+    pub lines: LineParams,
+    /// Radiance of the sky.
+    pub sky: [f64; 3],
+    /// Status, error, timings.
+    pub state: Mutex<JobState>,
+    /// Progress and cancellation of the tracing.
+    pub control: Control,
+    /// Frames solved so far (they are solved in order).
+    pub frames_solved: AtomicUsize,
+    /// Solved frames.
+    pub results: RwLock<Vec<Option<Arc<FrameSolution>>>>,
+    /// Signals each newly solved frame (its count) and the end of the job.
+    pub solved: watch::Sender<usize>,
+}
+
+impl Job {
+    /// A queued job for `scene`.
+    #[must_use]
+    pub fn new(
+        id: String,
+        scene: Scene,
+        lines: LineParams,
+        sky: [f64; 3],
+        patch_table: serde_json::Value,
+    ) -> Self {
+        let frame_times = (0..scene.frames.count)
+            .map(|f| scene.frames.time(f))
+            .collect::<Vec<_>>();
+        let frames = frame_times.len();
+        Self {
+            id,
+            patches: scene.patches.len(),
+            warnings: scene.warnings.clone(),
+            scene: Mutex::new(Some(scene)),
+            frame_times,
+            patch_table,
+            lines,
+            sky,
+            state: Mutex::new(JobState {
+                status: Status::Queued,
+                error: None,
+                timings: Timings::default(),
+                memory: None,
+                stage_started: Instant::now(),
+            }),
+            control: Control::default(),
+            frames_solved: AtomicUsize::new(0),
+            results: RwLock::new(vec![None; frames]),
+            solved: watch::channel(0).0,
+        }
+    }
+
+    /// Current status.
+    #[must_use]
+    pub fn status(&self) -> Status {
+        self.state.lock().map_or(Status::Failed, |s| s.status)
+    }
+
+    fn set_status(&self, status: Status) {
+        if let Ok(mut s) = self.state.lock()
+            && !s.status.is_final()
+        {
+            s.status = status;
+            s.stage_started = Instant::now();
+        }
+    }
+
+    fn fail(&self, error: String) {
+        if let Ok(mut s) = self.state.lock() {
+            s.status = Status::Failed;
+            s.error = Some(error);
+        }
+    }
+
+    /// Asks a running job to stop; it ends `cancelled`.
+    pub fn cancel(&self) {
+        self.control.cancel();
+        if let Ok(mut s) = self.state.lock()
+            && !s.status.is_final()
+        {
+            s.status = Status::Cancelled;
+        }
+        self.solved.send_modify(|_| {});
+    }
+
+    /// The solution of `frame`, if solved.
+    #[must_use]
+    pub fn frame(&self, frame: usize) -> Option<Arc<FrameSolution>> {
+        self.results.read().ok()?.get(frame)?.clone()
+    }
+
+    /// Runs the job to its end on the calling (blocking) thread.
+    fn run(&self) {
+        let Some(scene) = self.scene.lock().ok().and_then(|mut s| s.take()) else {
+            return self.fail("the job has no scene".into());
+        };
+        if self.control.is_cancelled() {
+            return;
+        }
+        self.set_status(Status::Tracing);
+        let started = Instant::now();
+        let bake = match Bake::trace_with(scene, &self.lines, &self.control) {
+            Ok(bake) => bake,
+            Err(TraceError::Cancelled) => return,
+            Err(e) => return self.fail(e.to_string()),
+        };
+        let memory = bake.list().memory();
+        if let Ok(mut s) = self.state.lock() {
+            s.timings.trace = started.elapsed().as_secs_f64();
+            s.memory = Some((
+                memory.static_hits + memory.moving_hits,
+                memory.bytes + bake.tallies().bytes(),
+            ));
+        }
+        self.set_status(Status::Solving);
+        let started = Instant::now();
+        let params = SolveParams {
+            sky: self.sky,
+            ..SolveParams::default()
+        };
+        let representatives = bake.representatives();
+        let materials = bake.scene.materials.clone();
+        // Frames in order, a couple per core at a time, so that streams see them in order.
+        let chunk = 2 * rayon::current_num_threads().max(1);
+        let frames = self.frame_times.len();
+        let mut frame = 0;
+        while frame < frames {
+            if self.control.is_cancelled() {
+                return;
+            }
+            let end = (frame + chunk).min(frames);
+            let solved: Vec<Arc<FrameSolution>> = {
+                use rayon::prelude::*;
+                (frame..end)
+                    .into_par_iter()
+                    .map(|f| {
+                        let r = representatives[f];
+                        match (r < f).then(|| self.frame(r)).flatten() {
+                            Some(shared) => shared,
+                            None => Arc::new(bake.solve_frame(f, &materials, &params)),
+                        }
+                    })
+                    .collect()
+            };
+            if let Ok(mut results) = self.results.write() {
+                for (k, s) in solved.into_iter().enumerate() {
+                    results[frame + k] = Some(s);
+                }
+            }
+            frame = end;
+            self.frames_solved.store(frame, Ordering::Release);
+            self.solved.send_replace(frame);
+        }
+        if let Ok(mut s) = self.state.lock() {
+            s.timings.solve = started.elapsed().as_secs_f64();
+        }
+        self.set_status(Status::Done);
+        self.solved.send_modify(|_| {});
+    }
+}
+
+/// The jobs of a server and the slots that bound how many run at once.
+pub struct Jobs {
+    jobs: RwLock<HashMap<String, Arc<Job>>>,
+    /// Order of creation, for listing.
+    order: Mutex<Vec<String>>,
+    slots: Arc<Semaphore>,
+}
+
+impl Jobs {
+    /// An empty set running at most `running` jobs at once.
+    #[must_use]
+    pub fn new(running: usize) -> Self {
+        Self {
+            jobs: RwLock::new(HashMap::new()),
+            order: Mutex::new(Vec::new()),
+            slots: Arc::new(Semaphore::new(running.max(1))),
+        }
+    }
+
+    /// Registers `job` and starts it when a slot is free.
+    pub fn start(&self, job: Arc<Job>) {
+        if let (Ok(mut jobs), Ok(mut order)) = (self.jobs.write(), self.order.lock()) {
+            order.push(job.id.clone());
+            jobs.insert(job.id.clone(), job.clone());
+        }
+        let slots = self.slots.clone();
+        tokio::spawn(async move {
+            let Ok(_permit) = slots.acquire_owned().await else {
+                return;
+            };
+            if job.status().is_final() {
+                return;
+            }
+            let runner = job.clone();
+            if let Err(e) = tokio::task::spawn_blocking(move || runner.run()).await {
+                job.fail(format!("the job stopped unexpectedly: {e}"));
+                job.solved.send_modify(|_| {});
+            }
+        });
+    }
+
+    /// The job with this id.
+    #[must_use]
+    pub fn get(&self, id: &str) -> Option<Arc<Job>> {
+        self.jobs.read().ok()?.get(id).cloned()
+    }
+
+    /// Forgets a job (after cancelling it).
+    pub fn remove(&self, id: &str) -> Option<Arc<Job>> {
+        let job = self.jobs.write().ok()?.remove(id)?;
+        if let Ok(mut order) = self.order.lock() {
+            order.retain(|j| j != id);
+        }
+        Some(job)
+    }
+
+    /// Every job, oldest first.
+    #[must_use]
+    pub fn all(&self) -> Vec<Arc<Job>> {
+        let order = self.order.lock().map(|o| o.clone()).unwrap_or_default();
+        order.iter().filter_map(|id| self.get(id)).collect()
+    }
+}

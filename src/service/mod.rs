@@ -1,0 +1,489 @@
+//! The HTTP service: POST a glTF animation, fetch per-frame radiosity.
+//!
+//! `app` builds the router (tests drive it over a real socket); `serve` runs it until a
+//! shutdown signal. Heavy work runs on blocking threads, at most `max_running` jobs at once; the
+//! rest wait `queued`. Every error is `application/problem+json` with a 4xx for bad input.
+
+mod error;
+mod jobs;
+
+use std::collections::HashMap;
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+use std::time::Instant;
+
+use axum::body::{Body, Bytes};
+use axum::extract::rejection::BytesRejection;
+use axum::extract::{DefaultBodyLimit, Path, Query, State};
+use axum::http::{HeaderMap, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use axum::routing::get;
+use axum::{Json, Router};
+use serde_json::json;
+
+pub use error::ApiError;
+use jobs::{Job, Jobs, Status};
+
+use crate::loader::{self, LoadOptions};
+use crate::scene::Scene;
+use crate::timeline::{LineParams, Preset};
+
+/// Server settings.
+#[derive(Clone, Debug)]
+pub struct Config {
+    /// Largest accepted body, bytes: larger ones get 413 without being read.
+    pub max_body_bytes: usize,
+    /// Jobs traced or solved at once; the others wait `queued`.
+    pub max_running: usize,
+    /// Memory one job may use (estimated before tracing), bytes.
+    pub memory_budget: u64,
+    /// Most lines a job may ask for.
+    pub max_lines: u64,
+    /// Limits passed to the loader.
+    pub max_frames: usize,
+    /// Most patches a scene may have.
+    pub max_patches: usize,
+}
+
+impl Default for Config {
+    fn default() -> Self {
+        Self {
+            max_body_bytes: 64 << 20,
+            max_running: 1,
+            memory_budget: 8 << 30,
+            max_lines: 100_000_000,
+            max_frames: 10_000,
+            max_patches: 2_000_000,
+        }
+    }
+}
+
+/// What the handlers share.
+struct Shared {
+    config: Config,
+    jobs: Jobs,
+}
+
+/// The server's state: cheap to clone.
+#[derive(Clone)]
+pub struct AppState(Arc<Shared>);
+
+impl AppState {
+    /// A server with no jobs yet.
+    #[must_use]
+    pub fn new(config: Config) -> Self {
+        let jobs = Jobs::new(config.max_running);
+        Self(Arc::new(Shared { config, jobs }))
+    }
+}
+
+/// The router.
+pub fn app(state: AppState) -> Router {
+    let limit = state.0.config.max_body_bytes;
+    Router::new()
+        .route("/healthz", get(|| async { Json(json!({"status": "ok"})) }))
+        .route("/v1/timelines", get(list_timelines).post(create_timeline))
+        .route(
+            "/v1/timelines/{id}",
+            get(timeline_status).delete(delete_timeline),
+        )
+        .route("/v1/timelines/{id}/patches", get(timeline_patches))
+        .route("/v1/timelines/{id}/frames/{frame}", get(timeline_frame))
+        .fallback(|| async { ApiError::NotFound("no such path".into()) })
+        .layer(DefaultBodyLimit::max(limit))
+        .layer(tower_http::trace::TraceLayer::new_for_http())
+        .with_state(state)
+}
+
+/// Serves `app` on `listener` until `shutdown` completes, then lets requests in flight finish.
+pub async fn serve(
+    listener: tokio::net::TcpListener,
+    state: AppState,
+    shutdown: impl std::future::Future<Output = ()> + Send + 'static,
+) -> std::io::Result<()> {
+    axum::serve(listener, app(state))
+        .with_graceful_shutdown(shutdown)
+        .await
+}
+
+/// The query parameters of `POST /v1/timelines`.
+const CREATE_PARAMETERS: [&str; 9] = [
+    "fps",
+    "lines",
+    "preset",
+    "seed",
+    "patch_size",
+    "animation",
+    "sky",
+    "start",
+    "end",
+];
+
+fn number(query: &HashMap<String, String>, name: &str) -> Result<Option<f64>, ApiError> {
+    query
+        .get(name)
+        .map(|v| {
+            v.parse::<f64>()
+                .ok()
+                .filter(|x| x.is_finite())
+                .ok_or_else(|| {
+                    ApiError::Parameter(format!("{name} must be a finite number, not {v:?}"))
+                })
+        })
+        .transpose()
+}
+
+/// Checks the query and turns it into load options, lines and sky.
+fn parse_create(
+    query: &HashMap<String, String>,
+    config: &Config,
+) -> Result<(LoadOptions, LineParams, [f64; 3]), ApiError> {
+    if let Some(unknown) = query
+        .keys()
+        .find(|k| !CREATE_PARAMETERS.contains(&k.as_str()))
+    {
+        return Err(ApiError::Parameter(format!(
+            "unknown parameter {unknown:?}; expected one of {}",
+            CREATE_PARAMETERS.join(", ")
+        )));
+    }
+    let fps = number(query, "fps")?.unwrap_or(24.0);
+    if !(fps > 0.0 && fps <= 1000.0) {
+        return Err(ApiError::Parameter(format!(
+            "fps must be in (0, 1000], not {fps}"
+        )));
+    }
+    let lines = match (query.get("lines"), query.get("preset")) {
+        (Some(_), Some(_)) => {
+            return Err(ApiError::Parameter("give lines or preset, not both".into()));
+        }
+        (Some(v), None) => v
+            .parse::<u64>()
+            .ok()
+            .filter(|&n| (1_000..=config.max_lines).contains(&n))
+            .ok_or_else(|| {
+                ApiError::Parameter(format!(
+                    "lines must be an integer in [1000, {}], not {v:?}",
+                    config.max_lines
+                ))
+            })?,
+        (None, Some(p)) => p.parse::<Preset>().map_err(ApiError::Parameter)?.lines(),
+        (None, None) => Preset::Default.lines(),
+    };
+    let seed = match query.get("seed") {
+        Some(v) => v.parse::<u64>().map_err(|_| {
+            ApiError::Parameter(format!("seed must be an unsigned integer, not {v:?}"))
+        })?,
+        None => 1,
+    };
+    let patch_size = number(query, "patch_size")?;
+    if patch_size.is_some_and(|p| p <= 0.0) {
+        return Err(ApiError::Parameter("patch_size must be positive".into()));
+    }
+    let sky = match query.get("sky") {
+        None => [0.0; 3],
+        Some(v) => {
+            let parts: Vec<f64> = v
+                .split(',')
+                .filter_map(|p| p.trim().parse::<f64>().ok())
+                .collect();
+            match parts[..] {
+                [r, g, b] if parts.iter().all(|x| x.is_finite() && *x >= 0.0) => [r, g, b],
+                _ => {
+                    return Err(ApiError::Parameter(format!(
+                        "sky must be r,g,b with three non-negative numbers, not {v:?}"
+                    )));
+                }
+            }
+        }
+    };
+    let options = LoadOptions {
+        fps,
+        animation: query.get("animation").cloned(),
+        start: number(query, "start")?,
+        end: number(query, "end")?,
+        patch_size,
+        max_frames: config.max_frames,
+        max_patches: config.max_patches,
+        ..LoadOptions::default()
+    };
+    Ok((
+        options,
+        LineParams {
+            lines,
+            bundles: None,
+            seed,
+        },
+        sky,
+    ))
+}
+
+/// Memory a job will need, estimated from the scene before tracing: crossings per line from
+/// `2 A / A(W)` (static once, moving per frame), 8 and 12 bytes each, plus offsets and tallies.
+fn estimate_bytes(scene: &Scene, lines: u64) -> u64 {
+    let aw = scene.bounds.surface_area().max(f64::MIN_POSITIVE);
+    let r2 = scene.normalisation.radius.powi(2);
+    let (mut static_area, mut moving_area) = (0.0, 0.0);
+    for p in &scene.patches {
+        // Each traced triangle once (its front patch), in normalised units.
+        if p.side == crate::scene::Side::Front {
+            if p.object.is_some() {
+                moving_area += p.area / r2
+            } else {
+                static_area += p.area / r2
+            }
+        }
+    }
+    let frames = scene.frames.count as f64;
+    let lines = lines as f64;
+    let static_hits = lines * 2.0 * static_area / aw;
+    let moving_hits = lines * frames * 2.0 * moving_area / aw;
+    // The list, plus tallies of about the same size as the static crossings, plus the solver.
+    let bytes = lines * 8.0
+        + static_hits * 8.0 * 2.0
+        + moving_hits * 12.0
+        + scene.patches.len() as f64 * 200.0;
+    bytes as u64
+}
+
+/// The patch table served by `GET /v1/timelines/{id}/patches`.
+fn patch_table(scene: &Scene) -> serde_json::Value {
+    let patches: Vec<serde_json::Value> = scene
+        .patches
+        .iter()
+        .enumerate()
+        .map(|(id, p)| {
+            json!({"id": id, "node": p.source.node, "mesh": p.source.mesh, "primitive": p.source.primitive,
+                   "triangle": p.source.triangle, "side": p.side, "area": p.area, "moving": p.object.is_some()})
+        })
+        .collect();
+    json!({ "patches": patches })
+}
+
+fn new_id() -> String {
+    use rand::RngExt;
+    let mut rng = rand::rng();
+    format!("{:016x}", rng.random::<u64>())
+}
+
+async fn create_timeline(
+    State(state): State<AppState>,
+    Query(query): Query<HashMap<String, String>>,
+    headers: HeaderMap,
+    body: Result<Bytes, BytesRejection>,
+) -> Result<Response, ApiError> {
+    let config = &state.0.config;
+    let (options, lines, sky) = parse_create(&query, config)?;
+    let content_type = headers
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("");
+    let media = content_type.split(';').next().unwrap_or("").trim();
+    if media != "model/gltf-binary" && media != "model/gltf+json" {
+        return Err(ApiError::ContentType(format!(
+            "content type {content_type:?}: send model/gltf-binary (.glb) or model/gltf+json (.gltf)"
+        )));
+    }
+    let body = body.map_err(|e| match e.status() {
+        StatusCode::PAYLOAD_TOO_LARGE => ApiError::TooLarge(config.max_body_bytes),
+        _ => ApiError::Parameter(format!("the body could not be read: {e}")),
+    })?;
+    let started = Instant::now();
+    let scene = tokio::task::spawn_blocking(move || loader::load(&body, &options))
+        .await
+        .map_err(|e| ApiError::Internal(format!("loader task: {e}")))??;
+    let needed = estimate_bytes(&scene, lines.lines);
+    if needed > config.memory_budget {
+        return Err(ApiError::Budget(format!(
+            "the job would need about {:.1} GiB with {} lines, over the budget of {:.1} GiB: use fewer lines, \
+             fewer frames or a larger patch_size",
+            needed as f64 / f64::from(1 << 30),
+            lines.lines,
+            config.memory_budget as f64 / f64::from(1 << 30)
+        )));
+    }
+    let id = new_id();
+    let table = patch_table(&scene);
+    let job = Arc::new(Job::new(id.clone(), scene, lines, sky, table));
+    if let Ok(mut s) = job.state.lock() {
+        s.timings.load = started.elapsed().as_secs_f64();
+    }
+    let body = json!({
+        "id": id,
+        "status": job.status(),
+        "frames": job.frame_times.len(),
+        "patches": job.patches,
+        "warnings": job.warnings,
+    });
+    state.0.jobs.start(job);
+    let location = format!("/v1/timelines/{id}");
+    Ok((
+        StatusCode::ACCEPTED,
+        [(header::LOCATION, location)],
+        Json(body),
+    )
+        .into_response())
+}
+
+fn job(state: &AppState, id: &str) -> Result<Arc<Job>, ApiError> {
+    state
+        .0
+        .jobs
+        .get(id)
+        .ok_or_else(|| ApiError::NotFound(format!("no timeline {id:?}")))
+}
+
+/// The status document of a job.
+fn status_json(job: &Job) -> serde_json::Value {
+    let (status, error, timings, memory, stage_seconds) = match job.state.lock() {
+        Ok(s) => (
+            s.status,
+            s.error.clone(),
+            s.timings,
+            s.memory,
+            s.stage_started.elapsed().as_secs_f64(),
+        ),
+        Err(_) => (
+            Status::Failed,
+            Some("state unavailable".into()),
+            Default::default(),
+            None,
+            0.0,
+        ),
+    };
+    let frames = job.frame_times.len();
+    let solved = job.frames_solved.load(Ordering::Acquire);
+    let fraction = job.control.fraction();
+    let eta = match status {
+        Status::Tracing if fraction > 0.0 => Some(stage_seconds * (1.0 - fraction) / fraction),
+        Status::Solving if solved > 0 => {
+            Some(stage_seconds * (frames - solved) as f64 / solved as f64)
+        }
+        _ => None,
+    };
+    let mut doc = json!({
+        "id": job.id,
+        "status": status,
+        "progress": {
+            "lines_traced": (fraction * job.lines.lines as f64).round() as u64,
+            "lines_total": job.lines.lines,
+            "frames_solved": solved,
+            "frames_total": frames,
+            "eta_seconds": eta,
+        },
+        "frames": frames,
+        "patches": job.patches,
+        "timings": timings,
+        "memory": memory.map(|(hits, bytes)| json!({"hits": hits, "bytes": bytes})),
+    });
+    if let Some(error) = error {
+        doc["error"] = json!(error);
+    }
+    doc
+}
+
+async fn timeline_status(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Json<serde_json::Value>, ApiError> {
+    let job = job(&state, &id)?;
+    Ok(Json(status_json(&job)))
+}
+
+async fn list_timelines(State(state): State<AppState>) -> Json<serde_json::Value> {
+    let timelines: Vec<_> = state
+        .0
+        .jobs
+        .all()
+        .iter()
+        .map(|j| json!({"id": j.id, "status": j.status()}))
+        .collect();
+    Json(json!({ "timelines": timelines }))
+}
+
+async fn delete_timeline(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<StatusCode, ApiError> {
+    let job = job(&state, &id)?;
+    job.cancel();
+    state.0.jobs.remove(&id);
+    Ok(StatusCode::NO_CONTENT)
+}
+
+async fn timeline_patches(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Json<serde_json::Value>, ApiError> {
+    Ok(Json(job(&state, &id)?.patch_table.clone()))
+}
+
+/// Binary layout of a frame (`Accept: application/octet-stream`), little-endian: u32 frame,
+/// u32 patch count P, f64 time, then P×3 f32 radiance, P×3 f32 standard error (−1 where the
+/// patch was not sampled), P u32 sample counts.
+fn frame_binary(frame: usize, time: f64, s: &crate::solve::FrameSolution) -> Vec<u8> {
+    let p = s.radiance.len();
+    let mut out = Vec::with_capacity(16 + p * 28);
+    out.extend_from_slice(&(frame as u32).to_le_bytes());
+    out.extend_from_slice(&(p as u32).to_le_bytes());
+    out.extend_from_slice(&time.to_le_bytes());
+    for l in &s.radiance {
+        l.iter()
+            .for_each(|&c| out.extend_from_slice(&(c as f32).to_le_bytes()));
+    }
+    for e in &s.stderr {
+        let e = e.unwrap_or([-1.0; 3]);
+        e.iter()
+            .for_each(|&c| out.extend_from_slice(&(c as f32).to_le_bytes()));
+    }
+    for &n in &s.samples {
+        out.extend_from_slice(&(n.min(u64::from(u32::MAX)) as u32).to_le_bytes());
+    }
+    out
+}
+
+async fn timeline_frame(
+    State(state): State<AppState>,
+    Path((id, frame)): Path<(String, String)>,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
+    let job = job(&state, &id)?;
+    let frames = job.frame_times.len();
+    let f = frame
+        .parse::<usize>()
+        .ok()
+        .filter(|&f| f < frames)
+        .ok_or_else(|| {
+            ApiError::NotFound(format!(
+                "no frame {frame:?}: the timeline has frames 0..{frames}"
+            ))
+        })?;
+    let solution = job.frame(f).ok_or_else(|| {
+        ApiError::NotReady(format!(
+            "frame {f} is not solved yet (status {:?})",
+            job.status()
+        ))
+    })?;
+    let time = job.frame_times[f];
+    let accept = headers
+        .get(header::ACCEPT)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("");
+    if accept.contains("application/octet-stream") {
+        let bytes = frame_binary(f, time, &solution);
+        return Ok((
+            [(header::CONTENT_TYPE, "application/octet-stream")],
+            Body::from(bytes),
+        )
+            .into_response());
+    }
+    Ok(Json(json!({
+        "frame": f,
+        "time": time,
+        "radiance": solution.radiance,
+        "stderr": solution.stderr,
+        "samples": solution.samples,
+        "converged": solution.converged,
+    }))
+    .into_response())
+}

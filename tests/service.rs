@@ -1,0 +1,313 @@
+//! The HTTP service over a real socket (127.0.0.1:0) with a real HTTP client.
+
+use std::time::{Duration, Instant};
+
+use radiosity::service::{AppState, Config, serve};
+use serde_json::Value;
+
+/// A server on an ephemeral port; stops when the test's runtime ends.
+async fn start(config: Config) -> String {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    tokio::spawn(serve(
+        listener,
+        AppState::new(config),
+        std::future::pending(),
+    ));
+    format!("http://{addr}")
+}
+
+fn scene(name: &str) -> Vec<u8> {
+    std::fs::read(
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("scenes")
+            .join(name),
+    )
+    .unwrap()
+}
+
+async fn post(
+    client: &reqwest::Client,
+    base: &str,
+    query: &str,
+    content_type: &str,
+    body: Vec<u8>,
+) -> reqwest::Response {
+    client
+        .post(format!("{base}/v1/timelines?{query}"))
+        .header("content-type", content_type)
+        .body(body)
+        .send()
+        .await
+        .unwrap()
+}
+
+/// Polls a timeline until it ends; its final status document.
+async fn wait(client: &reqwest::Client, base: &str, id: &str, limit: Duration) -> Value {
+    let start = Instant::now();
+    loop {
+        let status: Value = client
+            .get(format!("{base}/v1/timelines/{id}"))
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        if ["done", "failed", "cancelled"].contains(&status["status"].as_str().unwrap()) {
+            return status;
+        }
+        assert!(start.elapsed() < limit, "timeline {id} still {status}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+async fn create(client: &reqwest::Client, base: &str, query: &str, name: &str) -> (String, Value) {
+    let response = post(client, base, query, "model/gltf+json", scene(name)).await;
+    assert_eq!(response.status(), 202, "{name}");
+    let location = response.headers()["location"].to_str().unwrap().to_string();
+    let body: Value = response.json().await.unwrap();
+    let id = body["id"].as_str().unwrap().to_string();
+    assert_eq!(location, format!("/v1/timelines/{id}"));
+    (id, body)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_sample_scene_bakes_and_serves_every_frame() {
+    let base = start(Config {
+        max_running: 2,
+        ..Config::default()
+    })
+    .await;
+    let client = reqwest::Client::new();
+    for name in [
+        "cornell_box.gltf",
+        "cornell_moving.gltf",
+        "furnace.gltf",
+        "parallel_squares.gltf",
+        "level.gltf",
+        "morph_box.gltf",
+    ] {
+        let (id, created) = create(&client, &base, "lines=20000&fps=4", name).await;
+        let frames = created["frames"].as_u64().unwrap() as usize;
+        let patches = created["patches"].as_u64().unwrap() as usize;
+        let status = wait(&client, &base, &id, Duration::from_secs(60)).await;
+        assert_eq!(status["status"], "done", "{name}: {status}");
+        assert_eq!(status["progress"]["frames_solved"], frames);
+        let table: Value = client
+            .get(format!("{base}/v1/timelines/{id}/patches"))
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        assert_eq!(table["patches"].as_array().unwrap().len(), patches);
+        for f in 0..frames {
+            let frame: Value = client
+                .get(format!("{base}/v1/timelines/{id}/frames/{f}"))
+                .send()
+                .await
+                .unwrap()
+                .json()
+                .await
+                .unwrap();
+            assert_eq!(frame["frame"], f);
+            assert_eq!(frame["radiance"].as_array().unwrap().len(), patches);
+            assert_eq!(frame["samples"].as_array().unwrap().len(), patches);
+        }
+        // The binary layout: frame, patch count, time, then the arrays.
+        let bytes = client
+            .get(format!("{base}/v1/timelines/{id}/frames/0"))
+            .header("accept", "application/octet-stream")
+            .send()
+            .await
+            .unwrap()
+            .bytes()
+            .await
+            .unwrap();
+        assert_eq!(bytes.len(), 16 + patches * 28, "{name}");
+        assert_eq!(
+            u32::from_le_bytes(bytes[4..8].try_into().unwrap()) as usize,
+            patches
+        );
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn identical_requests_give_identical_numbers_and_hostile_ones_get_4xx() {
+    let base = start(Config {
+        max_body_bytes: 1 << 20,
+        max_running: 2,
+        ..Config::default()
+    })
+    .await;
+    let client = reqwest::Client::new();
+    let query = "lines=30000&fps=4&seed=7";
+    let (first, _) = create(&client, &base, query, "cornell_moving.gltf").await;
+    // While the good job runs: a corpus of bad requests, each with its own 4xx.
+    let good = scene("cornell_moving.gltf");
+    let mut truncated = good.clone();
+    truncated.truncate(good.len() / 2);
+    let mut flipped = good.clone();
+    flipped[good.len() / 3] ^= 0x40;
+    let gltf = "model/gltf+json";
+    let cases: Vec<(&str, &str, Vec<u8>, u16)> = vec![
+        ("", "text/plain", good.clone(), 415),
+        ("", "application/json", good.clone(), 415),
+        ("", "", good.clone(), 415),
+        ("bogus=1", gltf, good.clone(), 400),
+        ("fps=0", gltf, good.clone(), 400),
+        ("fps=-3", gltf, good.clone(), 400),
+        ("fps=1e9", gltf, good.clone(), 400),
+        ("fps=abc", gltf, good.clone(), 400),
+        ("fps=NaN", gltf, good.clone(), 400),
+        ("lines=5", gltf, good.clone(), 400),
+        ("lines=1e99", gltf, good.clone(), 400),
+        ("lines=1000&preset=draft", gltf, good.clone(), 400),
+        ("preset=ultra", gltf, good.clone(), 400),
+        ("seed=-1", gltf, good.clone(), 400),
+        ("patch_size=0", gltf, good.clone(), 400),
+        ("sky=1,2", gltf, good.clone(), 400),
+        ("sky=1,2,-3", gltf, good.clone(), 400),
+        ("animation=nope", gltf, good.clone(), 400),
+        ("start=2&end=1", gltf, good.clone(), 400),
+        ("", gltf, Vec::new(), 400),
+        ("", gltf, b"not json at all".to_vec(), 400),
+        ("", gltf, truncated, 400),
+        ("", gltf, b"{\"asset\":{\"version\":\"2.0\"},\"buffers\":[{\"byteLength\":4,\"uri\":\"/etc/passwd\"}]}".to_vec(), 400),
+        ("", gltf, b"{\"asset\":{\"version\":\"2.0\"},\"buffers\":[{\"byteLength\":4,\"uri\":\"http://example.com/x.bin\"}]}".to_vec(), 400),
+        ("", gltf, b"{\"asset\":{\"version\":\"2.0\"},\"nodes\":[{\"children\":[0]}],\"scenes\":[{\"nodes\":[0]}]}".to_vec(), 400),
+        ("", "model/gltf-binary", b"glTF\x02\x00\x00\x00\xff\xff\xff\xff".to_vec(), 400),
+        ("", gltf, vec![b' '; 2 << 20], 413),
+        ("patch_size=0.0001", gltf, good.clone(), 422),
+    ];
+    for (query, content_type, body, expected) in cases {
+        let response = post(&client, &base, query, content_type, body).await;
+        let status = response.status().as_u16();
+        let kind = response
+            .headers()
+            .get("content-type")
+            .map(|v| v.to_str().unwrap().to_string());
+        let text = response.text().await.unwrap();
+        assert_eq!(status, expected, "{query:?} {content_type:?}: {text}");
+        assert_eq!(
+            kind.as_deref(),
+            Some("application/problem+json"),
+            "{query:?}"
+        );
+        let problem: Value = serde_json::from_str(&text).unwrap();
+        assert_eq!(problem["status"], expected);
+        assert!(!problem["detail"].as_str().unwrap().is_empty());
+    }
+    // Flipped bytes may or may not make a valid file, but never a 5xx.
+    let response = post(&client, &base, "lines=2000", gltf, flipped).await;
+    assert!(response.status().as_u16() < 500);
+    for path in [
+        "/v1/timelines/nope",
+        "/v1/timelines/nope/frames/0",
+        "/v1/nothing",
+    ] {
+        assert_eq!(
+            client
+                .get(format!("{base}{path}"))
+                .send()
+                .await
+                .unwrap()
+                .status(),
+            404,
+            "{path}"
+        );
+    }
+    let (second, _) = create(&client, &base, query, "cornell_moving.gltf").await;
+    for id in [&first, &second] {
+        assert_eq!(
+            wait(&client, &base, id, Duration::from_secs(60)).await["status"],
+            "done"
+        );
+    }
+    for f in 0..9 {
+        let get = |id: &str| {
+            client
+                .get(format!("{base}/v1/timelines/{id}/frames/{f}"))
+                .send()
+        };
+        let a: Value = get(&first).await.unwrap().json().await.unwrap();
+        let b: Value = get(&second).await.unwrap().json().await.unwrap();
+        assert_eq!(a["radiance"], b["radiance"], "frame {f}");
+        assert_eq!(a["stderr"], b["stderr"], "frame {f}");
+    }
+    let missing = client
+        .get(format!("{base}/v1/timelines/{first}/frames/99"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(missing.status(), 404);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_long_job_is_cancelled_within_a_second() {
+    let base = start(Config::default()).await;
+    let client = reqwest::Client::new();
+    let (id, _) = create(&client, &base, "lines=20000000&fps=30", "level.gltf").await;
+    // Let it start tracing.
+    let start = Instant::now();
+    loop {
+        let status: Value = client
+            .get(format!("{base}/v1/timelines/{id}"))
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        if status["status"] == "tracing" {
+            break;
+        }
+        assert!(start.elapsed() < Duration::from_secs(20), "{status}");
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    // A queued job behind it.
+    let (queued, created) = create(&client, &base, "lines=2000", "furnace.gltf").await;
+    assert_eq!(created["status"], "queued");
+    let deleted = Instant::now();
+    let response = client
+        .delete(format!("{base}/v1/timelines/{id}"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(response.status(), 204);
+    // The cancelled job gives its slot up within a second: the queued job starts.
+    loop {
+        let status: Value = client
+            .get(format!("{base}/v1/timelines/{queued}"))
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        if status["status"] != "queued" {
+            break;
+        }
+        assert!(
+            deleted.elapsed() < Duration::from_secs(1),
+            "still queued after {:?}",
+            deleted.elapsed()
+        );
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    assert_eq!(
+        wait(&client, &base, &queued, Duration::from_secs(20)).await["status"],
+        "done"
+    );
+    assert_eq!(
+        client
+            .get(format!("{base}/v1/timelines/{id}"))
+            .send()
+            .await
+            .unwrap()
+            .status(),
+        404
+    );
+}
