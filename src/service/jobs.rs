@@ -1,7 +1,7 @@
 //! Jobs: one timeline each, traced and solved off the async runtime, a bounded number at once.
 
 use std::collections::HashMap;
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
 use std::time::Instant;
 
@@ -9,7 +9,7 @@ use serde::Serialize;
 use tokio::sync::{Semaphore, watch};
 
 use crate::bake::Bake;
-use crate::scene::Scene;
+use crate::scene::{Material, Scene};
 use crate::solve::{FrameSolution, SolveParams};
 use crate::timeline::{Control, LineParams, TraceError};
 
@@ -65,6 +65,9 @@ pub struct JobState {
     pub stage_started: Instant,
 }
 
+/// A solved frame and the result version it belongs to.
+pub type Versioned = (u64, Arc<FrameSolution>);
+
 /// A timeline job.
 pub struct Job {
     /// Its id.
@@ -87,10 +90,18 @@ pub struct Job {
     pub state: Mutex<JobState>,
     /// Progress and cancellation of the tracing.
     pub control: Control,
-    /// Frames solved so far (they are solved in order).
+    /// Frames of the current version solved so far (they are solved in order).
     pub frames_solved: AtomicUsize,
-    /// Solved frames.
-    pub results: RwLock<Vec<Option<Arc<FrameSolution>>>>,
+    /// Solved frames with the version they were solved for (a frame keeps its older version
+    /// until the new one is solved).
+    pub results: RwLock<Vec<Option<Versioned>>>,
+    /// Version of the result: 1, then one more for every refinement or relighting.
+    pub version: AtomicU64,
+    /// The traced scene, kept for refinement, relighting and statistics; taken by the work in
+    /// progress.
+    pub bake: Mutex<Option<Bake>>,
+    /// The materials the frames are solved with (the scene's, until relit).
+    pub materials: Mutex<Vec<Material>>,
     /// Signals each newly solved frame (its count) and the end of the job.
     pub solved: watch::Sender<usize>,
 }
@@ -111,6 +122,9 @@ impl Job {
         let frames = frame_times.len();
         Self {
             id,
+            version: AtomicU64::new(1),
+            bake: Mutex::new(None),
+            materials: Mutex::new(scene.materials.clone()),
             patches: scene.patches.len(),
             warnings: scene.warnings.clone(),
             scene: Mutex::new(Some(scene)),
@@ -165,44 +179,84 @@ impl Job {
         self.solved.send_modify(|_| {});
     }
 
-    /// The solution of `frame`, if solved.
+    /// The solution of `frame` and its version, if solved.
     #[must_use]
-    pub fn frame(&self, frame: usize) -> Option<Arc<FrameSolution>> {
+    pub fn frame(&self, frame: usize) -> Option<Versioned> {
         self.results.read().ok()?.get(frame)?.clone()
     }
 
-    /// Runs the job to its end on the calling (blocking) thread.
-    fn run(&self) {
-        let Some(scene) = self.scene.lock().ok().and_then(|mut s| s.take()) else {
-            return self.fail("the job has no scene".into());
+    /// Does `work` to its end on the calling (blocking) thread.
+    fn run(&self, work: Work) {
+        let bake = match work {
+            Work::Bake => {
+                let Some(scene) = self.scene.lock().ok().and_then(|mut s| s.take()) else {
+                    return self.fail("the job has no scene".into());
+                };
+                self.set_status(Status::Tracing);
+                let started = Instant::now();
+                match Bake::trace_with(scene, &self.lines, &self.control) {
+                    Ok(bake) => {
+                        self.traced(&bake, started);
+                        bake
+                    }
+                    Err(TraceError::Cancelled) => return,
+                    Err(e) => return self.fail(e.to_string()),
+                }
+            }
+            Work::Refine(lines) => {
+                let Some(mut bake) = self.bake.lock().ok().and_then(|mut b| b.take()) else {
+                    return self.fail("the job has no traced scene to refine".into());
+                };
+                self.set_status(Status::Tracing);
+                let started = Instant::now();
+                match bake.refine(lines, &self.control) {
+                    Ok(()) => self.traced(&bake, started),
+                    Err(TraceError::Cancelled) => return,
+                    Err(e) => {
+                        self.fail(e.to_string());
+                        return;
+                    }
+                }
+                bake
+            }
+            Work::Relight => match self.bake.lock().ok().and_then(|mut b| b.take()) {
+                Some(bake) => bake,
+                None => return self.fail("the job has no traced scene to relight".into()),
+            },
         };
-        if self.control.is_cancelled() {
-            return;
+        self.solve_frames(&bake);
+        if let Ok(mut slot) = self.bake.lock() {
+            *slot = Some(bake);
         }
-        self.set_status(Status::Tracing);
-        let started = Instant::now();
-        let bake = match Bake::trace_with(scene, &self.lines, &self.control) {
-            Ok(bake) => bake,
-            Err(TraceError::Cancelled) => return,
-            Err(e) => return self.fail(e.to_string()),
-        };
+        self.set_status(Status::Done);
+        self.solved.send_modify(|_| {});
+    }
+
+    /// Records what tracing took.
+    fn traced(&self, bake: &Bake, started: Instant) {
         let memory = bake.list().memory();
         if let Ok(mut s) = self.state.lock() {
-            s.timings.trace = started.elapsed().as_secs_f64();
+            s.timings.trace += started.elapsed().as_secs_f64();
             s.memory = Some((
                 memory.static_hits + memory.moving_hits,
                 memory.bytes + bake.tallies().bytes(),
             ));
         }
+    }
+
+    /// Solves every frame for the current version, in order, a couple per core at a time, so
+    /// that streams see them in order.
+    fn solve_frames(&self, bake: &Bake) {
         self.set_status(Status::Solving);
         let started = Instant::now();
+        let version = self.version.load(Ordering::Acquire);
+        self.frames_solved.store(0, Ordering::Release);
         let params = SolveParams {
             sky: self.sky,
             ..SolveParams::default()
         };
         let representatives = bake.representatives();
-        let materials = bake.scene.materials.clone();
-        // Frames in order, a couple per core at a time, so that streams see them in order.
+        let materials = self.materials.lock().map(|m| m.clone()).unwrap_or_default();
         let chunk = 2 * rayon::current_num_threads().max(1);
         let frames = self.frame_times.len();
         let mut frame = 0;
@@ -217,8 +271,12 @@ impl Job {
                     .into_par_iter()
                     .map(|f| {
                         let r = representatives[f];
-                        match (r < f).then(|| self.frame(r)).flatten() {
-                            Some(shared) => shared,
+                        let shared = (r < f)
+                            .then(|| self.frame(r))
+                            .flatten()
+                            .filter(|(v, _)| *v == version);
+                        match shared {
+                            Some((_, s)) => s,
                             None => Arc::new(bake.solve_frame(f, &materials, &params)),
                         }
                     })
@@ -226,7 +284,7 @@ impl Job {
             };
             if let Ok(mut results) = self.results.write() {
                 for (k, s) in solved.into_iter().enumerate() {
-                    results[frame + k] = Some(s);
+                    results[frame + k] = Some((version, s));
                 }
             }
             frame = end;
@@ -234,11 +292,35 @@ impl Job {
             self.solved.send_replace(frame);
         }
         if let Ok(mut s) = self.state.lock() {
-            s.timings.solve = started.elapsed().as_secs_f64();
+            s.timings.solve += started.elapsed().as_secs_f64();
         }
-        self.set_status(Status::Done);
-        self.solved.send_modify(|_| {});
     }
+
+    /// Makes the job run again for `work` (refinement or relighting): a new version.
+    fn reopen(&self) -> bool {
+        let Ok(mut s) = self.state.lock() else {
+            return false;
+        };
+        if s.status != Status::Done {
+            return false;
+        }
+        s.status = Status::Queued;
+        s.stage_started = Instant::now();
+        self.version.fetch_add(1, Ordering::AcqRel);
+        self.frames_solved.store(0, Ordering::Release);
+        true
+    }
+}
+
+/// What a job's next run does.
+#[derive(Clone, Copy, Debug)]
+pub enum Work {
+    /// Trace and solve the timeline.
+    Bake,
+    /// Trace about this many more lines, then re-solve.
+    Refine(u64),
+    /// Re-solve with the job's (new) materials.
+    Relight,
 }
 
 /// The jobs of a server and the slots that bound how many run at once.
@@ -266,6 +348,19 @@ impl Jobs {
             order.push(job.id.clone());
             jobs.insert(job.id.clone(), job.clone());
         }
+        self.schedule(job, Work::Bake);
+    }
+
+    /// Runs `work` on a finished job (a new version); false if the job is not `done`.
+    pub fn rerun(&self, job: Arc<Job>, work: Work) -> bool {
+        if !job.reopen() {
+            return false;
+        }
+        self.schedule(job, work);
+        true
+    }
+
+    fn schedule(&self, job: Arc<Job>, work: Work) {
         let slots = self.slots.clone();
         tokio::spawn(async move {
             let Ok(_permit) = slots.acquire_owned().await else {
@@ -275,7 +370,7 @@ impl Jobs {
                 return;
             }
             let runner = job.clone();
-            if let Err(e) = tokio::task::spawn_blocking(move || runner.run()).await {
+            if let Err(e) = tokio::task::spawn_blocking(move || runner.run(work)).await {
                 job.fail(format!("the job stopped unexpectedly: {e}"));
                 job.solved.send_modify(|_| {});
             }

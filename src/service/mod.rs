@@ -22,7 +22,7 @@ use axum::{Json, Router};
 use serde_json::json;
 
 pub use error::ApiError;
-use jobs::{Job, Jobs, Status};
+use jobs::{Job, Jobs, Status, Work};
 
 use crate::loader::{self, LoadOptions};
 use crate::scene::Scene;
@@ -88,6 +88,16 @@ pub fn app(state: AppState) -> Router {
             get(timeline_status).delete(delete_timeline),
         )
         .route("/v1/timelines/{id}/patches", get(timeline_patches))
+        .route("/v1/timelines/{id}/frames", get(timeline_frames))
+        .route(
+            "/v1/timelines/{id}/lines",
+            axum::routing::post(refine_timeline),
+        )
+        .route(
+            "/v1/timelines/{id}/materials",
+            axum::routing::post(relight_timeline),
+        )
+        .route("/v1/timelines/{id}/stats", get(timeline_stats))
         .route("/v1/timelines/{id}/frames/{frame}", get(timeline_frame))
         .fallback(|| async { ApiError::NotFound("no such path".into()) })
         .layer(DefaultBodyLimit::max(limit))
@@ -458,7 +468,7 @@ async fn timeline_frame(
                 "no frame {frame:?}: the timeline has frames 0..{frames}"
             ))
         })?;
-    let solution = job.frame(f).ok_or_else(|| {
+    let (version, solution) = job.frame(f).ok_or_else(|| {
         ApiError::NotReady(format!(
             "frame {f} is not solved yet (status {:?})",
             job.status()
@@ -472,18 +482,238 @@ async fn timeline_frame(
     if accept.contains("application/octet-stream") {
         let bytes = frame_binary(f, time, &solution);
         return Ok((
-            [(header::CONTENT_TYPE, "application/octet-stream")],
+            [
+                (header::CONTENT_TYPE, "application/octet-stream".to_string()),
+                (
+                    header::HeaderName::from_static("x-result-version"),
+                    version.to_string(),
+                ),
+            ],
             Body::from(bytes),
         )
             .into_response());
     }
-    Ok(Json(json!({
-        "frame": f,
+    Ok(Json(frame_json(f, time, version, &solution)).into_response())
+}
+
+/// A frame as JSON.
+fn frame_json(
+    frame: usize,
+    time: f64,
+    version: u64,
+    s: &crate::solve::FrameSolution,
+) -> serde_json::Value {
+    json!({
+        "frame": frame,
         "time": time,
-        "radiance": solution.radiance,
-        "stderr": solution.stderr,
-        "samples": solution.samples,
-        "converged": solution.converged,
-    }))
-    .into_response())
+        "version": version,
+        "radiance": s.radiance,
+        "stderr": s.stderr,
+        "samples": s.samples,
+        "converged": s.converged,
+    })
+}
+
+/// `GET /v1/timelines/{id}/frames` as NDJSON: one line per frame, in order, each sent as soon
+/// as it is solved; the stream ends with the last frame (or when the job stops).
+async fn timeline_frames(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Response, ApiError> {
+    let job = job(&state, &id)?;
+    let solved = job.solved.subscribe();
+    let stream = futures_util::stream::unfold(
+        (job, solved, 0usize),
+        |(job, mut solved, next)| async move {
+            loop {
+                let version = job.version.load(Ordering::Acquire);
+                let available = job.frames_solved.load(Ordering::Acquire);
+                if next < available
+                    && let Some((v, s)) = job.frame(next).filter(|(v, _)| *v == version)
+                {
+                    let mut line =
+                        serde_json::to_vec(&frame_json(next, job.frame_times[next], v, &s))
+                            .unwrap_or_default();
+                    line.push(b'\n');
+                    return Some((
+                        Ok::<_, std::convert::Infallible>(line),
+                        (job, solved, next + 1),
+                    ));
+                }
+                if next >= job.frame_times.len() || (job.status().is_final() && next >= available) {
+                    return None;
+                }
+                if solved.changed().await.is_err() {
+                    return None;
+                }
+            }
+        },
+    );
+    Ok((
+        [(header::CONTENT_TYPE, "application/x-ndjson")],
+        Body::from_stream(stream),
+    )
+        .into_response())
+}
+
+/// The answer to a refinement or relighting: the job runs again for a new version.
+fn rerun(state: &AppState, job: Arc<Job>, work: Work) -> Result<Response, ApiError> {
+    if !state.0.jobs.rerun(job.clone(), work) {
+        return Err(ApiError::NotReady(format!(
+            "timeline {} is {:?}: refine or relight it once it is done",
+            job.id,
+            job.status()
+        )));
+    }
+    let body = json!({"id": job.id, "status": job.status(), "version": job.version.load(Ordering::Acquire)});
+    Ok((StatusCode::ACCEPTED, Json(body)).into_response())
+}
+
+/// `POST /v1/timelines/{id}/lines?add=N`: trace about N more lines and re-solve.
+async fn refine_timeline(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    Query(query): Query<HashMap<String, String>>,
+) -> Result<Response, ApiError> {
+    let job = job(&state, &id)?;
+    if let Some(unknown) = query.keys().find(|k| k.as_str() != "add") {
+        return Err(ApiError::Parameter(format!(
+            "unknown parameter {unknown:?}; expected add"
+        )));
+    }
+    let max = state.0.config.max_lines;
+    let add = query
+        .get("add")
+        .and_then(|v| v.parse::<u64>().ok())
+        .filter(|n| (1_000..=max).contains(n))
+        .ok_or_else(|| ApiError::Parameter(format!("add must be an integer in [1000, {max}]")))?;
+    rerun(&state, job, Work::Refine(add))
+}
+
+/// One material change of `POST /v1/timelines/{id}/materials`.
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct MaterialChange {
+    /// The material, by name or index.
+    material: serde_json::Value,
+    /// New emission, RGB, in the scene's emission units.
+    emission: Option<[f64; 3]>,
+    /// New diffuse reflectance, RGB in [0, 1].
+    reflectance: Option<[f64; 3]>,
+}
+
+/// The body of `POST /v1/timelines/{id}/materials`.
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Relight {
+    materials: Vec<MaterialChange>,
+}
+
+/// `POST /v1/timelines/{id}/materials`: new emission or reflectance per material, re-solved
+/// from the kept tallies without tracing.
+async fn relight_timeline(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    body: Bytes,
+) -> Result<Response, ApiError> {
+    let job = job(&state, &id)?;
+    let relight: Relight = serde_json::from_slice(&body)
+        .map_err(|e| ApiError::Parameter(format!("the body must be {{\"materials\": [{{\"material\", \"emission\", \"reflectance\"}}]}}: {e}")))?;
+    let mut materials = job
+        .materials
+        .lock()
+        .map(|m| m.clone())
+        .map_err(|_| ApiError::Internal("materials lock".into()))?;
+    for change in relight.materials {
+        let index = match &change.material {
+            serde_json::Value::Number(n) => n
+                .as_u64()
+                .map(|i| i as usize)
+                .filter(|&i| i < materials.len()),
+            serde_json::Value::String(name) => materials
+                .iter()
+                .position(|m| m.name.as_deref() == Some(name.as_str())),
+            _ => None,
+        }
+        .ok_or_else(|| {
+            let names: Vec<String> = materials
+                .iter()
+                .enumerate()
+                .map(|(i, m)| format!("{i} ({})", m.name.as_deref().unwrap_or("unnamed")))
+                .collect();
+            ApiError::Parameter(format!(
+                "no material {}; the scene has {}",
+                change.material,
+                names.join(", ")
+            ))
+        })?;
+        if let Some(e) = change.emission {
+            if e.iter().any(|v| !v.is_finite() || *v < 0.0) {
+                return Err(ApiError::Parameter(format!(
+                    "emission must be three finite numbers ≥ 0, not {e:?}"
+                )));
+            }
+            materials[index].emission = e;
+        }
+        if let Some(r) = change.reflectance {
+            if r.iter().any(|v| !(0.0..=1.0).contains(v)) {
+                return Err(ApiError::Parameter(format!(
+                    "reflectance must be three numbers in [0, 1], not {r:?}"
+                )));
+            }
+            materials[index].reflectance = r;
+        }
+    }
+    if job.status() != Status::Done {
+        return Err(ApiError::NotReady(format!(
+            "timeline {id} is {:?}: relight it once it is done",
+            job.status()
+        )));
+    }
+    if let Ok(mut m) = job.materials.lock() {
+        *m = materials;
+    }
+    rerun(&state, job, Work::Relight)
+}
+
+/// `GET /v1/timelines/{id}/stats?frame=f`: the scene statistics measured by the lines.
+async fn timeline_stats(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    Query(query): Query<HashMap<String, String>>,
+) -> Result<Json<serde_json::Value>, ApiError> {
+    let job = job(&state, &id)?;
+    if let Some(unknown) = query.keys().find(|k| k.as_str() != "frame") {
+        return Err(ApiError::Parameter(format!(
+            "unknown parameter {unknown:?}; expected frame"
+        )));
+    }
+    let frames = job.frame_times.len();
+    let frame = match query.get("frame") {
+        None => 0,
+        Some(v) => v
+            .parse::<usize>()
+            .ok()
+            .filter(|&f| f < frames)
+            .ok_or_else(|| ApiError::Parameter(format!("frame must be in 0..{frames}")))?,
+    };
+    let stats = tokio::task::spawn_blocking(move || {
+        let bake = job.bake.lock().ok()?;
+        let bake = bake.as_ref()?;
+        Some(crate::timeline::stats::SceneStats::measure(
+            &bake.scene,
+            bake.list(),
+            frame,
+        ))
+    })
+    .await
+    .map_err(|e| ApiError::Internal(format!("stats task: {e}")))?
+    .ok_or_else(|| {
+        ApiError::NotReady(
+            "the timeline is not traced yet, or busy: try again when it is done".into(),
+        )
+    })?;
+    Ok(Json(
+        serde_json::to_value(stats).map_err(|e| ApiError::Internal(e.to_string()))?,
+    ))
 }
