@@ -473,3 +473,87 @@ async fn refine_lowers_the_error_and_relight_needs_no_tracing() {
         "{measured} vs {predicted}"
     );
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_served_description_is_the_checked_in_one_and_covers_every_route() {
+    let base = start(Config::default()).await;
+    let client = reqwest::Client::new();
+    let served = client
+        .get(format!("{base}/openapi.json"))
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    let file = std::fs::read_to_string(
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("api/openapi.json"),
+    )
+    .unwrap();
+    assert_eq!(served, file);
+    let spec: Value = serde_json::from_str(&file).unwrap();
+    // Every described path and method is routed (an unknown timeline is "no timeline", not
+    // "no such path"), and the server answers nothing that is not described.
+    for (path, methods) in spec["paths"].as_object().unwrap() {
+        let url = format!(
+            "{base}{}",
+            path.replace("{id}", "nope").replace("{frame}", "0")
+        );
+        for method in methods.as_object().unwrap().keys() {
+            let request = match method.as_str() {
+                "get" => client.get(&url),
+                "post" => client.post(&url),
+                "delete" => client.delete(&url),
+                other => panic!("method {other}"),
+            };
+            let text = request.send().await.unwrap().text().await.unwrap();
+            assert!(
+                !text.contains("no such path"),
+                "{method} {path} is not routed"
+            );
+        }
+    }
+    let undescribed = client
+        .get(format!("{base}/v1/nothing"))
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    assert!(undescribed.contains("no such path"));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn progress_arrives_as_server_sent_events() {
+    let base = start(Config::default()).await;
+    let client = reqwest::Client::new();
+    let (id, _) = create(&client, &base, "lines=50000&fps=12", "cornell_moving.gltf").await;
+    let mut response = client
+        .get(format!("{base}/v1/timelines/{id}/events"))
+        .send()
+        .await
+        .unwrap();
+    assert!(
+        response.headers()["content-type"]
+            .to_str()
+            .unwrap()
+            .starts_with("text/event-stream")
+    );
+    let mut text = String::new();
+    while let Some(chunk) = response.chunk().await.unwrap() {
+        text.push_str(std::str::from_utf8(&chunk).unwrap());
+    }
+    let statuses: Vec<Value> = text
+        .lines()
+        .filter_map(|l| l.strip_prefix("data: "))
+        .map(|d| serde_json::from_str(d).unwrap())
+        .collect();
+    assert!(statuses.len() >= 2, "{text}");
+    assert_eq!(statuses.last().unwrap()["status"], "done");
+    let solved: Vec<u64> = statuses
+        .iter()
+        .map(|s| s["progress"]["frames_solved"].as_u64().unwrap())
+        .collect();
+    assert!(solved.windows(2).all(|w| w[0] <= w[1]), "{solved:?}");
+}

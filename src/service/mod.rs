@@ -98,6 +98,8 @@ pub fn app(state: AppState) -> Router {
             axum::routing::post(relight_timeline),
         )
         .route("/v1/timelines/{id}/stats", get(timeline_stats))
+        .route("/v1/timelines/{id}/events", get(timeline_events))
+        .route("/openapi.json", get(openapi))
         .route("/v1/timelines/{id}/frames/{frame}", get(timeline_frame))
         .fallback(|| async { ApiError::NotFound("no such path".into()) })
         .layer(DefaultBodyLimit::max(limit))
@@ -716,4 +718,49 @@ async fn timeline_stats(
     Ok(Json(
         serde_json::to_value(stats).map_err(|e| ApiError::Internal(e.to_string()))?,
     ))
+}
+
+/// `GET /v1/timelines/{id}/events`: Server-Sent Events, a `status` event with the status
+/// document whenever a frame is solved or the job changes stage, and at least every second;
+/// the stream ends when the job does.
+async fn timeline_events(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Response, ApiError> {
+    use axum::response::sse::{Event, KeepAlive, Sse};
+    let job = job(&state, &id)?;
+    let solved = job.solved.subscribe();
+    let stream = futures_util::stream::unfold(
+        (job, solved, false),
+        |(job, mut solved, ended)| async move {
+            if ended {
+                return None;
+            }
+            let doc = status_json(&job);
+            let last = job.status().is_final();
+            let event = Event::default()
+                .event("status")
+                .json_data(&doc)
+                .unwrap_or_else(|_| Event::default().event("status"));
+            if !last {
+                // Wake on the next solved frame or stage change, or after a second for progress.
+                let _ =
+                    tokio::time::timeout(std::time::Duration::from_secs(1), solved.changed()).await;
+            }
+            Some((
+                Ok::<_, std::convert::Infallible>(event),
+                (job, solved, last),
+            ))
+        },
+    );
+    Ok(Sse::new(stream)
+        .keep_alive(KeepAlive::default())
+        .into_response())
+}
+
+/// The OpenAPI description of this service (the file checked in as `api/openapi.json`).
+pub const OPENAPI: &str = include_str!("../../api/openapi.json");
+
+async fn openapi() -> Response {
+    ([(header::CONTENT_TYPE, "application/json")], OPENAPI).into_response()
 }
