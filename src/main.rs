@@ -62,6 +62,9 @@ enum Command {
         /// Memory budget of one job, GiB (estimated before tracing).
         #[arg(long, default_value_t = 8.0)]
         memory_budget_gib: f64,
+        /// Where finished results are kept across restarts.
+        #[arg(long, default_value = "./data")]
+        data_dir: PathBuf,
     },
     /// Print a summary of a glTF scene: triangles, patches, static and moving objects, frames,
     /// emitters, warnings.
@@ -142,8 +145,10 @@ fn run(cli: Cli) -> Result<(), String> {
             max_running,
             max_body_mib,
             memory_budget_gib,
+            data_dir,
         } => {
             let config = radiosity::service::Config {
+                data_dir: Some(data_dir),
                 max_running,
                 max_body_bytes: max_body_mib << 20,
                 memory_budget: (memory_budget_gib * f64::from(1u32 << 30)) as u64,
@@ -269,7 +274,8 @@ fn serve(addr: &str, config: radiosity::service::Config) -> Result<(), String> {
             "listening on {}",
             listener.local_addr().map_err(|e| e.to_string())?
         );
-        let state = radiosity::service::AppState::new(config);
+        let state = radiosity::service::AppState::new(config)
+            .map_err(|e| format!("data directory: {e}"))?;
         radiosity::service::serve(listener, state, shutdown_signal())
             .await
             .map_err(|e| e.to_string())

@@ -11,7 +11,7 @@ async fn start(config: Config) -> String {
     let addr = listener.local_addr().unwrap();
     tokio::spawn(serve(
         listener,
-        AppState::new(config),
+        AppState::new(config).unwrap(),
         std::future::pending(),
     ));
     format!("http://{addr}")
@@ -556,4 +556,101 @@ async fn progress_arrives_as_server_sent_events() {
         .map(|s| s["progress"]["frames_solved"].as_u64().unwrap())
         .collect();
     assert!(solved.windows(2).all(|w| w[0] <= w[1]), "{solved:?}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn finished_results_survive_a_restart_and_unfinished_jobs_report_interrupted() {
+    let dir = std::env::temp_dir().join(format!("radiosity-restart-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let config = Config {
+        data_dir: Some(dir.clone()),
+        ..Config::default()
+    };
+    let first = start(config.clone()).await;
+    let client = reqwest::Client::new();
+    let (done, _) = create(&client, &first, "lines=20000&fps=4", "cornell_moving.gltf").await;
+    assert_eq!(
+        wait(&client, &first, &done, Duration::from_secs(60)).await["status"],
+        "done"
+    );
+    let before: Value = client
+        .get(format!("{first}/v1/timelines/{done}/frames/5"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let patches: Value = client
+        .get(format!("{first}/v1/timelines/{done}/patches"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    // A long job still running when the "restart" happens.
+    let (running, _) = create(&client, &first, "lines=20000000&fps=30", "level.gltf").await;
+    // A second server on the same data directory: the restart.
+    let second = start(config).await;
+    let status = wait(&client, &second, &done, Duration::from_secs(5)).await;
+    assert_eq!(status["status"], "done");
+    let after: Value = client
+        .get(format!("{second}/v1/timelines/{done}/frames/5"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(before, after);
+    let patches_after: Value = client
+        .get(format!("{second}/v1/timelines/{done}/patches"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(patches, patches_after);
+    // A restored timeline has its frames, not its lines: no refinement.
+    let refine = client
+        .post(format!("{second}/v1/timelines/{done}/lines?add=1000"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(refine.status(), 409);
+    assert_eq!(
+        wait(&client, &second, &done, Duration::from_secs(5)).await["status"],
+        "done"
+    );
+    let interrupted: Value = client
+        .get(format!("{second}/v1/timelines/{running}"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(interrupted["status"], "failed");
+    assert!(
+        interrupted["error"]
+            .as_str()
+            .unwrap()
+            .starts_with("interrupted"),
+        "{interrupted}"
+    );
+    // Deleting removes the saved results.
+    client
+        .delete(format!("{first}/v1/timelines/{running}"))
+        .send()
+        .await
+        .unwrap();
+    client
+        .delete(format!("{second}/v1/timelines/{done}"))
+        .send()
+        .await
+        .unwrap();
+    assert!(!dir.join(&done).exists());
+    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -8,6 +8,7 @@ use std::time::Instant;
 use serde::Serialize;
 use tokio::sync::{Semaphore, watch};
 
+use super::store::{Record, Store};
 use crate::bake::Bake;
 use crate::scene::{Material, Scene};
 use crate::solve::{FrameSolution, SolveParams};
@@ -104,6 +105,8 @@ pub struct Job {
     pub materials: Mutex<Vec<Material>>,
     /// Signals each newly solved frame (its count) and the end of the job.
     pub solved: watch::Sender<usize>,
+    /// Where finished results are kept, if anywhere.
+    store: Option<Store>,
 }
 
 impl Job {
@@ -115,6 +118,7 @@ impl Job {
         lines: LineParams,
         sky: [f64; 3],
         patch_table: serde_json::Value,
+        store: Option<Store>,
     ) -> Self {
         let frame_times = (0..scene.frames.count)
             .map(|f| scene.frames.time(f))
@@ -143,6 +147,113 @@ impl Job {
             frames_solved: AtomicUsize::new(0),
             results: RwLock::new(vec![None; frames]),
             solved: watch::channel(0).0,
+            store,
+        }
+    }
+
+    /// A job read back from the data directory: `done` with its frames, or `failed` with the
+    /// reason `interrupted` if it had not finished.
+    #[must_use]
+    pub fn restored(
+        record: Record,
+        frames: Option<Vec<Arc<FrameSolution>>>,
+        store: Option<Store>,
+    ) -> Self {
+        let count = record.frame_times.len();
+        let (status, error) = match &frames {
+            Some(_) => (Status::Done, None),
+            None => (
+                Status::Failed,
+                Some("interrupted: the server stopped before the job finished".to_string()),
+            ),
+        };
+        let solved = frames.as_ref().map_or(0, Vec::len);
+        let results = match frames {
+            Some(frames) => frames
+                .into_iter()
+                .map(|f| Some((record.version, f)))
+                .collect(),
+            None => vec![None; count],
+        };
+        Self {
+            id: record.id,
+            scene: Mutex::new(None),
+            frame_times: record.frame_times,
+            patches: record.patches,
+            warnings: record.warnings,
+            patch_table: record.patch_table,
+            lines: LineParams {
+                lines: record.lines,
+                bundles: None,
+                seed: record.seed,
+            },
+            sky: record.sky,
+            state: Mutex::new(JobState {
+                status,
+                error,
+                timings: Timings {
+                    load: record.timings[0],
+                    trace: record.timings[1],
+                    solve: record.timings[2],
+                },
+                memory: record.memory,
+                stage_started: Instant::now(),
+            }),
+            control: Control::default(),
+            frames_solved: AtomicUsize::new(solved),
+            results: RwLock::new(results),
+            version: AtomicU64::new(record.version),
+            bake: Mutex::new(None),
+            materials: Mutex::new(Vec::new()),
+            solved: watch::channel(solved).0,
+            store,
+        }
+    }
+
+    /// The record of this job as it stands.
+    #[must_use]
+    pub fn record(&self) -> Record {
+        let (status, timings, memory) = match self.state.lock() {
+            Ok(s) => (s.status, s.timings, s.memory),
+            Err(_) => (Status::Failed, Timings::default(), None),
+        };
+        Record {
+            id: self.id.clone(),
+            status: serde_json::to_value(status)
+                .ok()
+                .and_then(|v| v.as_str().map(str::to_owned))
+                .unwrap_or_default(),
+            version: self.version.load(Ordering::Acquire),
+            frame_times: self.frame_times.clone(),
+            patches: self.patches,
+            warnings: self.warnings.clone(),
+            lines: self.lines.lines,
+            seed: self.lines.seed,
+            sky: self.sky,
+            timings: [timings.load, timings.trace, timings.solve],
+            memory,
+            patch_table: self.patch_table.clone(),
+        }
+    }
+
+    /// Writes the record (and the frames, once done) to the data directory, if there is one.
+    pub fn persist(&self) {
+        let Some(store) = &self.store else { return };
+        if self.status() == Status::Done {
+            let frames: Option<Vec<Arc<FrameSolution>>> = self.results.read().ok().and_then(|r| {
+                r.iter()
+                    .map(|f| f.as_ref().map(|(_, s)| s.clone()))
+                    .collect()
+            });
+            if let Some(frames) = frames
+                && let Err(e) = store.save_frames(&self.id, &frames)
+            {
+                tracing::error!(id = %self.id, error = %e, "could not save the frames");
+                return;
+            }
+        }
+        if let Err(e) = store.save_record(&self.record()) {
+            tracing::error!(id = %self.id, error = %e, "could not save the record");
         }
     }
 
@@ -166,6 +277,7 @@ impl Job {
             s.status = Status::Failed;
             s.error = Some(error);
         }
+        self.persist();
     }
 
     /// Asks a running job to stop; it ends `cancelled`.
@@ -229,6 +341,7 @@ impl Job {
             *slot = Some(bake);
         }
         self.set_status(Status::Done);
+        self.persist();
         self.solved.send_modify(|_| {});
     }
 
@@ -344,11 +457,17 @@ impl Jobs {
 
     /// Registers `job` and starts it when a slot is free.
     pub fn start(&self, job: Arc<Job>) {
+        self.insert(job.clone());
+        job.persist();
+        self.schedule(job, Work::Bake);
+    }
+
+    /// Registers a job without running it (one read back from the data directory).
+    pub fn insert(&self, job: Arc<Job>) {
         if let (Ok(mut jobs), Ok(mut order)) = (self.jobs.write(), self.order.lock()) {
             order.push(job.id.clone());
-            jobs.insert(job.id.clone(), job.clone());
+            jobs.insert(job.id.clone(), job);
         }
-        self.schedule(job, Work::Bake);
     }
 
     /// Runs `work` on a finished job (a new version); false if the job is not `done`.
@@ -383,9 +502,14 @@ impl Jobs {
         self.jobs.read().ok()?.get(id).cloned()
     }
 
-    /// Forgets a job (after cancelling it).
+    /// Forgets a job (after cancelling it), on disk too.
     pub fn remove(&self, id: &str) -> Option<Arc<Job>> {
         let job = self.jobs.write().ok()?.remove(id)?;
+        if let Some(store) = &job.store
+            && let Err(e) = store.remove(id)
+        {
+            tracing::error!(id, error = %e, "could not remove the saved timeline");
+        }
         if let Ok(mut order) = self.order.lock() {
             order.retain(|j| j != id);
         }

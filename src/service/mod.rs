@@ -6,6 +6,7 @@
 
 mod error;
 mod jobs;
+mod store;
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -43,6 +44,8 @@ pub struct Config {
     pub max_frames: usize,
     /// Most patches a scene may have.
     pub max_patches: usize,
+    /// Where finished results are kept across restarts; `None` keeps them in memory only.
+    pub data_dir: Option<std::path::PathBuf>,
 }
 
 impl Default for Config {
@@ -54,6 +57,7 @@ impl Default for Config {
             max_lines: 100_000_000,
             max_frames: 10_000,
             max_patches: 2_000_000,
+            data_dir: None,
         }
     }
 }
@@ -62,6 +66,7 @@ impl Default for Config {
 struct Shared {
     config: Config,
     jobs: Jobs,
+    store: Option<store::Store>,
 }
 
 /// The server's state: cheap to clone.
@@ -69,11 +74,29 @@ struct Shared {
 pub struct AppState(Arc<Shared>);
 
 impl AppState {
-    /// A server with no jobs yet.
-    #[must_use]
-    pub fn new(config: Config) -> Self {
+    /// A server, with the timelines saved in the data directory (finished ones `done`,
+    /// unfinished ones `failed`: interrupted).
+    pub fn new(config: Config) -> std::io::Result<Self> {
         let jobs = Jobs::new(config.max_running);
-        Self(Arc::new(Shared { config, jobs }))
+        let store = config
+            .data_dir
+            .as_deref()
+            .map(store::Store::open)
+            .transpose()?;
+        if let Some(store) = &store {
+            for (record, frames) in store.load_all() {
+                let job = Arc::new(Job::restored(record, frames, Some(store.clone())));
+                if job.status() == Status::Failed {
+                    job.persist();
+                }
+                jobs.insert(job);
+            }
+        }
+        Ok(Self(Arc::new(Shared {
+            config,
+            jobs,
+            store,
+        })))
     }
 }
 
@@ -316,7 +339,14 @@ async fn create_timeline(
     }
     let id = new_id();
     let table = patch_table(&scene);
-    let job = Arc::new(Job::new(id.clone(), scene, lines, sky, table));
+    let job = Arc::new(Job::new(
+        id.clone(),
+        scene,
+        lines,
+        sky,
+        table,
+        state.0.store.clone(),
+    ));
     if let Ok(mut s) = job.state.lock() {
         s.timings.load = started.elapsed().as_secs_f64();
     }
@@ -560,6 +590,13 @@ async fn timeline_frames(
 
 /// The answer to a refinement or relighting: the job runs again for a new version.
 fn rerun(state: &AppState, job: Arc<Job>, work: Work) -> Result<Response, ApiError> {
+    if job.status() == Status::Done && !job.bake.lock().is_ok_and(|b| b.is_some()) {
+        return Err(ApiError::NotReady(format!(
+            "timeline {} was restored from disk: its lines are not kept there, so it cannot be \
+             refined or relit; post the scene again",
+            job.id
+        )));
+    }
     if !state.0.jobs.rerun(job.clone(), work) {
         return Err(ApiError::NotReady(format!(
             "timeline {} is {:?}: refine or relight it once it is done",
