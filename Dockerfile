@@ -1,4 +1,4 @@
-# Build the release binary, then run it in a small image as a non-root user.
+# Build the release binary, then serve it from a small image as a non-root user.
 FROM rust:1-bookworm AS build
 WORKDIR /src
 COPY Cargo.toml Cargo.lock ./
@@ -7,11 +7,14 @@ COPY api ./api
 RUN cargo build --release --locked
 
 FROM debian:bookworm-slim
-RUN useradd --system --uid 10001 --create-home radiosity
+RUN apt-get update && apt-get install -y --no-install-recommends curl && rm -rf /var/lib/apt/lists/* \
+    && useradd --system --uid 10001 --create-home radiosity \
+    && mkdir /data && chown radiosity /data
 COPY --from=build /src/target/release/radiosity /usr/local/bin/radiosity
-COPY scenes /opt/radiosity/scenes
+COPY scenes/*.gltf /opt/radiosity/scenes/
 USER radiosity
-WORKDIR /home/radiosity
-# The service (`serve`) arrives with issue 5; until then the image runs the scene summary.
+VOLUME /data
+EXPOSE 8080
+HEALTHCHECK --interval=30s --timeout=3s CMD curl -fsS http://127.0.0.1:8080/healthz || exit 1
 ENTRYPOINT ["radiosity"]
-CMD ["scene", "/opt/radiosity/scenes/cornell_moving.gltf"]
+CMD ["serve", "--addr", "0.0.0.0:8080", "--data-dir", "/data"]
