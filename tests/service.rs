@@ -654,3 +654,42 @@ async fn finished_results_survive_a_restart_and_unfinished_jobs_report_interrupt
     assert!(!dir.join(&done).exists());
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_over_the_memory_budget_is_refused_before_tracing() {
+    let base = start(Config {
+        memory_budget: 16 << 20,
+        ..Config::default()
+    })
+    .await;
+    let client = reqwest::Client::new();
+    let response = post(
+        &client,
+        &base,
+        "lines=10000000&fps=24",
+        "model/gltf+json",
+        scene("level.gltf"),
+    )
+    .await;
+    assert_eq!(response.status(), 422);
+    let problem: Value = response.json().await.unwrap();
+    assert_eq!(problem["type"], "/problems/memory-budget");
+    assert!(
+        problem["detail"].as_str().unwrap().contains("GiB"),
+        "{problem}"
+    );
+    // A small job fits, and its measured memory is within the estimate's order.
+    let (id, _) = create(&client, &base, "lines=20000&fps=4", "level.gltf").await;
+    let status = wait(&client, &base, &id, Duration::from_secs(60)).await;
+    assert_eq!(status["status"], "done");
+    assert!(status["memory"]["bytes"].as_u64().unwrap() < 16 << 20);
+    let listed: Value = client
+        .get(format!("{base}/v1/timelines"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(listed["timelines"].as_array().unwrap().len(), 1);
+}
