@@ -17,6 +17,11 @@ async fn start(config: Config) -> String {
     format!("http://{addr}")
 }
 
+/// GETs a JSON document.
+async fn get_json(client: &reqwest::Client, url: String) -> Value {
+    client.get(url).send().await.unwrap().json().await.unwrap()
+}
+
 fn scene(name: &str) -> Vec<u8> {
     std::fs::read(
         std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -46,14 +51,7 @@ async fn post(
 async fn wait(client: &reqwest::Client, base: &str, id: &str, limit: Duration) -> Value {
     let start = Instant::now();
     loop {
-        let status: Value = client
-            .get(format!("{base}/v1/timelines/{id}"))
-            .send()
-            .await
-            .unwrap()
-            .json()
-            .await
-            .unwrap();
+        let status: Value = get_json(&client, format!("{base}/v1/timelines/{id}")).await;
         if ["done", "failed", "cancelled"].contains(&status["status"].as_str().unwrap()) {
             return status;
         }
@@ -94,24 +92,11 @@ async fn every_sample_scene_bakes_and_serves_every_frame() {
         let status = wait(&client, &base, &id, Duration::from_secs(60)).await;
         assert_eq!(status["status"], "done", "{name}: {status}");
         assert_eq!(status["progress"]["frames_solved"], frames);
-        let table: Value = client
-            .get(format!("{base}/v1/timelines/{id}/patches"))
-            .send()
-            .await
-            .unwrap()
-            .json()
-            .await
-            .unwrap();
+        let table: Value = get_json(&client, format!("{base}/v1/timelines/{id}/patches")).await;
         assert_eq!(table["patches"].as_array().unwrap().len(), patches);
         for f in 0..frames {
-            let frame: Value = client
-                .get(format!("{base}/v1/timelines/{id}/frames/{f}"))
-                .send()
-                .await
-                .unwrap()
-                .json()
-                .await
-                .unwrap();
+            let frame: Value =
+                get_json(&client, format!("{base}/v1/timelines/{id}/frames/{f}")).await;
             assert_eq!(frame["frame"], f);
             assert_eq!(frame["radiance"].as_array().unwrap().len(), patches);
             assert_eq!(frame["samples"].as_array().unwrap().len(), patches);
@@ -267,14 +252,7 @@ async fn a_long_job_is_cancelled_within_a_second() {
     // Let it start tracing.
     let start = Instant::now();
     loop {
-        let status: Value = client
-            .get(format!("{base}/v1/timelines/{id}"))
-            .send()
-            .await
-            .unwrap()
-            .json()
-            .await
-            .unwrap();
+        let status: Value = get_json(&client, format!("{base}/v1/timelines/{id}")).await;
         if status["status"] == "tracing" {
             break;
         }
@@ -293,14 +271,7 @@ async fn a_long_job_is_cancelled_within_a_second() {
     assert_eq!(response.status(), 204);
     // The cancelled job gives its slot up within a second: the queued job starts.
     loop {
-        let status: Value = client
-            .get(format!("{base}/v1/timelines/{queued}"))
-            .send()
-            .await
-            .unwrap()
-            .json()
-            .await
-            .unwrap();
+        let status: Value = get_json(&client, format!("{base}/v1/timelines/{queued}")).await;
         if status["status"] != "queued" {
             break;
         }
@@ -350,14 +321,7 @@ async fn frames_stream_in_order_as_they_are_solved() {
             let frame: Value = serde_json::from_slice(&line).unwrap();
             assert_eq!(frame["frame"], seen);
             if seen == 0 {
-                let status: Value = client
-                    .get(format!("{base}/v1/timelines/{id}"))
-                    .send()
-                    .await
-                    .unwrap()
-                    .json()
-                    .await
-                    .unwrap();
+                let status: Value = get_json(&client, format!("{base}/v1/timelines/{id}")).await;
                 status_at_first = Some(status["status"].clone());
             }
             seen += 1;
@@ -455,14 +419,7 @@ async fn refine_lowers_the_error_and_relight_needs_no_tracing() {
         assert_eq!(response.status(), 400, "{bad}");
     }
     // The statistics of the lines.
-    let stats: Value = client
-        .get(format!("{base}/v1/timelines/{id}/stats?frame=1"))
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
+    let stats: Value = get_json(&client, format!("{base}/v1/timelines/{id}/stats?frame=1")).await;
     assert_eq!(stats["frame"], 1);
     let (measured, predicted) = (
         stats["mean_hits_per_line"].as_f64().unwrap(),
@@ -573,45 +530,18 @@ async fn finished_results_survive_a_restart_and_unfinished_jobs_report_interrupt
         wait(&client, &first, &done, Duration::from_secs(60)).await["status"],
         "done"
     );
-    let before: Value = client
-        .get(format!("{first}/v1/timelines/{done}/frames/5"))
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
-    let patches: Value = client
-        .get(format!("{first}/v1/timelines/{done}/patches"))
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
+    let before: Value = get_json(&client, format!("{first}/v1/timelines/{done}/frames/5")).await;
+    let patches: Value = get_json(&client, format!("{first}/v1/timelines/{done}/patches")).await;
     // A long job still running when the "restart" happens.
     let (running, _) = create(&client, &first, "lines=20000000&fps=30", "level.gltf").await;
     // A second server on the same data directory: the restart.
     let second = start(config).await;
     let status = wait(&client, &second, &done, Duration::from_secs(5)).await;
     assert_eq!(status["status"], "done");
-    let after: Value = client
-        .get(format!("{second}/v1/timelines/{done}/frames/5"))
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
+    let after: Value = get_json(&client, format!("{second}/v1/timelines/{done}/frames/5")).await;
     assert_eq!(before, after);
-    let patches_after: Value = client
-        .get(format!("{second}/v1/timelines/{done}/patches"))
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
+    let patches_after: Value =
+        get_json(&client, format!("{second}/v1/timelines/{done}/patches")).await;
     assert_eq!(patches, patches_after);
     // A restored timeline has its frames, not its lines: no refinement.
     let refine = client
@@ -624,14 +554,7 @@ async fn finished_results_survive_a_restart_and_unfinished_jobs_report_interrupt
         wait(&client, &second, &done, Duration::from_secs(5)).await["status"],
         "done"
     );
-    let interrupted: Value = client
-        .get(format!("{second}/v1/timelines/{running}"))
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
+    let interrupted: Value = get_json(&client, format!("{second}/v1/timelines/{running}")).await;
     assert_eq!(interrupted["status"], "failed");
     assert!(
         interrupted["error"]
@@ -683,13 +606,6 @@ async fn a_job_over_the_memory_budget_is_refused_before_tracing() {
     let status = wait(&client, &base, &id, Duration::from_secs(60)).await;
     assert_eq!(status["status"], "done");
     assert!(status["memory"]["bytes"].as_u64().unwrap() < 16 << 20);
-    let listed: Value = client
-        .get(format!("{base}/v1/timelines"))
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
+    let listed: Value = get_json(&client, format!("{base}/v1/timelines")).await;
     assert_eq!(listed["timelines"].as_array().unwrap().len(), 1);
 }

@@ -1,5 +1,8 @@
 //! The radiosity solve against cases with known answers (METHOD.md §7), and its error bars.
 
+#[allow(dead_code)] // the helpers serve several test binaries; this one uses a part
+mod common;
+
 use radiosity::bake::Bake;
 use radiosity::loader::{LoadOptions, load};
 use radiosity::scene::{Material, Scene};
@@ -424,7 +427,7 @@ fn frames_whose_state_repeats_share_their_solution() {
 fn inside_a_sphere_every_patch_sees_the_others_in_proportion_to_their_area() {
     // F_ij = A_j / A for every pair inside a sphere: with the sphere's lower half emitting 1 and
     // reflectance ρ everywhere, L_i = Le_i + ρ Ē / (1 − ρ) with Ē the area-mean emission.
-    let (positions, indices) = inward_sphere(2);
+    let (positions, indices) = common::icosphere(2, 1.0, true);
     let scene = mesh_scene(&positions, &indices);
     let bake = Bake::trace(scene, &lines(100_000, 10)).unwrap();
     let rho = 0.6;
@@ -470,76 +473,6 @@ fn inside_a_sphere_every_patch_sees_the_others_in_proportion_to_their_area() {
     }
     let fraction = within as f64 / s.radiance.len() as f64;
     assert!(fraction >= 0.9, "{fraction} within 2σ");
-}
-
-/// An icosphere of radius 1 facing inward: `level` subdivisions of the icosahedron.
-fn inward_sphere(level: usize) -> (Vec<[f32; 3]>, Vec<u32>) {
-    let t = (1.0 + 5f64.sqrt()) / 2.0;
-    let mut v: Vec<glam::DVec3> = [
-        [-1.0, t, 0.0],
-        [1.0, t, 0.0],
-        [-1.0, -t, 0.0],
-        [1.0, -t, 0.0],
-        [0.0, -1.0, t],
-        [0.0, 1.0, t],
-        [0.0, -1.0, -t],
-        [0.0, 1.0, -t],
-        [t, 0.0, -1.0],
-        [t, 0.0, 1.0],
-        [-t, 0.0, -1.0],
-        [-t, 0.0, 1.0],
-    ]
-    .iter()
-    .map(|p| glam::DVec3::from_array(*p).normalize())
-    .collect();
-    let mut f: Vec<[u32; 3]> = vec![
-        [0, 11, 5],
-        [0, 5, 1],
-        [0, 1, 7],
-        [0, 7, 10],
-        [0, 10, 11],
-        [1, 5, 9],
-        [5, 11, 4],
-        [11, 10, 2],
-        [10, 7, 6],
-        [7, 1, 8],
-        [3, 9, 4],
-        [3, 4, 2],
-        [3, 2, 6],
-        [3, 6, 8],
-        [3, 8, 9],
-        [4, 9, 5],
-        [2, 4, 11],
-        [6, 2, 10],
-        [8, 6, 7],
-        [9, 8, 1],
-    ];
-    for _ in 0..level {
-        let mut mid = std::collections::HashMap::new();
-        let mut next = Vec::new();
-        for t in &f {
-            let mut m = [0u32; 3];
-            for k in 0..3 {
-                let (a, b) = (t[k].min(t[(k + 1) % 3]), t[k].max(t[(k + 1) % 3]));
-                m[k] = *mid.entry((a, b)).or_insert_with(|| {
-                    v.push(((v[a as usize] + v[b as usize]) * 0.5).normalize());
-                    (v.len() - 1) as u32
-                });
-            }
-            next.extend([
-                [t[0], m[0], m[2]],
-                [t[1], m[1], m[0]],
-                [t[2], m[2], m[1]],
-                m,
-            ]);
-        }
-        f = next;
-    }
-    // Reverse the winding: the faces look inward.
-    (
-        v.iter().map(|p| p.as_vec3().to_array()).collect(),
-        f.iter().flat_map(|t| [t[0], t[2], t[1]]).collect(),
-    )
 }
 
 /// A static scene of one mesh (default material) from positions and indices.
