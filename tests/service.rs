@@ -51,7 +51,7 @@ async fn post(
 async fn wait(client: &reqwest::Client, base: &str, id: &str, limit: Duration) -> Value {
     let start = Instant::now();
     loop {
-        let status: Value = get_json(&client, format!("{base}/v1/timelines/{id}")).await;
+        let status: Value = get_json(client, format!("{base}/v1/timelines/{id}")).await;
         if ["done", "failed", "cancelled"].contains(&status["status"].as_str().unwrap()) {
             return status;
         }
