@@ -17,12 +17,14 @@
 //!   what moves) and the radiosity solve with per-patch error bars.
 //! - [`bake`]: a traced scene ready to solve, refine and relight any frame.
 //! - [`service`]: the HTTP service (axum): jobs, their status and their frames.
+//! - [`batch`]: batch baking of scenes into files (`radiosity bake`).
 //! - [`bench`]: the measurements behind the README's figures (`radiosity bench`).
 //! - [`samples`]: the generator of the sample scenes in `scenes/`.
 //!
 //! The method is described in `METHOD.md` (shared with the team) and the README.
 
 pub mod bake;
+pub mod batch;
 pub mod bench;
 pub mod lines;
 pub mod loader;

@@ -48,6 +48,34 @@ impl From<SceneArgs> for LoadOptions {
 
 #[derive(Subcommand)]
 enum Command {
+    /// Bake scenes (files, or every .glb/.gltf of a directory) into OUT/<scene>/: radiance.bin,
+    /// summary.json, timings.json. Unchanged scenes are skipped; one failure does not stop the
+    /// others; the exit status is non-zero if any failed.
+    Bake {
+        /// Scenes or directories of scenes.
+        #[arg(required = true)]
+        inputs: Vec<PathBuf>,
+        /// Output directory.
+        #[arg(long)]
+        out: PathBuf,
+        #[command(flatten)]
+        args: SceneArgs,
+        /// Line budget by name: draft, default or final.
+        #[arg(long, conflicts_with = "lines")]
+        preset: Option<radiosity::timeline::Preset>,
+        /// Number of lines.
+        #[arg(long)]
+        lines: Option<u64>,
+        /// Seed of the lines.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Radiance of the sky, r,g,b.
+        #[arg(long, value_delimiter = ',', num_args = 3, default_values_t = [0.0, 0.0, 0.0])]
+        sky: Vec<f64>,
+        /// Bake even scenes whose outputs are up to date.
+        #[arg(long)]
+        force: bool,
+    },
     /// Run the HTTP service (see api/ and the README).
     Serve {
         /// Address to bind.
@@ -140,6 +168,36 @@ fn main() -> ExitCode {
 
 fn run(cli: Cli) -> Result<(), String> {
     match cli.command {
+        Command::Bake {
+            inputs,
+            out,
+            args,
+            preset,
+            lines,
+            seed,
+            sky,
+            force,
+        } => {
+            let lines = lines.unwrap_or_else(|| {
+                preset
+                    .unwrap_or(radiosity::timeline::Preset::Default)
+                    .lines()
+            });
+            if sky.len() != 3 || sky.iter().any(|v| !v.is_finite() || *v < 0.0) {
+                return Err("--sky takes three non-negative numbers r,g,b".into());
+            }
+            let params = radiosity::batch::BatchParams {
+                load: args.into(),
+                lines: radiosity::timeline::LineParams {
+                    lines,
+                    bundles: None,
+                    seed,
+                },
+                sky: [sky[0], sky[1], sky[2]],
+                force,
+            };
+            bake(&inputs, &out, &params)
+        }
         Command::Serve {
             addr,
             max_running,
@@ -302,4 +360,55 @@ async fn shutdown_signal() {
         () = terminate => {},
     }
     tracing::info!("shutting down");
+}
+
+/// Bakes every scene, logging progress, and fails if any scene failed or was cancelled.
+fn bake(
+    inputs: &[PathBuf],
+    out: &std::path::Path,
+    params: &radiosity::batch::BatchParams,
+) -> Result<(), String> {
+    use radiosity::batch::Outcome;
+    let scenes = radiosity::batch::scenes(inputs).map_err(|e| e.to_string())?;
+    if scenes.is_empty() {
+        return Err("no .glb or .gltf scene in the inputs".into());
+    }
+    let control = std::sync::Arc::new(radiosity::timeline::Control::default());
+    let handler = control.clone();
+    ctrlc::set_handler(move || handler.cancel()).map_err(|e| format!("Ctrl-C handler: {e}"))?;
+    let mut failures = Vec::new();
+    for (k, path) in scenes.iter().enumerate() {
+        if control.is_cancelled() {
+            failures.push(format!("{}: not baked (interrupted)", path.display()));
+            continue;
+        }
+        let prefix = format!("[{}/{}]", k + 1, scenes.len());
+        let outcome = radiosity::batch::bake_one(path, out, params, &control, &mut |line| {
+            eprintln!("{prefix} {line}")
+        });
+        match outcome {
+            Outcome::Baked(dir) => {
+                eprintln!("{prefix} baked {} -> {}", path.display(), dir.display())
+            }
+            Outcome::Skipped(dir) => eprintln!("{prefix} up to date: {}", dir.display()),
+            Outcome::Failed(reason) => {
+                eprintln!("{prefix} FAILED {}: {reason}", path.display());
+                failures.push(format!("{}: {reason}", path.display()));
+            }
+            Outcome::Cancelled => {
+                eprintln!("{prefix} interrupted {}: nothing written", path.display());
+                failures.push(format!("{}: interrupted", path.display()));
+            }
+        }
+    }
+    if failures.is_empty() {
+        Ok(())
+    } else {
+        Err(format!(
+            "{} of {} scenes failed:\n  {}",
+            failures.len(),
+            scenes.len(),
+            failures.join("\n  ")
+        ))
+    }
 }
