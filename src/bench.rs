@@ -192,6 +192,9 @@ pub struct AccuracyPoint {
     /// Fraction of (patch, channel, frame) values within 2σ of the reference (σ combining the
     /// reported errors of the bake and of a reference run).
     pub coverage: f64,
+    /// Median of |error| / σ: about 0.67 for honest Gaussian error bars, less when they are
+    /// conservative.
+    pub median_z: f64,
 }
 
 /// A scene's reference radiance per frame, with its own standard error (0 for closed forms).
@@ -271,13 +274,15 @@ fn closed_form(name: &str, scene: &Scene) -> Option<Reference> {
     })
 }
 
-/// Error and error-bar coverage of `solved` against `reference`, over patches that reflect.
+/// Error, error-bar coverage and median |z| of `solved` against `reference`, over patches
+/// that reflect.
 fn compare(
     scene: &Scene,
     solved: &[crate::solve::FrameSolution],
     reference: &Reference,
-) -> (f64, f64) {
+) -> (f64, f64, f64) {
     let (mut num, mut den, mut within, mut total) = (0.0, 0.0, 0usize, 0usize);
+    let mut z = Vec::new();
     for (f, s) in solved.iter().enumerate() {
         for (i, p) in scene.patches.iter().enumerate() {
             let m = &scene.materials[p.material as usize];
@@ -293,12 +298,18 @@ fn compare(
                     .hypot(reference.sigma[f][i][c]);
                 within += usize::from((l - r).abs() <= 2.0 * sigma + 1e-9 * r.abs());
                 total += 1;
+                if sigma > 0.0 {
+                    z.push((l - r).abs() / sigma);
+                }
             }
         }
     }
+    z.sort_by(f64::total_cmp);
+    let median = z.get(z.len() / 2).copied().unwrap_or(0.0);
     (
         (num / den.max(f64::MIN_POSITIVE)).sqrt(),
         within as f64 / total.max(1) as f64,
+        median,
     )
 }
 
@@ -330,7 +341,7 @@ pub fn accuracy(
         };
         for &lines in budgets {
             let run = timed_bake(scene, lines, 1)?;
-            let (rms_error, coverage) = compare(scene, &run.solved, &reference);
+            let (rms_error, coverage, median_z) = compare(scene, &run.solved, &reference);
             let point = AccuracyPoint {
                 scene: name.clone(),
                 reference: reference.name.clone(),
@@ -339,6 +350,7 @@ pub fn accuracy(
                 seconds: run.seconds,
                 rms_error,
                 coverage,
+                median_z,
             };
             progress(&point);
             points.push(point);

@@ -277,8 +277,8 @@ fn run(cli: Cli) -> Result<(), String> {
             }
             let points = radiosity::bench::accuracy(&set, &budgets, reference_factor, |p| {
                 eprintln!(
-                    "{:<22} {:>9} lines {:>8.3} s  error {:.4}  coverage {:.3}",
-                    p.scene, p.lines, p.seconds, p.rms_error, p.coverage
+                    "{:<22} {:>9} lines {:>8.3} s  error {:.4}  coverage {:.3}  median |z| {:.2}",
+                    p.scene, p.lines, p.seconds, p.rms_error, p.coverage, p.median_z
                 );
             })
             .map_err(|e| e.to_string())?;
