@@ -91,22 +91,16 @@ pub fn solve(
         iterations = iterations.max(light.iterations);
         residual = residual.max(light.residual);
         converged &= light.converged;
-        // First-order error of each unknown, then carried like light.
-        let first_order: Vec<f64> = (0..patches)
-            .map(|i| {
-                if system.unknown[i] {
-                    rho[i] * system.sample_deviation(i, &light.values, params.sky[c])
-                } else {
-                    0.0
-                }
-            })
-            .collect();
-        let error = system.solve(&first_order, 0.0, params);
+        let error = replica_errors(tally, &rho, &emission, params.sky[c], &light.values, params);
         for i in 0..patches {
             radiance[i][c] = light.values[i];
             if let Some(e) = &mut stderr[i] {
                 e[c] = if system.unknown[i] {
-                    error.values[i].max(0.0)
+                    // The spread of the replicas' solutions, and never less than the spread of
+                    // the patch's own first bounce (which low sample counts can hide from
+                    // the former).
+                    let first = rho[i] * system.sample_deviation(i, &light.values, params.sky[c]);
+                    error[i].map_or(first, |e| e.max(first))
                 } else {
                     0.0
                 };
@@ -121,6 +115,52 @@ pub fn solve(
         residual,
         converged,
     }
+}
+
+/// Standard errors from the independent replicas of the lines (METHOD.md §6): each replica's
+/// tallies alone give a full solution (warm-started from the pooled one), and the spread of
+/// those solutions, divided by √K, is the error of their pooled mean. It carries every bounce
+/// and every correlation between patches. `None` for a patch fewer than 4 replicas crossed.
+fn replica_errors(
+    tally: &FrameTally,
+    rho: &[f64],
+    emission: &[f64],
+    sky: f64,
+    pooled: &[f64],
+    params: &SolveParams,
+) -> Vec<Option<f64>> {
+    let patches = rho.len();
+    let groups = tally::GROUPS as usize;
+    let mut sum = vec![0.0; patches];
+    let mut sum_sq = vec![0.0; patches];
+    let mut count = vec![0usize; patches];
+    let loose = SolveParams {
+        tolerance: 1e-6,
+        ..*params
+    };
+    for g in 0..groups {
+        let replica = tally.replica(g as u8);
+        let system = System::new(&replica, rho);
+        let solved = system.solve_from(emission, sky, Some(pooled), &loose);
+        for i in 0..patches {
+            if system.unknown[i] {
+                let v = solved.values[i];
+                sum[i] += v;
+                sum_sq[i] += v * v;
+                count[i] += 1;
+            }
+        }
+    }
+    (0..patches)
+        .map(|i| {
+            let k = count[i] as f64;
+            (count[i] >= 4).then(|| {
+                let mean = sum[i] / k;
+                let variance = ((sum_sq[i] - k * mean * mean) / (k - 1.0)).max(0.0);
+                (variance / k).sqrt()
+            })
+        })
+        .collect()
 }
 
 /// The system of one channel.
@@ -191,6 +231,17 @@ impl<'a> System<'a> {
     /// Solves `L = Le + ρ F L + ρ F_sky L_sky` for emission `le` (the known patches keep
     /// `L = Le`).
     fn solve(&self, le: &[f64], sky: f64, params: &SolveParams) -> Solved {
+        self.solve_from(le, sky, None, params)
+    }
+
+    /// [`System::solve`] starting from `start` (a nearby solution) instead of the emission.
+    fn solve_from(
+        &self,
+        le: &[f64],
+        sky: f64,
+        start: Option<&[f64]>,
+        params: &SolveParams,
+    ) -> Solved {
         let n = le.len();
         // The system is linear: solve it scaled to O(1) whatever the emission's magnitude
         // (1e-30 or 1e30), and scale back.
@@ -222,7 +273,11 @@ impl<'a> System<'a> {
             }
             b[i] = bi;
         }
-        let (x, iterations, residual, converged) = self.conjugate_gradients(&b, &le_s, params);
+        let x0: Vec<f64> = match start {
+            Some(x) => x.iter().map(|v| v / scale).collect(),
+            None => le_s.clone(),
+        };
+        let (x, iterations, residual, converged) = self.conjugate_gradients(&b, &x0, params);
         for i in 0..n {
             if self.unknown[i] {
                 values[i] = x[i] * scale;

@@ -367,6 +367,34 @@ impl FrameTally {
         assemble(aggregate(raw), patches)
     }
 
+    /// The tallies of one replica of the lines alone (no per-group entries).
+    #[must_use]
+    pub fn replica(&self, group: u8) -> Self {
+        let patches = self.crossings.len();
+        let mut t = Self {
+            crossings: vec![0; patches],
+            offsets: Vec::with_capacity(patches + 1),
+            columns: Vec::new(),
+            counts: Vec::new(),
+            group_offsets: vec![0; patches + 1],
+            group_entries: Vec::new(),
+        };
+        t.offsets.push(0);
+        for i in 0..patches {
+            for &(column, g, count) in
+                &self.group_entries[self.group_offsets[i]..self.group_offsets[i + 1]]
+            {
+                if g == group {
+                    t.columns.push(column);
+                    t.counts.push(u64::from(count));
+                    t.crossings[i] += u64::from(count);
+                }
+            }
+            t.offsets.push(t.columns.len());
+        }
+        t
+    }
+
     /// Whether `S` is symmetric between patches (reciprocity, `A_i F_ij = A_j F_ji`): true by
     /// construction, since every segment is tallied in both directions.
     #[must_use]
