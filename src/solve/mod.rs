@@ -7,13 +7,12 @@
 //! with a diagonal preconditioner, which converge in about `√((1+ρ)/(1−ρ))/2` iterations per
 //! factor e even at ρ = 0.999. Patches with ρ = 0, or that no line crossed, are `L = Le`.
 //!
-//! The standard error of each patch: `L_i` rests on the mean of the radiance found at the far
-//! end of the `N_i` segments leaving it. The lines fall into 16 groups, each a stratified set
-//! of its own; the spread of that mean between the groups gives a first-order error `a_i` that
-//! includes what stratification gains (an independent-samples variance would overstate it
-//! several times). Errors travel with the light: the reported error solves the same system with
-//! `a` in place of the emission, which adds the neighbours' errors as if they were fully
-//! correlated (an upper bound of the propagated part).
+//! The standard error of each patch: the lines come as 16 independent replicas (each an
+//! unbiased stratified estimate on its own); every frame is also solved with each replica's
+//! tallies alone, warm-started from the pooled solution, and the spread of those solutions
+//! over √16 is the error of the pooled one. It carries every bounce and the correlations
+//! between patches; it is never taken below the spread of the patch's own first bounce between
+//! the replicas, which low sample counts can hide from the solutions' spread.
 
 pub mod analytic;
 pub mod tally;
