@@ -144,18 +144,7 @@ fn write_radiance(
     }
     for (s, t) in frames.iter().zip(times) {
         out.extend_from_slice(&t.to_le_bytes());
-        for l in &s.radiance {
-            l.iter()
-                .for_each(|&c| out.extend_from_slice(&(c as f32).to_le_bytes()));
-        }
-        for e in &s.stderr {
-            e.unwrap_or([-1.0; 3])
-                .iter()
-                .for_each(|&c| out.extend_from_slice(&(c as f32).to_le_bytes()));
-        }
-        for &n in &s.samples {
-            out.extend_from_slice(&(n.min(u64::from(u32::MAX)) as u32).to_le_bytes());
-        }
+        s.write_f32(&mut out);
     }
     write_atomic(path, &out)
 }

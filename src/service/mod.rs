@@ -477,18 +477,7 @@ fn frame_binary(frame: usize, time: f64, s: &crate::solve::FrameSolution) -> Vec
     out.extend_from_slice(&(frame as u32).to_le_bytes());
     out.extend_from_slice(&(p as u32).to_le_bytes());
     out.extend_from_slice(&time.to_le_bytes());
-    for l in &s.radiance {
-        l.iter()
-            .for_each(|&c| out.extend_from_slice(&(c as f32).to_le_bytes()));
-    }
-    for e in &s.stderr {
-        let e = e.unwrap_or([-1.0; 3]);
-        e.iter()
-            .for_each(|&c| out.extend_from_slice(&(c as f32).to_le_bytes()));
-    }
-    for &n in &s.samples {
-        out.extend_from_slice(&(n.min(u64::from(u32::MAX)) as u32).to_le_bytes());
-    }
+    s.write_f32(&mut out);
     out
 }
 

@@ -61,6 +61,26 @@ pub struct FrameSolution {
     pub converged: bool,
 }
 
+impl FrameSolution {
+    /// Appends the frame's arrays, little-endian: P×3 f32 radiance, P×3 f32 standard error
+    /// (−1 where the patch was not sampled), P u32 sample counts. The layout of the service's
+    /// binary frames and of `radiance.bin`.
+    pub fn write_f32(&self, out: &mut Vec<u8>) {
+        for l in &self.radiance {
+            l.iter()
+                .for_each(|&c| out.extend_from_slice(&(c as f32).to_le_bytes()));
+        }
+        for e in &self.stderr {
+            e.unwrap_or([-1.0; 3])
+                .iter()
+                .for_each(|&c| out.extend_from_slice(&(c as f32).to_le_bytes()));
+        }
+        for &n in &self.samples {
+            out.extend_from_slice(&(n.min(u64::from(u32::MAX)) as u32).to_le_bytes());
+        }
+    }
+}
+
 /// Solves one frame: `materials[patch_material[i]]` gives each patch's reflectance and
 /// emission.
 #[must_use]
