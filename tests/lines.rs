@@ -22,26 +22,7 @@ use serde_json::json;
 
 /// A closed box of `size` centred at `center`, faces outward: 8 vertices, 12 triangles.
 fn cube(size: [f32; 3], center: [f32; 3]) -> (Vec<[f32; 3]>, Vec<u32>) {
-    let mut v = Vec::new();
-    for k in 0..8 {
-        let s = |bit: usize, axis: usize| {
-            center[axis] + if k & bit == 0 { -0.5 } else { 0.5 } * size[axis]
-        };
-        v.push([s(1, 0), s(2, 1), s(4, 2)]);
-    }
-    let quads = [
-        [0, 2, 3, 1],
-        [4, 5, 7, 6],
-        [0, 1, 5, 4],
-        [2, 6, 7, 3],
-        [0, 4, 6, 2],
-        [1, 3, 7, 5],
-    ];
-    let idx = quads
-        .iter()
-        .flat_map(|q| [q[0], q[1], q[2], q[0], q[2], q[3]])
-        .collect();
-    (v, idx)
+    common::cuboid(size, center, false)
 }
 
 /// An icosphere of radius `r` (level-2 subdivision: 320 faces), faces outward.

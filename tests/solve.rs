@@ -605,30 +605,9 @@ fn room_with_boxes(boxes: &[(f32, f32, f32)]) -> Scene {
     let mut indices: Vec<u32> = Vec::new();
     let mut cube = |center: [f32; 3], size: f32, inward: bool| {
         let base = positions.len() as u32;
-        for k in 0..8 {
-            let s = |bit: usize, axis: usize| {
-                center[axis] + if k & bit == 0 { -0.5 } else { 0.5 } * size
-            };
-            positions.push([s(1, 0), s(2, 1), s(4, 2)]);
-        }
-        for q in [
-            [0, 2, 3, 1],
-            [4, 5, 7, 6],
-            [0, 1, 5, 4],
-            [2, 6, 7, 3],
-            [0, 4, 6, 2],
-            [1, 3, 7, 5],
-        ] {
-            let t = [q[0], q[1], q[2], q[0], q[2], q[3]];
-            if inward {
-                indices.extend(
-                    t.chunks(3)
-                        .flat_map(|c| [base + c[0], base + c[2], base + c[1]]),
-                );
-            } else {
-                indices.extend(t.iter().map(|&v| base + v));
-            }
-        }
+        let (p, i) = common::cuboid([size; 3], center, inward);
+        positions.extend(p);
+        indices.extend(i.iter().map(|&v| base + v));
     };
     cube([0.0; 3], 4.0, true);
     for (k, &(x, y, size)) in boxes.iter().enumerate() {

@@ -284,3 +284,35 @@ pub fn icosphere(level: usize, r: f32, inward: bool) -> (Vec<[f32; 3]>, Vec<u32>
         .collect();
     (positions, indices)
 }
+
+/// A closed box of `size` centred at `center`: 8 vertices, 12 triangles, faces outward or, if
+/// `inward`, inward (a room).
+pub fn cuboid(size: [f32; 3], center: [f32; 3], inward: bool) -> (Vec<[f32; 3]>, Vec<u32>) {
+    let positions = (0..8)
+        .map(|k| {
+            let s = |bit: usize, axis: usize| {
+                center[axis] + if k & bit == 0 { -0.5 } else { 0.5 } * size[axis]
+            };
+            [s(1, 0), s(2, 1), s(4, 2)]
+        })
+        .collect();
+    let quads = [
+        [0, 2, 3, 1],
+        [4, 5, 7, 6],
+        [0, 1, 5, 4],
+        [2, 6, 7, 3],
+        [0, 4, 6, 2],
+        [1, 3, 7, 5],
+    ];
+    let indices = quads
+        .iter()
+        .flat_map(|q| {
+            if inward {
+                [q[0], q[2], q[1], q[0], q[3], q[2]]
+            } else {
+                [q[0], q[1], q[2], q[0], q[2], q[3]]
+            }
+        })
+        .collect();
+    (positions, indices)
+}
