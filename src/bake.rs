@@ -128,15 +128,32 @@ impl Bake {
         materials: &[Material],
         params: &SolveParams,
     ) -> Vec<Arc<FrameSolution>> {
+        self.solve_all_with(materials, params, &Control::default())
+    }
+
+    /// [`Bake::solve_all`], adding each distinct frame to solve as one unit of work to
+    /// `control`'s current stage.
+    #[must_use]
+    pub fn solve_all_with(
+        &self,
+        materials: &[Material],
+        params: &SolveParams,
+        control: &Control,
+    ) -> Vec<Arc<FrameSolution>> {
         let representatives = self
             .tallies
             .representatives(&self.list, &self.tracer.surfaces());
         let distinct: Vec<usize> = (0..representatives.len())
             .filter(|&f| representatives[f] == f)
             .collect();
+        control.add_work(distinct.len() as u64);
         let solved: Vec<(usize, Arc<FrameSolution>)> = distinct
             .par_iter()
-            .map(|&f| (f, Arc::new(self.solve_frame(f, materials, params))))
+            .map(|&f| {
+                let solution = Arc::new(self.solve_frame(f, materials, params));
+                control.advance(1);
+                (f, solution)
+            })
             .collect();
         let mut by_frame: Vec<Option<Arc<FrameSolution>>> = vec![None; representatives.len()];
         for (f, s) in solved {

@@ -3,22 +3,31 @@
 //! Each scene bakes into `OUT/<scene name>/`:
 //! - `radiance.bin`: every frame's radiance per patch (layout in [`write_radiance`]);
 //! - `summary.json`: frames, patches, parameters, error figures, warnings and the content hash
-//!   that makes re-runs incremental; byte-identical for the same scene, parameters and seed,
-//!   whatever the thread count;
+//!   that makes re-runs incremental;
+//! - `baked/frame_NNNN.glb`: the baked glTF of the chosen frames (see [`crate::output::glb`]);
+//! - `preview/frame_NNNN.png`: previews of the chosen frames, and `preview.gif`, the whole
+//!   timeline (see [`crate::output::preview`]);
 //! - `timings.json`: wall times (the one output that changes from run to run).
 //!
-//! Files are written under temporary names and renamed once complete: an interrupted bake
-//! leaves no half-written output. A scene whose content and parameters are unchanged since its
-//! last bake is skipped unless forced; a scene that fails does not stop the others.
+//! Everything but `timings.json` is byte-identical for the same scene, parameters and seed,
+//! whatever the thread count.
+//!
+//! A scene's outputs are written into a hidden staging directory that replaces the old one
+//! only when complete: an interrupted bake leaves the previous outputs (or none), never a mix.
+//! A scene whose content and parameters are unchanged since its last bake is skipped unless
+//! forced; a scene that fails does not stop the others.
 
 use std::hash::Hasher;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::bake::Bake;
 use crate::loader::{self, LoadOptions};
+use crate::output::{self, FrameSpec, ToneMap};
+use crate::scene::Scene;
 use crate::solve::{FrameSolution, SolveParams};
 use crate::timeline::{Control, LineParams, TraceError};
 
@@ -31,9 +40,49 @@ pub struct BatchParams {
     pub lines: LineParams,
     /// Radiance of the sky.
     pub sky: [f64; 3],
+    /// The baked glTF and previews to write.
+    pub outputs: Outputs,
     /// Bake even if the outputs are up to date.
     pub force: bool,
 }
+
+/// Which baked glTF files and previews to write besides `radiance.bin` and `summary.json`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Outputs {
+    /// Frames written as baked `.glb` files.
+    pub glb_frames: FrameSpec,
+    /// Frames rendered as PNG previews.
+    pub preview_frames: FrameSpec,
+    /// Width and height of the PNG previews in pixels (the GIF is half that).
+    pub preview_size: (u32, u32),
+    /// Whether to write `preview.gif` (for timelines of more than one frame).
+    pub gif: bool,
+}
+
+impl Default for Outputs {
+    /// Every frame's `.glb`, PNGs of the first, middle and last frames at 640×480, the GIF.
+    fn default() -> Self {
+        Self {
+            glb_frames: FrameSpec::All,
+            preview_frames: FrameSpec::List(vec![
+                output::FrameItem::First,
+                output::FrameItem::Middle,
+                output::FrameItem::Last,
+            ]),
+            preview_size: (640, 480),
+            gif: true,
+        }
+    }
+}
+
+/// Largest side of a preview, pixels: a preview, not a render farm.
+pub const MAX_PREVIEW_SIDE: u32 = 2048;
+
+/// Most frames in `preview.gif`; longer timelines are shown every k-th frame.
+pub const GIF_MAX_FRAMES: usize = 240;
+
+/// Shortest GIF frame delay, ms: browsers show faster frames at 100 ms.
+const GIF_MIN_DELAY_MS: f64 = 20.0;
 
 /// How one scene went.
 #[derive(Clone, Debug, PartialEq)]
@@ -72,6 +121,15 @@ struct Summary<'a> {
     /// Mean relative standard error of the radiance (area-weighted, over sampled patches,
     /// channels and frames).
     mean_relative_error: f64,
+    /// The tone map's exposure: `COLOR_0` and previews show `exposure · radiance` through
+    /// Reinhard's curve.
+    exposure: f64,
+    /// Frames written as `baked/frame_NNNN.glb`.
+    glb_frames: Vec<usize>,
+    /// Frames written as `preview/frame_NNNN.png`.
+    preview_frames: Vec<usize>,
+    /// Frames shown in `preview.gif` (empty when there is none).
+    gif_frames: Vec<usize>,
     warnings: &'a [String],
 }
 
@@ -111,21 +169,15 @@ fn content_hash(bytes: &[u8], params: &BatchParams) -> String {
     let mut h = Fnv(0xcbf2_9ce4_8422_2325);
     h.write(bytes);
     let described = format!(
-        "{:?}|{:?}|{:?}|{}",
+        "{:?}|{:?}|{:?}|{:?}|{}",
         params.load,
         params.lines,
         params.sky,
+        params.outputs,
         env!("CARGO_PKG_VERSION")
     );
     h.write(described.as_bytes());
     format!("{:016x}", h.finish())
-}
-
-/// Writes `bytes` to `path` through a temporary file renamed once complete.
-fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    let tmp = path.with_extension("partial");
-    std::fs::write(&tmp, bytes)?;
-    std::fs::rename(&tmp, path)
 }
 
 /// `radiance.bin`, little-endian: the magic `RADB`, u32 version 1, u32 frames F, u32 patches P,
@@ -146,10 +198,122 @@ fn write_radiance(
         out.extend_from_slice(&t.to_le_bytes());
         s.write_f32(&mut out);
     }
-    write_atomic(path, &out)
+    std::fs::write(path, &out)
 }
 
-/// Bakes one scene into `out/<stem>/`; `log` receives progress lines.
+/// The file name of frame `f` among `count`: zero-padded to at least 4 digits, so names sort.
+fn frame_name(f: usize, count: usize, extension: &str) -> String {
+    let digits = count.saturating_sub(1).to_string().len().max(4);
+    format!("frame_{f:0digits$}.{extension}")
+}
+
+/// The frames of the GIF and each one's delay in ms: every frame, or every k-th one so that
+/// there are at most [`GIF_MAX_FRAMES`] and none is shorter than browsers allow.
+fn gif_frames(count: usize, fps: f64) -> (Vec<usize>, u32) {
+    let frame_ms = 1000.0 / fps;
+    let mut step = count.div_ceil(GIF_MAX_FRAMES).max(1);
+    while (step as f64) * frame_ms < GIF_MIN_DELAY_MS {
+        step += 1;
+    }
+    let delay = (step as f64 * frame_ms)
+        .round()
+        .min(f64::from(u16::MAX) * 10.0) as u32;
+    ((0..count).step_by(step).collect(), delay)
+}
+
+/// Writes the baked glTF files and the previews into `dir`, counting one unit of `control`'s
+/// stage per file or GIF frame. Returns the GIF's frames.
+fn write_outputs(
+    dir: &Path,
+    scene: &Scene,
+    frames: &[std::sync::Arc<FrameSolution>],
+    outputs: &Outputs,
+    tone: &ToneMap,
+    control: &Control,
+) -> Result<Vec<usize>, String> {
+    let count = frames.len();
+    let glbs = outputs.glb_frames.frames(count);
+    let pngs = outputs.preview_frames.frames(count);
+    let (gif, delay) = if outputs.gif && count > 1 {
+        gif_frames(count, scene.frames.fps)
+    } else {
+        (Vec::new(), 0)
+    };
+    control.start_stage((glbs.len() + pngs.len() + gif.len()) as u64);
+    let io = |e: std::io::Error| format!("writing {}: {e}", dir.display());
+    if !glbs.is_empty() {
+        std::fs::create_dir_all(dir.join("baked")).map_err(io)?;
+    }
+    if !pngs.is_empty() {
+        std::fs::create_dir_all(dir.join("preview")).map_err(io)?;
+    }
+    glbs.par_iter().try_for_each(|&f| {
+        if control.is_cancelled() {
+            return Err("cancelled".to_string());
+        }
+        let meshes = output::frame_geometry(scene, f, &frames[f].radiance);
+        let bytes = output::frame_glb(scene, f, &meshes, tone).map_err(|e| e.to_string())?;
+        std::fs::write(dir.join("baked").join(frame_name(f, count, "glb")), bytes).map_err(io)?;
+        control.advance(1);
+        Ok(())
+    })?;
+    let (width, height) = outputs.preview_size;
+    pngs.par_iter().try_for_each(|&f| {
+        if control.is_cancelled() {
+            return Err("cancelled".to_string());
+        }
+        let image = output::preview_image(scene, f, &frames[f].radiance, tone, width, height);
+        let bytes = output::preview::encode_png(&image).map_err(|e| e.to_string())?;
+        std::fs::write(dir.join("preview").join(frame_name(f, count, "png")), bytes).map_err(io)?;
+        control.advance(1);
+        Ok(())
+    })?;
+    if !gif.is_empty() {
+        let (w, h) = ((width / 2).max(1), (height / 2).max(1));
+        let images: Vec<image::RgbImage> = gif
+            .par_iter()
+            .map(|&f| {
+                let image = output::preview_image(scene, f, &frames[f].radiance, tone, w, h);
+                control.advance(1);
+                image
+            })
+            .collect();
+        if control.is_cancelled() {
+            return Err("cancelled".to_string());
+        }
+        let bytes = output::preview::encode_gif(&images, delay).map_err(|e| e.to_string())?;
+        std::fs::write(dir.join("preview.gif"), bytes).map_err(io)?;
+    }
+    Ok(gif)
+}
+
+/// Replaces `dir` with the complete `staging` directory: the old outputs are moved aside, the
+/// new ones renamed into place, then the old ones removed.
+fn swap_in(staging: &Path, dir: &Path) -> std::io::Result<()> {
+    let old = hidden(dir, "old");
+    if old.exists() {
+        std::fs::remove_dir_all(&old)?;
+    }
+    if dir.exists() {
+        std::fs::rename(dir, &old)?;
+    }
+    std::fs::rename(staging, dir)?;
+    if old.exists() {
+        std::fs::remove_dir_all(&old)?;
+    }
+    Ok(())
+}
+
+/// `OUT/.<name>.<suffix>` beside `OUT/<name>`.
+fn hidden(dir: &Path, suffix: &str) -> PathBuf {
+    let name = dir
+        .file_name()
+        .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
+    dir.with_file_name(format!(".{name}.{suffix}"))
+}
+
+/// Bakes one scene into `out/<stem>/`. `log` receives a line as each stage starts; `control`
+/// measures each stage from zero (so a progress bar can follow it) and cancels.
 pub fn bake_one(
     path: &Path,
     out: &Path,
@@ -161,15 +325,19 @@ pub fn bake_one(
         .file_stem()
         .map_or_else(|| "scene".to_string(), |s| s.to_string_lossy().into_owned());
     let dir = out.join(&name);
+    // A bake killed between the two renames of `swap_in` left its previous outputs aside.
+    let old = hidden(&dir, "old");
+    if !dir.exists() && old.exists() {
+        let _ = std::fs::rename(&old, &dir);
+    }
     let bytes = match std::fs::read(path) {
         Ok(b) => b,
         Err(e) => return Outcome::Failed(format!("{}: {e}", path.display())),
     };
     let hash = content_hash(&bytes, params);
-    let summary_path = dir.join("summary.json");
     if !params.force
         && dir.join("radiance.bin").exists()
-        && std::fs::read(&summary_path)
+        && std::fs::read(dir.join("summary.json"))
             .ok()
             .and_then(|s| serde_json::from_slice::<serde_json::Value>(&s).ok())
             .is_some_and(|s| s["content_hash"] == hash.as_str())
@@ -177,6 +345,7 @@ pub fn bake_one(
         return Outcome::Skipped(dir);
     }
     let started = Instant::now();
+    control.start_stage(0);
     log(&format!("{name}: loading"));
     let scene = match loader::load(&bytes, &params.load) {
         Ok(s) => s,
@@ -196,6 +365,7 @@ pub fn bake_one(
         Err(e) => return Outcome::Failed(e.to_string()),
     };
     let trace_seconds = started.elapsed().as_secs_f64();
+    control.start_stage(0);
     log(&format!(
         "{name}: solving {} frames",
         bake.scene.frames.count
@@ -205,7 +375,7 @@ pub fn bake_one(
         sky: params.sky,
         ..SolveParams::default()
     };
-    let frames = bake.solve_all(&bake.scene.materials, &solve);
+    let frames = bake.solve_all_with(&bake.scene.materials, &solve, control);
     if control.is_cancelled() {
         return Outcome::Cancelled;
     }
@@ -227,11 +397,37 @@ pub fn bake_one(
             }
         }
     }
+
+    log(&format!("{name}: writing outputs"));
+    let started = Instant::now();
+    let staging = hidden(&dir, "partial");
+    let tone = ToneMap::for_timeline(scene, &frames);
+    let written = (|| -> Result<Vec<usize>, String> {
+        let io = |e: std::io::Error| format!("writing {}: {e}", staging.display());
+        if staging.exists() {
+            std::fs::remove_dir_all(&staging).map_err(io)?;
+        }
+        std::fs::create_dir_all(&staging).map_err(io)?;
+        write_radiance(&staging.join("radiance.bin"), &times, &frames).map_err(io)?;
+        write_outputs(&staging, scene, &frames, &params.outputs, &tone, control)
+    })();
+    let gif = match written {
+        Ok(gif) => gif,
+        Err(e) => {
+            let _ = std::fs::remove_dir_all(&staging);
+            return if control.is_cancelled() {
+                Outcome::Cancelled
+            } else {
+                Outcome::Failed(e)
+            };
+        }
+    };
+    let count = frames.len();
     let summary = Summary {
         scene: &name,
         content_hash: hash,
-        frames: frames.len(),
-        frame_times: times.clone(),
+        frames: count,
+        frame_times: times,
         patches: scene.patches.len(),
         lines: bake.list().lines(),
         seed: params.lines.seed,
@@ -245,20 +441,28 @@ pub fn bake_one(
             .first()
             .map_or(0, |f| f.samples.iter().filter(|&&n| n == 0).count()),
         mean_relative_error: if den > 0.0 { num / den } else { 0.0 },
+        exposure: tone.exposure,
+        glb_frames: params.outputs.glb_frames.frames(count),
+        preview_frames: params.outputs.preview_frames.frames(count),
+        gif_frames: gif,
         warnings: &scene.warnings,
     };
-    let timings =
-        serde_json::json!({"load": load_seconds, "trace": trace_seconds, "solve": solve_seconds});
-    let written = std::fs::create_dir_all(&dir)
-        .and_then(|()| write_radiance(&dir.join("radiance.bin"), &times, &frames))
-        .and_then(|()| write_atomic(&dir.join("timings.json"), timings.to_string().as_bytes()))
-        .and_then(|()| {
-            let json = serde_json::to_vec_pretty(&summary).map_err(std::io::Error::other)?;
-            // Last: its hash marks the outputs complete.
-            write_atomic(&summary_path, &json)
-        });
-    match written {
+    let timings = serde_json::json!({
+        "load": load_seconds,
+        "trace": trace_seconds,
+        "solve": solve_seconds,
+        "outputs": started.elapsed().as_secs_f64(),
+    });
+    let finished = serde_json::to_vec_pretty(&summary)
+        .map_err(std::io::Error::other)
+        .and_then(|json| std::fs::write(staging.join("summary.json"), json))
+        .and_then(|()| std::fs::write(staging.join("timings.json"), timings.to_string()))
+        .and_then(|()| swap_in(&staging, &dir));
+    match finished {
         Ok(()) => Outcome::Baked(dir),
-        Err(e) => Outcome::Failed(format!("writing {}: {e}", dir.display())),
+        Err(e) => {
+            let _ = std::fs::remove_dir_all(&staging);
+            Outcome::Failed(format!("writing {}: {e}", dir.display()))
+        }
     }
 }

@@ -16,6 +16,8 @@
 //! - [`solve`]: tallies of the list per frame (`N_i`, `S_ij`, with per-frame changes only for
 //!   what moves) and the radiosity solve with per-patch error bars.
 //! - [`bake`]: a traced scene ready to solve, refine and relight any frame.
+//! - [`output`]: what people use and look at: the baked glTF (per-vertex radiance), PNG and
+//!   GIF previews, the tone map.
 //! - [`service`]: the HTTP service (axum): jobs, their status and their frames.
 //! - [`batch`]: batch baking of scenes into files (`radiosity bake`).
 //! - [`bench`]: the measurements behind the README's figures (`radiosity bench`).
@@ -28,6 +30,7 @@ pub mod batch;
 pub mod bench;
 pub mod lines;
 pub mod loader;
+pub mod output;
 pub mod samples;
 pub mod scene;
 pub mod service;

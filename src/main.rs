@@ -75,6 +75,19 @@ enum Command {
         /// Bake even scenes whose outputs are up to date.
         #[arg(long)]
         force: bool,
+        /// Frames written as baked glTF (baked/frame_NNNN.glb): all, none, or a list such as
+        /// 0,10-20,middle,last.
+        #[arg(long, default_value = "all")]
+        glb_frames: radiosity::output::FrameSpec,
+        /// Frames rendered as PNG previews (preview/frame_NNNN.png), same syntax.
+        #[arg(long, default_value = "first,middle,last")]
+        preview_frames: radiosity::output::FrameSpec,
+        /// Size of the PNG previews, WIDTHxHEIGHT (the GIF is half that).
+        #[arg(long, default_value = "640x480", value_parser = parse_size)]
+        preview_size: (u32, u32),
+        /// Do not write preview.gif.
+        #[arg(long)]
+        no_gif: bool,
     },
     /// Run the HTTP service (see api/ and the README).
     Serve {
@@ -177,6 +190,10 @@ fn run(cli: Cli) -> Result<(), String> {
             seed,
             sky,
             force,
+            glb_frames,
+            preview_frames,
+            preview_size,
+            no_gif,
         } => {
             let lines = lines.unwrap_or_else(|| {
                 preset
@@ -194,6 +211,12 @@ fn run(cli: Cli) -> Result<(), String> {
                     seed,
                 },
                 sky: [sky[0], sky[1], sky[2]],
+                outputs: radiosity::batch::Outputs {
+                    glb_frames,
+                    preview_frames,
+                    preview_size,
+                    gif: !no_gif,
+                },
                 force,
             };
             bake(&inputs, &out, &params)
@@ -363,6 +386,22 @@ async fn shutdown_signal() {
 }
 
 /// Bakes every scene, logging progress, and fails if any scene failed or was cancelled.
+/// `WIDTHxHEIGHT`, each side from 1 to [`radiosity::batch::MAX_PREVIEW_SIDE`].
+fn parse_size(s: &str) -> Result<(u32, u32), String> {
+    let max = radiosity::batch::MAX_PREVIEW_SIDE;
+    let side = |t: &str| {
+        t.trim()
+            .parse::<u32>()
+            .ok()
+            .filter(|v| (1..=max).contains(v))
+            .ok_or_else(|| format!("{t:?} is not a side from 1 to {max} pixels"))
+    };
+    let (w, h) = s
+        .split_once(['x', 'X'])
+        .ok_or_else(|| format!("{s:?} is not WIDTHxHEIGHT"))?;
+    Ok((side(w)?, side(h)?))
+}
+
 fn bake(
     inputs: &[PathBuf],
     out: &std::path::Path,
@@ -376,6 +415,7 @@ fn bake(
     let control = std::sync::Arc::new(radiosity::timeline::Control::default());
     let handler = control.clone();
     ctrlc::set_handler(move || handler.cancel()).map_err(|e| format!("Ctrl-C handler: {e}"))?;
+    let progress = Progress::new(control.clone());
     let mut failures = Vec::new();
     for (k, path) in scenes.iter().enumerate() {
         if control.is_cancelled() {
@@ -384,23 +424,31 @@ fn bake(
         }
         let prefix = format!("[{}/{}]", k + 1, scenes.len());
         let outcome = radiosity::batch::bake_one(path, out, params, &control, &mut |line| {
-            eprintln!("{prefix} {line}")
+            progress.stage(&prefix, line)
         });
         match outcome {
-            Outcome::Baked(dir) => {
-                eprintln!("{prefix} baked {} -> {}", path.display(), dir.display())
+            Outcome::Baked(dir) => progress.line(&format!(
+                "{prefix} baked {} -> {}",
+                path.display(),
+                dir.display()
+            )),
+            Outcome::Skipped(dir) => {
+                progress.line(&format!("{prefix} up to date: {}", dir.display()))
             }
-            Outcome::Skipped(dir) => eprintln!("{prefix} up to date: {}", dir.display()),
             Outcome::Failed(reason) => {
-                eprintln!("{prefix} FAILED {}: {reason}", path.display());
+                progress.line(&format!("{prefix} FAILED {}: {reason}", path.display()));
                 failures.push(format!("{}: {reason}", path.display()));
             }
             Outcome::Cancelled => {
-                eprintln!("{prefix} interrupted {}: nothing written", path.display());
+                progress.line(&format!(
+                    "{prefix} interrupted {}: nothing written",
+                    path.display()
+                ));
                 failures.push(format!("{}: interrupted", path.display()));
             }
         }
     }
+    progress.finish();
     if failures.is_empty() {
         Ok(())
     } else {
@@ -410,5 +458,79 @@ fn bake(
             scenes.len(),
             failures.join("\n  ")
         ))
+    }
+}
+
+/// Progress of a batch: on a terminal, a bar per stage with its ETA (indicatif), following the
+/// stage's [`radiosity::timeline::Control`]; otherwise (CI logs) one plain line per stage.
+struct Progress {
+    bar: Option<indicatif::ProgressBar>,
+    ticker: Option<(
+        std::sync::Arc<std::sync::atomic::AtomicBool>,
+        std::thread::JoinHandle<()>,
+    )>,
+}
+
+impl Progress {
+    /// Resolution of the bar: the stage's fraction in thousandths.
+    const STEPS: u64 = 1000;
+
+    fn new(control: std::sync::Arc<radiosity::timeline::Control>) -> Self {
+        use std::io::IsTerminal;
+        if !std::io::stderr().is_terminal() {
+            return Self {
+                bar: None,
+                ticker: None,
+            };
+        }
+        let bar = indicatif::ProgressBar::new(Self::STEPS);
+        if let Ok(style) = indicatif::ProgressStyle::with_template(
+            "{msg:50!} [{bar:30}] {percent:>3}% {elapsed:>4} ETA {eta:>4}",
+        ) {
+            bar.set_style(style.progress_chars("=> "));
+        }
+        let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let ticker = {
+            let (bar, stop) = (bar.clone(), stop.clone());
+            std::thread::spawn(move || {
+                while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                    bar.set_position((control.fraction() * Self::STEPS as f64) as u64);
+                    std::thread::sleep(std::time::Duration::from_millis(100));
+                }
+            })
+        };
+        Self {
+            bar: Some(bar),
+            ticker: Some((stop, ticker)),
+        }
+    }
+
+    /// A stage starts.
+    fn stage(&self, prefix: &str, line: &str) {
+        match &self.bar {
+            Some(bar) => {
+                bar.reset();
+                bar.set_message(format!("{prefix} {line}"));
+            }
+            None => eprintln!("{prefix} {line}"),
+        }
+    }
+
+    /// A line that stays (a scene's outcome).
+    fn line(&self, line: &str) {
+        match &self.bar {
+            Some(bar) => bar.println(line),
+            None => eprintln!("{line}"),
+        }
+    }
+
+    fn finish(self) {
+        if let Some((stop, ticker)) = self.ticker {
+            stop.store(true, std::sync::atomic::Ordering::Relaxed);
+            let _ = ticker.join();
+        }
+        if let Some(bar) = self.bar {
+            bar.finish_and_clear();
+        }
     }
 }

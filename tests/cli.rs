@@ -64,18 +64,14 @@ fn a_directory_bakes_skips_when_unchanged_and_survives_a_broken_scene() {
         assert!(summary["converged"].as_bool().unwrap());
     }
     assert!(!out.join("broken").exists());
-    // Nothing half-written is left behind.
-    let partial = std::fs::read_dir(out.join("cornell_moving"))
+    // Nothing half-written is left behind: no staging directory beside the outputs.
+    let hidden: Vec<_> = std::fs::read_dir(&out)
         .unwrap()
-        .filter(|e| {
-            e.as_ref()
-                .unwrap()
-                .path()
-                .extension()
-                .is_some_and(|x| x == "partial")
-        })
-        .count();
-    assert_eq!(partial, 0);
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with('.'))
+        .collect();
+    assert!(hidden.is_empty(), "{hidden:?}");
+    baked_outputs_are_usable(&out.join("cornell_moving"));
     // Unchanged: skipped. Forced, or with other parameters: baked again.
     let again = run();
     let log = String::from_utf8_lossy(&again.stderr).to_string();
@@ -100,9 +96,82 @@ fn a_directory_bakes_skips_when_unchanged_and_survives_a_broken_scene() {
     let _ = std::fs::remove_dir_all(&out);
 }
 
+/// The baked glTF files load with the gltf crate with a colour per vertex, the previews decode
+/// and show something, the GIF has the timeline's frames.
+fn baked_outputs_are_usable(dir: &Path) {
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("summary.json")).unwrap()).unwrap();
+    let frames = summary["frames"].as_u64().unwrap() as usize;
+    assert!(frames > 1);
+    assert_eq!(summary["glb_frames"].as_array().unwrap().len(), frames);
+    for f in 0..frames {
+        let bytes = std::fs::read(dir.join("baked").join(format!("frame_{f:04}.glb"))).unwrap();
+        let gltf = gltf::Gltf::from_slice(&bytes).unwrap();
+        let blob = gltf.blob.as_deref().unwrap();
+        let mut triangles = 0;
+        for mesh in gltf.meshes() {
+            for primitive in mesh.primitives() {
+                let reader = primitive.reader(|_| Some(blob));
+                let vertices = reader.read_positions().unwrap().count();
+                let colours = reader.read_colors(0).unwrap().into_rgb_f32().count();
+                assert_eq!(colours, vertices);
+                triangles += reader.read_indices().unwrap().into_u32().count() / 3;
+            }
+        }
+        // One triangle per patch.
+        assert_eq!(triangles, summary["patches"].as_u64().unwrap() as usize);
+    }
+    let previews = summary["preview_frames"].as_array().unwrap();
+    assert_eq!(previews.len(), 3, "first, middle and last by default");
+    for f in previews {
+        let name = format!("frame_{:04}.png", f.as_u64().unwrap());
+        let image = image::open(dir.join("preview").join(name))
+            .unwrap()
+            .into_rgb8();
+        assert_eq!(image.dimensions(), (640, 480));
+        let background = *image.get_pixel(0, 0);
+        let drawn = image.pixels().filter(|p| **p != background).count();
+        assert!(drawn > 640 * 480 / 20, "only {drawn} pixels drawn");
+        let mut distinct: Vec<[u8; 3]> = image.pixels().map(|p| p.0).collect();
+        distinct.sort_unstable();
+        distinct.dedup();
+        assert!(
+            distinct.len() > 20,
+            "a flat image: {} colours",
+            distinct.len()
+        );
+    }
+    let gif = std::fs::read(dir.join("preview.gif")).unwrap();
+    assert_eq!(&gif[..6], b"GIF89a");
+    assert_eq!(
+        summary["gif_frames"].as_array().unwrap().len(),
+        frames,
+        "a short timeline shows every frame"
+    );
+}
+
+/// Every file under `dir` (relative path, bytes), sorted.
+fn files(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
+    let mut out = Vec::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for entry in std::fs::read_dir(&d).unwrap() {
+            let path = entry.unwrap().path();
+            if path.is_dir() {
+                stack.push(path);
+            } else {
+                let bytes = std::fs::read(&path).unwrap();
+                out.push((path.strip_prefix(dir).unwrap().to_path_buf(), bytes));
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
 #[test]
 fn outputs_are_byte_identical_whatever_the_thread_count() {
-    let outputs: Vec<(Vec<u8>, Vec<u8>)> = [1, 2]
+    let outputs: Vec<Vec<(PathBuf, Vec<u8>)>> = [1, 2]
         .iter()
         .map(|threads| {
             let out = scratch(&format!("threads{threads}"));
@@ -119,6 +188,8 @@ fn outputs_are_byte_identical_whatever_the_thread_count() {
                     "4",
                     "--seed",
                     "9",
+                    "--preview-size",
+                    "160x120",
                 ])
                 .output()
                 .unwrap();
@@ -127,18 +198,35 @@ fn outputs_are_byte_identical_whatever_the_thread_count() {
                 "{}",
                 String::from_utf8_lossy(&output.stderr)
             );
-            let dir = out.join("cornell_moving");
-            let result = (
-                std::fs::read(dir.join("radiance.bin")).unwrap(),
-                std::fs::read(dir.join("summary.json")).unwrap(),
-            );
+            let mut result = files(&out.join("cornell_moving"));
+            result.retain(|(name, _)| name != Path::new("timings.json"));
             let _ = std::fs::remove_dir_all(&out);
             result
         })
         .collect();
-    assert!(
-        outputs[0].0 == outputs[1].0,
-        "radiance.bin differs between 1 and 2 threads"
-    );
-    assert_eq!(outputs[0].1, outputs[1].1);
+    let names: Vec<&PathBuf> = outputs[0].iter().map(|(n, _)| n).collect();
+    assert!(names.len() > 10, "{names:?}");
+    assert_eq!(names, outputs[1].iter().map(|(n, _)| n).collect::<Vec<_>>());
+    for ((name, a), (_, b)) in outputs[0].iter().zip(&outputs[1]) {
+        assert!(a == b, "{} differs between 1 and 2 threads", name.display());
+    }
+}
+
+#[test]
+fn bad_output_options_are_refused_before_baking() {
+    for (flag, value) in [
+        ("--preview-size", "0x10"),
+        ("--preview-size", "640"),
+        ("--preview-size", "99999x10"),
+        ("--glb-frames", "5-2"),
+        ("--preview-frames", "sometimes"),
+    ] {
+        let output = radiosity()
+            .args(["bake", "scenes", "--out", "/nonexistent", flag, value])
+            .output()
+            .unwrap();
+        assert!(!output.status.success());
+        let log = String::from_utf8_lossy(&output.stderr);
+        assert!(log.contains(flag), "{flag} {value}: {log}");
+    }
 }

@@ -550,6 +550,14 @@ async fn finished_results_survive_a_restart_and_unfinished_jobs_report_interrupt
         .await
         .unwrap();
     assert_eq!(refine.status(), 409);
+    // Nor its geometry: no preview, with a reason.
+    let preview = client
+        .get(format!("{second}/v1/timelines/{done}/frames/0/preview.png"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(preview.status(), 409);
+    assert!(preview.text().await.unwrap().contains("restored"));
     assert_eq!(
         wait(&client, &second, &done, Duration::from_secs(5)).await["status"],
         "done"
@@ -608,4 +616,84 @@ async fn a_job_over_the_memory_budget_is_refused_before_tracing() {
     assert!(status["memory"]["bytes"].as_u64().unwrap() < 16 << 20);
     let listed: Value = get_json(&client, format!("{base}/v1/timelines")).await;
     assert_eq!(listed["timelines"].as_array().unwrap().len(), 1);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_frame_preview_is_the_png_the_command_line_writes() {
+    let base = start(Config::default()).await;
+    let client = reqwest::Client::new();
+    let (id, _) = create(
+        &client,
+        &base,
+        "lines=20000&fps=4&seed=9",
+        "cornell_moving.gltf",
+    )
+    .await;
+    assert_eq!(
+        wait(&client, &base, &id, Duration::from_secs(60)).await["status"],
+        "done"
+    );
+    let url = format!("{base}/v1/timelines/{id}/frames/3/preview.png");
+    let response = client
+        .get(format!("{url}?width=160&height=120"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(response.status(), 200);
+    assert_eq!(response.headers()["content-type"], "image/png");
+    assert!(response.headers().contains_key("x-exposure"));
+    let served = response.bytes().await.unwrap().to_vec();
+    let image = image::load_from_memory(&served).unwrap().into_rgb8();
+    assert_eq!(image.dimensions(), (160, 120));
+    let background = *image.get_pixel(0, 0);
+    assert!(image.pixels().filter(|p| **p != background).count() > 160 * 120 / 20);
+
+    // The same bake from the command line writes the same image.
+    let out = std::env::temp_dir().join(format!("radiosity-preview-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let status = std::process::Command::new(env!("CARGO_BIN_EXE_radiosity"))
+        .args(["bake", "--lines", "20000", "--fps", "4", "--seed", "9"])
+        .args(["--preview-size", "160x120", "--preview-frames", "3"])
+        .args(["--glb-frames", "none", "--no-gif", "--out"])
+        .arg(&out)
+        .arg(
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("scenes")
+                .join("cornell_moving.gltf"),
+        )
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let written = std::fs::read(
+        out.join("cornell_moving")
+            .join("preview")
+            .join("frame_0003.png"),
+    )
+    .unwrap();
+    assert!(written == served, "the service and the CLI previews differ");
+    let _ = std::fs::remove_dir_all(&out);
+
+    // Bad requests get their 4xx.
+    for (query, status) in [
+        ("?width=0", 400),
+        ("?height=99999", 400),
+        ("?exposure=-1", 400),
+        ("?exposure=nan", 400),
+        ("?zoom=2", 400),
+    ] {
+        let response = client.get(format!("{url}{query}")).send().await.unwrap();
+        assert_eq!(response.status(), status, "{query}");
+        assert_eq!(
+            response.headers()["content-type"],
+            "application/problem+json"
+        );
+    }
+    for path in ["frames/99/preview.png", "frames/x/preview.png"] {
+        let response = client
+            .get(format!("{base}/v1/timelines/{id}/{path}"))
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(response.status(), 404, "{path}");
+    }
 }

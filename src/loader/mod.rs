@@ -17,7 +17,7 @@ use glam::{DAffine3, DMat4, DVec3, Vec3};
 use crate::scene::subdivide::{self, Subdivision, triangle_area};
 use crate::scene::{
     Bounds, Deformation, Faces, Frames, Material, Motion, MovingObject, Normalisation, Patch,
-    Provenance, Scene, Side, SkinBinding, TriangleMesh,
+    Projection, Provenance, Scene, SceneCamera, Side, SkinBinding, TriangleMesh,
 };
 pub use animation::{Interpolation, Sampler};
 
@@ -195,6 +195,16 @@ pub fn load(bytes: &[u8], options: &LoadOptions) -> Result<Scene, LoadError> {
             skin.joints().for_each(|j| wanted[j.index()] = true);
         }
     }
+    // The first camera node of the scene (in hierarchy order) is the preview's viewpoint.
+    let camera_node = hierarchy.order.iter().copied().find(|&n| {
+        document
+            .nodes()
+            .nth(n)
+            .is_some_and(|node| node.camera().is_some())
+    });
+    if let Some(n) = camera_node {
+        wanted[n] = true;
+    }
     let mut budget = Budget(options.max_work);
     let animated = nodes::animated(&hierarchy, &timeline.tracks);
     let frame_count = timeline.frames.count as u64;
@@ -227,14 +237,96 @@ pub fn load(bytes: &[u8], options: &LoadOptions) -> Result<Scene, LoadError> {
         warnings.push(format!("dropped {dropped} zero-area triangles"));
     }
     let normalisation = bounds(&instances, frames.count).ok_or(LoadError::Empty)?;
-    build(
+    let camera = camera_node.and_then(|n| read_camera(&document, n, &poses, &mut warnings));
+    let mut scene = build(
         instances,
         materials,
         frames,
         normalisation,
         options,
         warnings,
-    )
+    )?;
+    if let Some(camera) = camera {
+        scene.camera = Some(camera.normalised(&scene.normalisation));
+    }
+    Ok(scene)
+}
+
+/// The camera of node `n`, placed in scene units; `None` (with a warning) if its projection is
+/// unusable. Only previews use it, so a bad camera never fails a load.
+fn read_camera(
+    document: &gltf::Document,
+    n: usize,
+    poses: &nodes::Poses,
+    warnings: &mut Vec<String>,
+) -> Option<SceneCamera> {
+    let node = document.nodes().nth(n)?;
+    let index = node.camera()?.index();
+    let json = document.as_json().cameras.get(index)?;
+    let finite = |v: f32| v.is_finite().then_some(f64::from(v));
+    let projection = match (&json.perspective, &json.orthographic) {
+        (Some(p), _) => {
+            let yfov = finite(p.yfov).filter(|&y| y > 0.0 && y < std::f64::consts::PI);
+            let znear = finite(p.znear).filter(|&z| z > 0.0);
+            let zfar = p.zfar.map(finite);
+            match (yfov, znear, zfar) {
+                (Some(yfov), Some(znear), None) => Some(Projection::Perspective {
+                    yfov,
+                    znear,
+                    zfar: None,
+                }),
+                (Some(yfov), Some(znear), Some(Some(far))) if far > znear => {
+                    Some(Projection::Perspective {
+                        yfov,
+                        znear,
+                        zfar: Some(far),
+                    })
+                }
+                _ => None,
+            }
+        }
+        (None, Some(o)) => match (
+            finite(o.xmag),
+            finite(o.ymag),
+            finite(o.znear),
+            finite(o.zfar),
+        ) {
+            (Some(xmag), Some(ymag), Some(znear), Some(zfar))
+                if xmag != 0.0 && ymag != 0.0 && znear >= 0.0 && zfar > znear =>
+            {
+                Some(Projection::Orthographic {
+                    xmag: xmag.abs(),
+                    ymag: ymag.abs(),
+                    znear,
+                    zfar,
+                })
+            }
+            _ => None,
+        },
+        (None, None) => None,
+    };
+    let Some(projection) = projection else {
+        warnings.push(format!(
+            "camera {index} (node {n}) has an unusable projection: previews use an automatic camera"
+        ));
+        return None;
+    };
+    let aspect = json
+        .perspective
+        .as_ref()
+        .and_then(|p| p.aspect_ratio)
+        .and_then(finite)
+        .filter(|&a| a > 0.0);
+    let poses: Vec<DAffine3> = match &poses.over_time[n] {
+        Some(worlds) => worlds.iter().map(|m| DAffine3::from_mat4(*m)).collect(),
+        None => vec![DAffine3::from_mat4(poses.first[n])],
+    };
+    Some(SceneCamera {
+        name: node.name().map(str::to_string),
+        projection,
+        aspect,
+        poses,
+    })
 }
 
 fn materials_used(instances: &[Instance], material: u32) -> bool {
@@ -741,5 +833,6 @@ fn build(
         },
         source_triangles,
         warnings,
+        camera: None,
     })
 }

@@ -310,6 +310,82 @@ impl Bounds {
     }
 }
 
+/// How a camera projects, with glTF's conventions: the camera looks down its local −Z with +Y
+/// up. Distances are in the space the camera is placed in.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Projection {
+    /// Perspective.
+    Perspective {
+        /// Vertical field of view, radians.
+        yfov: f64,
+        /// Distance of the near plane (> 0).
+        znear: f64,
+        /// Distance of the far plane; `None` for an infinite projection.
+        zfar: Option<f64>,
+    },
+    /// Orthographic.
+    Orthographic {
+        /// Half the width of the view volume.
+        xmag: f64,
+        /// Half the height of the view volume.
+        ymag: f64,
+        /// Distance of the near plane.
+        znear: f64,
+        /// Distance of the far plane.
+        zfar: f64,
+    },
+}
+
+/// The scene's camera (the first camera node of the scene), for previews: the viewpoint the
+/// scene's author chose.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SceneCamera {
+    /// Name of the camera node, if any.
+    pub name: Option<String>,
+    /// Projection, its distances in normalised space.
+    pub projection: Projection,
+    /// Width / height the camera asks for, if it fixes one.
+    pub aspect: Option<f64>,
+    /// Camera space to normalised space (may include the normalisation's uniform scale), per
+    /// frame when the camera moves, otherwise a single pose for every frame.
+    pub poses: Vec<DAffine3>,
+}
+
+impl SceneCamera {
+    /// The same camera taken from scene units (as read) to normalised space.
+    #[must_use]
+    pub fn normalised(mut self, normalisation: &Normalisation) -> Self {
+        let to = normalisation.to_normalised();
+        let k = 1.0 / normalisation.radius;
+        self.poses.iter_mut().for_each(|p| *p = to * *p);
+        self.projection = match self.projection {
+            Projection::Perspective { yfov, znear, zfar } => Projection::Perspective {
+                yfov,
+                znear: znear * k,
+                zfar: zfar.map(|z| z * k),
+            },
+            Projection::Orthographic {
+                xmag,
+                ymag,
+                znear,
+                zfar,
+            } => Projection::Orthographic {
+                xmag: xmag * k,
+                ymag: ymag * k,
+                znear: znear * k,
+                zfar: zfar * k,
+            },
+        };
+        self
+    }
+
+    /// The camera's pose at `frame`.
+    #[must_use]
+    pub fn pose(&self, frame: usize) -> DAffine3 {
+        self.poses[frame.min(self.poses.len() - 1)]
+    }
+}
+
 /// A loaded scene, ready for the engine.
 #[derive(Clone, Debug)]
 pub struct Scene {
@@ -332,6 +408,8 @@ pub struct Scene {
     pub source_triangles: usize,
     /// Things the loader ignored or repaired, one line each.
     pub warnings: Vec<String>,
+    /// The scene's camera, if it has one (used only for previews).
+    pub camera: Option<SceneCamera>,
 }
 
 /// What the `scene` command and the service report about a loaded scene.

@@ -124,6 +124,10 @@ pub fn app(state: AppState) -> Router {
         .route("/v1/timelines/{id}/events", get(timeline_events))
         .route("/openapi.json", get(openapi))
         .route("/v1/timelines/{id}/frames/{frame}", get(timeline_frame))
+        .route(
+            "/v1/timelines/{id}/frames/{frame}/preview.png",
+            get(frame_preview),
+        )
         .fallback(|| async { ApiError::NotFound("no such path".into()) })
         .layer(DefaultBodyLimit::max(limit))
         .layer(
@@ -523,6 +527,110 @@ async fn timeline_frame(
             .into_response());
     }
     Ok(Json(frame_json(f, time, version, &solution)).into_response())
+}
+
+/// `GET /v1/timelines/{id}/frames/{f}/preview.png?width=&height=&exposure=`: the frame
+/// rendered from the scene's camera (or an automatic one), each patch flat-shaded with its
+/// tone-mapped radiance; the same image as `radiosity bake`'s previews.
+async fn frame_preview(
+    State(state): State<AppState>,
+    Path((id, frame)): Path<(String, String)>,
+    Query(query): Query<HashMap<String, String>>,
+) -> Result<Response, ApiError> {
+    let job = job(&state, &id)?;
+    if let Some(unknown) = query
+        .keys()
+        .find(|k| !["width", "height", "exposure"].contains(&k.as_str()))
+    {
+        return Err(ApiError::Parameter(format!(
+            "unknown parameter {unknown:?}; expected width, height or exposure"
+        )));
+    }
+    let max = crate::batch::MAX_PREVIEW_SIDE;
+    let side = |name: &str, default: u32| match query.get(name) {
+        None => Ok(default),
+        Some(v) => v
+            .parse::<u32>()
+            .ok()
+            .filter(|s| (1..=max).contains(s))
+            .ok_or_else(|| {
+                ApiError::Parameter(format!("{name} must be a whole number from 1 to {max}"))
+            }),
+    };
+    let (width, height) = (side("width", 640)?, side("height", 480)?);
+    let exposure = match query.get("exposure") {
+        None => None,
+        Some(v) => Some(
+            v.parse::<f64>()
+                .ok()
+                .filter(|e| e.is_finite() && *e > 0.0)
+                .ok_or_else(|| ApiError::Parameter("exposure must be a positive number".into()))?,
+        ),
+    };
+    let frames = job.frame_times.len();
+    let f = frame
+        .parse::<usize>()
+        .ok()
+        .filter(|&f| f < frames)
+        .ok_or_else(|| {
+            ApiError::NotFound(format!(
+                "no frame {frame:?}: the timeline has frames 0..{frames}"
+            ))
+        })?;
+    let (version, solution) = job.frame(f).ok_or_else(|| {
+        ApiError::NotReady(format!(
+            "frame {f} is not solved yet (status {:?})",
+            job.status()
+        ))
+    })?;
+    let rendered = tokio::task::spawn_blocking(move || {
+        let bake = job.bake.lock().ok()?;
+        let bake = bake.as_ref()?;
+        let tone = match exposure {
+            Some(exposure) => crate::output::ToneMap { exposure },
+            None => {
+                // The timeline's exposure, from every frame solved so far.
+                let solved: Vec<Arc<crate::solve::FrameSolution>> = job
+                    .results
+                    .read()
+                    .ok()?
+                    .iter()
+                    .flatten()
+                    .map(|(_, s)| s.clone())
+                    .collect();
+                crate::output::ToneMap::for_timeline(&bake.scene, &solved)
+            }
+        };
+        let image =
+            crate::output::preview_image(&bake.scene, f, &solution.radiance, &tone, width, height);
+        Some((crate::output::preview::encode_png(&image), tone.exposure))
+    })
+    .await
+    .map_err(|e| ApiError::Internal(format!("preview task: {e}")))?;
+    let Some((png, exposure)) = rendered else {
+        return Err(ApiError::NotReady(
+            "the timeline's geometry is not available: it is still being baked, refined or relit \
+             (try again when it is done), or it was restored from disk after a restart (previews need a \
+             timeline baked since the service started)"
+                .into(),
+        ));
+    };
+    let png = png.map_err(|e| ApiError::Internal(format!("encoding a preview: {e}")))?;
+    Ok((
+        [
+            (header::CONTENT_TYPE, "image/png".to_string()),
+            (
+                header::HeaderName::from_static("x-result-version"),
+                version.to_string(),
+            ),
+            (
+                header::HeaderName::from_static("x-exposure"),
+                exposure.to_string(),
+            ),
+        ],
+        Body::from(png),
+    )
+        .into_response())
 }
 
 /// A frame as JSON.

@@ -111,7 +111,8 @@ impl Control {
         self.cancelled.load(Ordering::Relaxed)
     }
 
-    /// Fraction of the tracing work done, in [0, 1].
+    /// Fraction of the current stage's work done (the tracing, unless a caller started another
+    /// stage), in [0, 1].
     #[must_use]
     pub fn fraction(&self) -> f64 {
         let total = self.total.load(Ordering::Relaxed);
@@ -120,6 +121,23 @@ impl Control {
         } else {
             self.done.load(Ordering::Relaxed) as f64 / total as f64
         }
+    }
+
+    /// Starts measuring a new stage of `work` units from zero (a trace adds its own work to
+    /// it); cancellation is unaffected.
+    pub fn start_stage(&self, work: u64) {
+        self.done.store(0, Ordering::Relaxed);
+        self.total.store(work, Ordering::Relaxed);
+    }
+
+    /// Adds `work` units to do in the current stage.
+    pub fn add_work(&self, work: u64) {
+        self.total.fetch_add(work, Ordering::Relaxed);
+    }
+
+    /// Records `work` more units done in the current stage.
+    pub fn advance(&self, work: u64) {
+        self.done.fetch_add(work, Ordering::Relaxed);
     }
 
     fn check(&self) -> Result<(), TraceError> {

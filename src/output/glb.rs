@@ -1,0 +1,213 @@
+//! The baked glTF: one binary glTF (`.glb`) per frame.
+//!
+//! Each file is the scene posed at its frame, one node and mesh per source node (its index in
+//! `extras.source_node`), one triangle per patch, with per-vertex:
+//! - `_RADIANCE`: the HDR radiance (f32 RGB, the scene's emission units);
+//! - `COLOR_0`: the same tone-mapped to [0, 1] ([`ToneMap`]), which ordinary viewers show;
+//! - `NORMAL`.
+//!
+//! The material is `KHR_materials_unlit`, white: the colour a viewer shows is the baked light,
+//! not re-lit. Positions are in the scene's units, relative to the scene's centre, which the
+//! node's translation restores: `f32` keeps its precision for a scene far from the origin.
+//!
+//! One file per frame rather than morph targets switched by STEP weights: every viewer shows a
+//! plain mesh's `COLOR_0`, while colour morph targets are ignored by most importers (Blender's
+//! among them); moving geometry carries its pose without re-creating the scene's animation; and
+//! a mesh's own morph targets and animated weights stay out of the way. A pipeline also loads
+//! only the frames it needs. The cost is that static geometry is repeated in every file.
+
+use serde_json::{Value, json};
+
+use super::OutputError;
+use super::geometry::NodeMesh;
+use super::tonemap::ToneMap;
+use crate::scene::Scene;
+
+/// glTF component type of a 32-bit float.
+const FLOAT: u32 = 5126;
+/// glTF component type of a 32-bit unsigned integer.
+const UNSIGNED_INT: u32 = 5125;
+/// bufferView target for vertex attributes.
+const ARRAY_BUFFER: u32 = 34962;
+/// bufferView target for indices.
+const ELEMENT_ARRAY_BUFFER: u32 = 34963;
+
+/// The binary chunk and the bufferViews and accessors that describe it.
+#[derive(Default)]
+struct Buffers {
+    bin: Vec<u8>,
+    views: Vec<Value>,
+    accessors: Vec<Value>,
+}
+
+impl Buffers {
+    /// Appends `values` as a VEC3 float accessor (with bounds when `bounds`), returning its index.
+    fn vec3(&mut self, values: &[[f32; 3]], bounds: bool) -> usize {
+        let offset = self.bin.len();
+        for v in values {
+            v.iter()
+                .for_each(|c| self.bin.extend_from_slice(&c.to_le_bytes()));
+        }
+        self.views.push(json!({
+            "buffer": 0,
+            "byteOffset": offset,
+            "byteLength": values.len() * 12,
+            "target": ARRAY_BUFFER,
+        }));
+        let mut accessor = json!({
+            "bufferView": self.views.len() - 1,
+            "componentType": FLOAT,
+            "count": values.len(),
+            "type": "VEC3",
+        });
+        if bounds {
+            let mut min = [f32::INFINITY; 3];
+            let mut max = [f32::NEG_INFINITY; 3];
+            for v in values {
+                for c in 0..3 {
+                    min[c] = min[c].min(v[c]);
+                    max[c] = max[c].max(v[c]);
+                }
+            }
+            accessor["min"] = json!(min);
+            accessor["max"] = json!(max);
+        }
+        self.accessors.push(accessor);
+        self.accessors.len() - 1
+    }
+
+    /// Appends triangle indices, returning the accessor's index.
+    fn indices(&mut self, triangles: &[[u32; 3]]) -> usize {
+        let offset = self.bin.len();
+        for t in triangles {
+            t.iter()
+                .for_each(|i| self.bin.extend_from_slice(&i.to_le_bytes()));
+        }
+        self.views.push(json!({
+            "buffer": 0,
+            "byteOffset": offset,
+            "byteLength": triangles.len() * 12,
+            "target": ELEMENT_ARRAY_BUFFER,
+        }));
+        self.accessors.push(json!({
+            "bufferView": self.views.len() - 1,
+            "componentType": UNSIGNED_INT,
+            "count": triangles.len() * 3,
+            "type": "SCALAR",
+        }));
+        self.accessors.len() - 1
+    }
+}
+
+/// An `f32` that glTF accepts (finite): radiance beyond `f32`'s range is clamped.
+fn finite_f32(x: f64) -> f32 {
+    (x as f32).clamp(f32::MIN, f32::MAX)
+}
+
+/// The `.glb` of frame `frame` of `scene`, from its geometry ([`super::frame_geometry`]).
+///
+/// # Errors
+/// [`OutputError::TooLarge`] if the file would pass GLB's 4 GiB limit.
+pub fn frame_glb(
+    scene: &Scene,
+    frame: usize,
+    meshes: &[NodeMesh],
+    tone: &ToneMap,
+) -> Result<Vec<u8>, OutputError> {
+    let radius = scene.normalisation.radius;
+    let centre = scene.normalisation.center;
+    let mut buffers = Buffers::default();
+    let mut nodes = Vec::new();
+    let mut gltf_meshes = Vec::new();
+    for mesh in meshes.iter().filter(|m| !m.triangles.is_empty()) {
+        let positions: Vec<[f32; 3]> = mesh
+            .positions
+            .iter()
+            .map(|p| (*p * radius).as_vec3().to_array())
+            .collect();
+        let normals: Vec<[f32; 3]> = mesh.normals.iter().map(|n| n.to_array()).collect();
+        let colours: Vec<[f32; 3]> = mesh.radiance.iter().map(|&l| tone.apply(l)).collect();
+        let radiance: Vec<[f32; 3]> = mesh.radiance.iter().map(|l| l.map(finite_f32)).collect();
+        let position = buffers.vec3(&positions, true);
+        let normal = buffers.vec3(&normals, false);
+        let colour = buffers.vec3(&colours, false);
+        let hdr = buffers.vec3(&radiance, false);
+        let indices = buffers.indices(&mesh.triangles);
+        gltf_meshes.push(json!({
+            "name": format!("node {} baked", mesh.node),
+            "primitives": [{
+                "attributes": {
+                    "POSITION": position,
+                    "NORMAL": normal,
+                    "COLOR_0": colour,
+                    "_RADIANCE": hdr,
+                },
+                "indices": indices,
+                "material": 0,
+            }],
+        }));
+        nodes.push(json!({
+            "name": format!("node {}", mesh.node),
+            "mesh": gltf_meshes.len() - 1,
+            "translation": centre.to_array(),
+            "extras": { "source_node": mesh.node },
+        }));
+    }
+    while !buffers.bin.len().is_multiple_of(4) {
+        buffers.bin.push(0);
+    }
+    let mut document = json!({
+        "asset": {
+            "version": "2.0",
+            "generator": concat!("radiosity ", env!("CARGO_PKG_VERSION")),
+        },
+        "extensionsUsed": ["KHR_materials_unlit"],
+        "scene": 0,
+        "scenes": [{
+            "nodes": (0..nodes.len()).collect::<Vec<_>>(),
+            "extras": {
+                "frame": frame,
+                "time": scene.frames.time(frame),
+                "exposure": tone.exposure,
+                "tone_map": "COLOR_0 = x / (1 + Y(x)) clamped to [0, 1], x = exposure * _RADIANCE, Y = Rec. 709 luminance",
+            },
+        }],
+        "nodes": nodes,
+        "meshes": gltf_meshes,
+        "materials": [{
+            "name": "baked radiance (unlit)",
+            "pbrMetallicRoughness": { "baseColorFactor": [1.0, 1.0, 1.0, 1.0], "metallicFactor": 0.0 },
+            "extensions": { "KHR_materials_unlit": {} },
+        }],
+    });
+    if !buffers.bin.is_empty() {
+        document["buffers"] = json!([{ "byteLength": buffers.bin.len() }]);
+        document["bufferViews"] = Value::Array(buffers.views);
+        document["accessors"] = Value::Array(buffers.accessors);
+    }
+    glb(&document, &buffers.bin)
+}
+
+/// A GLB container: 12-byte header, the JSON chunk padded with spaces, the BIN chunk (if any)
+/// padded with zeros.
+fn glb(document: &Value, bin: &[u8]) -> Result<Vec<u8>, OutputError> {
+    let mut json = document.to_string().into_bytes();
+    while !json.len().is_multiple_of(4) {
+        json.push(b' ');
+    }
+    let total = 12 + 8 + json.len() + if bin.is_empty() { 0 } else { 8 + bin.len() };
+    let total = u32::try_from(total).map_err(|_| OutputError::TooLarge)?;
+    let mut out = Vec::with_capacity(total as usize);
+    out.extend_from_slice(b"glTF");
+    out.extend_from_slice(&2u32.to_le_bytes());
+    out.extend_from_slice(&total.to_le_bytes());
+    out.extend_from_slice(&(json.len() as u32).to_le_bytes());
+    out.extend_from_slice(b"JSON");
+    out.extend_from_slice(&json);
+    if !bin.is_empty() {
+        out.extend_from_slice(&(bin.len() as u32).to_le_bytes());
+        out.extend_from_slice(b"BIN\0");
+        out.extend_from_slice(bin);
+    }
+    Ok(out)
+}

@@ -1,0 +1,196 @@
+//! What a bake gives people to use and to look at: the baked glTF (per-vertex radiance), PNG
+//! previews of chosen frames and an animated GIF of the timeline.
+//!
+//! - [`geometry`]: the scene at a frame as drawable triangles with per-vertex radiance;
+//! - [`tonemap`]: HDR radiance to display colours, one exposure per timeline;
+//! - [`glb`]: the baked `.glb` of a frame;
+//! - [`preview`]: a small deterministic rasteriser and the PNG and GIF encoders.
+
+pub mod geometry;
+pub mod glb;
+pub mod preview;
+pub mod tonemap;
+
+use std::str::FromStr;
+
+pub use geometry::{NodeMesh, frame_geometry};
+pub use glb::frame_glb;
+pub use preview::Camera;
+pub use tonemap::ToneMap;
+
+use crate::scene::Scene;
+
+/// Why an output could not be made.
+#[derive(Debug, thiserror::Error)]
+pub enum OutputError {
+    /// GLB stores its length in 32 bits.
+    #[error("the frame's glTF would be larger than GLB's 4 GiB limit; bake fewer patches")]
+    TooLarge,
+    /// The image encoder failed.
+    #[error("encoding an image: {0}")]
+    Image(#[from] image::ImageError),
+}
+
+/// The camera of a preview of `frame`: the scene's own (posed at the frame) or, if it has none,
+/// an automatic one framing the whole animation's bounding sphere (the unit sphere of
+/// normalised space), seen from above and in front.
+#[must_use]
+pub fn camera(scene: &Scene, frame: usize, aspect: f64) -> Camera {
+    match &scene.camera {
+        Some(c) => Camera {
+            pose: c.pose(frame),
+            projection: c.projection,
+            aspect: c.aspect,
+        },
+        None => Camera::automatic(glam::DVec3::ZERO, 1.0, aspect),
+    }
+}
+
+/// A preview of one frame: each patch flat-shaded with its tone-mapped radiance.
+#[must_use]
+pub fn preview_image(
+    scene: &Scene,
+    frame: usize,
+    radiance: &[[f64; 3]],
+    tone: &ToneMap,
+    width: u32,
+    height: u32,
+) -> image::RgbImage {
+    let mut triangles = Vec::new();
+    for mesh in frame_geometry(scene, frame, radiance) {
+        for (t, &patch) in mesh.triangles.iter().zip(&mesh.patches) {
+            triangles.push(preview::Triangle {
+                corners: t.map(|i| mesh.positions[i as usize]),
+                colour: tone.apply(radiance[patch as usize]),
+            });
+        }
+    }
+    let aspect = f64::from(width.max(1)) / f64::from(height.max(1));
+    preview::render(&triangles, &camera(scene, frame, aspect), width, height)
+}
+
+/// A choice of frames on the command line: `all`, `none`, or a comma-separated list of frame
+/// numbers, ranges `a-b` (inclusive) and the words `first`, `middle`, `last`.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum FrameSpec {
+    /// Every frame.
+    All,
+    /// The listed items.
+    List(Vec<FrameItem>),
+}
+
+/// One item of a [`FrameSpec`] list.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FrameItem {
+    /// Frames `a..=b`.
+    Range(usize, usize),
+    /// Frame 0.
+    First,
+    /// Frame `count / 2`.
+    Middle,
+    /// The last frame.
+    Last,
+}
+
+impl FrameSpec {
+    /// The frames chosen from a timeline of `count` frames, sorted, without repeats; frame
+    /// numbers past the end are dropped.
+    #[must_use]
+    pub fn frames(&self, count: usize) -> Vec<usize> {
+        let last = count.saturating_sub(1);
+        let mut out: Vec<usize> = match self {
+            Self::All => (0..count).collect(),
+            Self::List(items) => items
+                .iter()
+                .flat_map(|item| match *item {
+                    FrameItem::Range(a, b) => a..=b.min(last),
+                    FrameItem::First => 0..=0,
+                    FrameItem::Middle => count / 2..=count / 2,
+                    FrameItem::Last => last..=last,
+                })
+                .filter(|&f| f < count)
+                .collect(),
+        };
+        out.sort_unstable();
+        out.dedup();
+        out
+    }
+}
+
+impl FromStr for FrameSpec {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s.trim() {
+            "all" => return Ok(Self::All),
+            "none" | "" => return Ok(Self::List(Vec::new())),
+            _ => {}
+        }
+        let number = |t: &str| {
+            t.trim()
+                .parse::<usize>()
+                .map_err(|_| format!("{t:?} is not a frame number, range, first, middle or last"))
+        };
+        s.split(',')
+            .map(|item| match item.trim() {
+                "first" => Ok(FrameItem::First),
+                "middle" => Ok(FrameItem::Middle),
+                "last" => Ok(FrameItem::Last),
+                t => match t.split_once('-') {
+                    Some((a, b)) => {
+                        let (a, b) = (number(a)?, number(b)?);
+                        if a > b {
+                            Err(format!("the range {t:?} is empty"))
+                        } else {
+                            Ok(FrameItem::Range(a, b))
+                        }
+                    }
+                    None => number(t).map(|f| FrameItem::Range(f, f)),
+                },
+            })
+            .collect::<Result<_, _>>()
+            .map(Self::List)
+    }
+}
+
+impl std::fmt::Display for FrameSpec {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::All => write!(f, "all"),
+            Self::List(items) if items.is_empty() => write!(f, "none"),
+            Self::List(items) => {
+                let parts: Vec<String> = items
+                    .iter()
+                    .map(|i| match *i {
+                        FrameItem::Range(a, b) if a == b => a.to_string(),
+                        FrameItem::Range(a, b) => format!("{a}-{b}"),
+                        FrameItem::First => "first".into(),
+                        FrameItem::Middle => "middle".into(),
+                        FrameItem::Last => "last".into(),
+                    })
+                    .collect();
+                write!(f, "{}", parts.join(","))
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn frame_specs_parse_and_choose() {
+        let spec: FrameSpec = "first,middle,last".parse().unwrap();
+        assert_eq!(spec.frames(25), vec![0, 12, 24]);
+        assert_eq!(spec.frames(1), vec![0]);
+        let spec: FrameSpec = "3, 1-2,99,2".parse().unwrap();
+        assert_eq!(spec.frames(10), vec![1, 2, 3]);
+        assert_eq!(spec.to_string(), "3,1-2,99,2");
+        assert_eq!("all".parse::<FrameSpec>().unwrap().frames(3), vec![0, 1, 2]);
+        assert!("none".parse::<FrameSpec>().unwrap().frames(3).is_empty());
+        assert!("5-2".parse::<FrameSpec>().is_err());
+        assert!("x".parse::<FrameSpec>().is_err());
+        assert!("-3".parse::<FrameSpec>().is_err());
+    }
+}

@@ -1,0 +1,111 @@
+//! From radiance (HDR, the scene's emission units) to display colours in [0, 1].
+//!
+//! One exposure per timeline, so an animation does not flicker as the light changes; Reinhard's
+//! global operator on luminance (Reinhard et al. 2002, eq. 3–4), which keeps hue and compresses
+//! emitters smoothly instead of clipping the whole room.
+
+use crate::scene::Scene;
+use crate::solve::FrameSolution;
+
+/// The scene's log-average luminance of lit surfaces is mapped to this value (Reinhard's
+/// "key": 0.18 is middle grey).
+pub const KEY: f64 = 0.18;
+
+/// Rec. 709 luminance of a linear RGB colour.
+#[must_use]
+pub fn luminance(c: [f64; 3]) -> f64 {
+    0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2]
+}
+
+/// A tone map: `display = x / (1 + Y(x))` per channel with `x = exposure · radiance`, clamped
+/// to [0, 1]. The exposure is recorded in the outputs so the mapping can be undone.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ToneMap {
+    /// Radiance is multiplied by this before the curve.
+    pub exposure: f64,
+}
+
+impl ToneMap {
+    /// The exposure that maps the log-average luminance of the lit, non-emitting patches (area
+    /// weighted, over every frame) to [`KEY`]. A scene with no such light gets exposure 1.
+    #[must_use]
+    pub fn for_timeline(scene: &Scene, frames: &[std::sync::Arc<FrameSolution>]) -> Self {
+        // Luminances below this fraction of the brightest are treated as this (the "delta"
+        // of the log average), so unlit corners do not drag the exposure to infinity.
+        const FLOOR: f64 = 1e-4;
+        // Frames that share a solution share its `Arc`: visit each once, weighted by how many
+        // frames show it (in order of first appearance, so the sum is deterministic).
+        let mut distinct: Vec<(&FrameSolution, f64)> = Vec::new();
+        let mut seen: std::collections::HashMap<*const FrameSolution, usize> = Default::default();
+        for frame in frames {
+            let k = *seen
+                .entry(std::sync::Arc::as_ptr(frame))
+                .or_insert_with(|| {
+                    distinct.push((frame, 0.0));
+                    distinct.len() - 1
+                });
+            distinct[k].1 += 1.0;
+        }
+        let brightest = distinct
+            .iter()
+            .flat_map(|(f, _)| f.radiance.iter())
+            .map(|&l| luminance(l))
+            .fold(0.0, f64::max);
+        let (mut sum, mut weight) = (0.0, 0.0);
+        for (frame, times) in distinct {
+            for (patch, &l) in scene.patches.iter().zip(&frame.radiance) {
+                if scene.materials[patch.material as usize].is_emitter() {
+                    continue;
+                }
+                let y = luminance(l).max(FLOOR * brightest);
+                if y > 0.0 {
+                    sum += times * patch.area * y.ln();
+                    weight += times * patch.area;
+                }
+            }
+        }
+        let exposure = if weight > 0.0 {
+            KEY / (sum / weight).exp()
+        } else if brightest > 0.0 {
+            // Only emitters: show the brightest as mid-grey rather than white.
+            KEY / brightest
+        } else {
+            1.0
+        };
+        Self {
+            exposure: if exposure.is_finite() && exposure > 0.0 {
+                exposure
+            } else {
+                1.0
+            },
+        }
+    }
+
+    /// The display colour of a radiance, linear, each channel in [0, 1].
+    #[must_use]
+    pub fn apply(&self, radiance: [f64; 3]) -> [f32; 3] {
+        let x = radiance.map(|c| c.max(0.0) * self.exposure);
+        let scale = 1.0 / (1.0 + luminance(x));
+        x.map(|c| (c * scale).clamp(0.0, 1.0) as f32)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn reinhard_maps_the_key_and_saturates() {
+        let map = ToneMap { exposure: 2.0 };
+        // Grey 0.5 × 2 = 1 → 1 / (1 + 1).
+        assert_eq!(map.apply([0.5; 3]), [0.5; 3]);
+        assert_eq!(map.apply([0.0; 3]), [0.0; 3]);
+        // Very bright tends to white, never beyond.
+        let white = map.apply([1e12; 3]);
+        assert!(white.iter().all(|&c| c > 0.999 && c <= 1.0));
+        // Hue is kept below saturation: equal ratios in, equal ratios out.
+        let c = map.apply([0.1, 0.05, 0.0]);
+        assert!((c[0] / c[1] - 2.0).abs() < 1e-5);
+        assert_eq!(map.apply([-1.0, f64::MIN_POSITIVE, 0.0])[0], 0.0);
+    }
+}

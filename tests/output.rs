@@ -1,0 +1,158 @@
+//! The baked outputs: per-vertex radiance, the baked glTF, the previews.
+
+#[allow(dead_code)] // the helpers serve several test binaries; this one uses a part
+mod common;
+
+use common::Doc;
+use glam::DVec3;
+use radiosity::loader::{LoadOptions, load};
+use radiosity::output::{ToneMap, frame_geometry, frame_glb, preview_image};
+use radiosity::scene::Scene;
+use serde_json::json;
+
+/// A floor (facing +Y) and a wall (facing +Z) meeting at a right angle along a shared edge, in
+/// one primitive with shared vertex indices: triangles 0 and 1 are the floor, 2 and 3 the wall.
+fn corner(double_sided: bool) -> Scene {
+    let positions = [
+        [0.0, 0.0, 0.0],
+        [1.0, 0.0, 0.0],
+        [1.0, 0.0, 1.0],
+        [0.0, 0.0, 1.0],
+        [1.0, 1.0, 0.0],
+        [0.0, 1.0, 0.0],
+    ];
+    let indices = [0, 3, 2, 0, 2, 1, 0, 1, 4, 0, 4, 5];
+    let mut d = Doc::new();
+    let material = d.push("materials", json!({"doubleSided": double_sided}));
+    let mesh = d.mesh(&positions, Some(&indices), Some(material));
+    let node = d.node(json!({"mesh": mesh, "translation": [1e6, 0.0, 0.0]}));
+    d.scene(&[node]);
+    load(&d.gltf(), &LoadOptions::default()).unwrap()
+}
+
+/// Radiance per patch: floor triangles 1 and 3, wall triangles 10 and 20 (back faces 100×).
+fn radiance(scene: &Scene) -> Vec<[f64; 3]> {
+    scene
+        .patches
+        .iter()
+        .map(|p| {
+            let base = [1.0, 3.0, 10.0, 20.0][p.source.triangle as usize];
+            let side = if p.side == radiosity::scene::Side::Back {
+                100.0
+            } else {
+                1.0
+            };
+            [base * side, 2.0 * base * side, 0.5 * base * side]
+        })
+        .collect()
+}
+
+/// The output vertex at `corner` (scene units) whose normal is `normal`.
+fn vertex(scene: &Scene, mesh: &radiosity::output::NodeMesh, corner: DVec3, normal: DVec3) -> f64 {
+    let found: Vec<usize> = (0..mesh.positions.len())
+        .filter(|&v| {
+            scene
+                .normalisation
+                .to_scene(mesh.positions[v])
+                .distance(corner)
+                < 1e-6
+                && mesh.normals[v].as_dvec3().distance(normal) < 1e-6
+        })
+        .collect();
+    assert_eq!(found.len(), 1, "vertices at {corner} facing {normal}");
+    let l = mesh.radiance[found[0]];
+    assert!((l[1] - 2.0 * l[0]).abs() < 1e-9 && (l[2] - 0.5 * l[0]).abs() < 1e-9);
+    l[0]
+}
+
+#[test]
+fn vertex_radiance_is_area_weighted_and_split_at_creases() {
+    let scene = corner(false);
+    let meshes = frame_geometry(&scene, 0, &radiance(&scene));
+    assert_eq!(meshes.len(), 1);
+    let mesh = &meshes[0];
+    // 6 source vertices; the two on the crease are split: 8.
+    assert_eq!(mesh.positions.len(), 8);
+    assert_eq!(mesh.triangles.len(), 4);
+    let at = |x: f64, y: f64, z: f64| DVec3::new(1e6 + x, y, z);
+    let (up, out) = (DVec3::Y, DVec3::Z);
+    // Floor: vertices 0 and 2 are shared by both floor triangles (equal areas): the mean.
+    assert_eq!(vertex(&scene, mesh, at(0.0, 0.0, 0.0), up), 2.0);
+    assert_eq!(vertex(&scene, mesh, at(1.0, 0.0, 1.0), up), 2.0);
+    assert_eq!(vertex(&scene, mesh, at(0.0, 0.0, 1.0), up), 1.0);
+    assert_eq!(vertex(&scene, mesh, at(1.0, 0.0, 0.0), up), 3.0);
+    // Wall: the crease vertices have their own copies, with the wall's light only.
+    assert_eq!(vertex(&scene, mesh, at(0.0, 0.0, 0.0), out), 15.0);
+    assert_eq!(vertex(&scene, mesh, at(1.0, 0.0, 0.0), out), 10.0);
+    assert_eq!(vertex(&scene, mesh, at(1.0, 1.0, 0.0), out), 15.0);
+    assert_eq!(vertex(&scene, mesh, at(0.0, 1.0, 0.0), out), 20.0);
+    // Every triangle faces its patch's side: its winding agrees with its vertices' normals.
+    for t in &mesh.triangles {
+        let [a, b, c] = t.map(|i| mesh.positions[i as usize]);
+        let n = (b - a).cross(c - a).normalize();
+        assert!(n.dot(mesh.normals[t[0] as usize].as_dvec3()) > 0.99);
+    }
+}
+
+#[test]
+fn back_faces_get_their_own_triangles_and_vertices() {
+    let scene = corner(true);
+    let meshes = frame_geometry(&scene, 0, &radiance(&scene));
+    let mesh = &meshes[0];
+    assert_eq!(mesh.triangles.len(), 8);
+    assert_eq!(mesh.positions.len(), 16);
+    let at = |x: f64, y: f64, z: f64| DVec3::new(1e6 + x, y, z);
+    assert_eq!(vertex(&scene, mesh, at(0.0, 0.0, 0.0), -DVec3::Y), 200.0);
+    assert_eq!(vertex(&scene, mesh, at(0.0, 0.0, 0.0), DVec3::Y), 2.0);
+    assert_eq!(vertex(&scene, mesh, at(0.0, 1.0, 0.0), -DVec3::Z), 2000.0);
+}
+
+#[test]
+fn the_baked_glb_loads_back_with_colours_per_vertex() {
+    let scene = corner(true);
+    let radiance = radiance(&scene);
+    let meshes = frame_geometry(&scene, 0, &radiance);
+    let tone = ToneMap { exposure: 0.01 };
+    let bytes = frame_glb(&scene, 0, &meshes, &tone).unwrap();
+    let gltf = gltf::Gltf::from_slice(&bytes).unwrap();
+    let blob = gltf.blob.as_deref().unwrap();
+    let node = gltf.nodes().next().unwrap();
+    // The scene sits 1e6 from the origin: the node carries the offset, the vertices are small.
+    let (translation, _, _) = node.transform().decomposed();
+    assert!((f64::from(translation[0]) - 1e6).abs() < 1.0);
+    let primitive = node.mesh().unwrap().primitives().next().unwrap();
+    let reader = primitive.reader(|_| Some(blob));
+    let positions: Vec<[f32; 3]> = reader.read_positions().unwrap().collect();
+    let colours: Vec<[f32; 3]> = reader.read_colors(0).unwrap().into_rgb_f32().collect();
+    assert_eq!(positions.len(), meshes[0].positions.len());
+    assert_eq!(colours.len(), positions.len());
+    for (c, l) in colours.iter().zip(&meshes[0].radiance) {
+        assert_eq!(*c, tone.apply(*l));
+    }
+    let radiance_attribute = primitive
+        .attributes()
+        .find(|(s, _)| *s == gltf::Semantic::Extras("RADIANCE".into()))
+        .expect("a _RADIANCE attribute");
+    assert_eq!(radiance_attribute.1.count(), positions.len());
+    assert!(positions.iter().flatten().all(|c| c.abs() <= 1.0 + 1e-6));
+    let indices: Vec<u32> = reader.read_indices().unwrap().into_u32().collect();
+    assert_eq!(indices.len(), 3 * meshes[0].triangles.len());
+    // Our own loader reads it back (custom attributes and the unlit extension included): one
+    // patch per baked triangle, since back faces are now triangles of their own.
+    let again = load(&bytes, &LoadOptions::default()).unwrap();
+    assert_eq!(again.patches.len(), meshes[0].triangles.len());
+}
+
+#[test]
+fn a_preview_shows_the_scene_lit_from_its_automatic_camera() {
+    let scene = corner(false);
+    let radiance = radiance(&scene);
+    let image = preview_image(&scene, 0, &radiance, &ToneMap { exposure: 0.05 }, 160, 120);
+    assert_eq!(image.dimensions(), (160, 120));
+    let background = *image.get_pixel(0, 0);
+    let lit = image.pixels().filter(|p| **p != background).count();
+    assert!(lit > 160 * 120 / 20, "only {lit} pixels show the scene");
+    // The wall (radiance 10–20) is brighter than the floor (1–3).
+    let brightest = image.pixels().map(|p| p[1]).max().unwrap();
+    assert!(brightest > 100);
+}
