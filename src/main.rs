@@ -485,7 +485,7 @@ impl Progress {
         }
         let bar = indicatif::ProgressBar::new(Self::STEPS);
         if let Ok(style) = indicatif::ProgressStyle::with_template(
-            "{msg:50!} [{bar:30}] {percent:>3}% {elapsed:>4} ETA {eta:>4}",
+            "{msg:64!} [{bar:30}] {percent:>3}% {elapsed:>4} ETA {eta:>4}",
         ) {
             bar.set_style(style.progress_chars("=> "));
         }

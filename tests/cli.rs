@@ -230,3 +230,54 @@ fn bad_output_options_are_refused_before_baking() {
         assert!(log.contains(flag), "{flag} {value}: {log}");
     }
 }
+
+#[test]
+fn ctrl_c_stops_a_bake_and_keeps_the_previous_outputs_whole() {
+    let out = scratch("interrupt");
+    let bake = |lines: &str| {
+        let mut command = radiosity();
+        command.args([
+            "bake",
+            sample("cornell_moving.gltf").to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--fps",
+            "4",
+            "--force",
+            "--lines",
+            lines,
+        ]);
+        command
+    };
+    assert!(bake("5000").output().unwrap().status.success());
+    let before = files(&out.join("cornell_moving"));
+    // A bake that would take minutes, interrupted while it traces.
+    let child = bake("200000000")
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(1500));
+    let killed = Command::new("kill")
+        .args(["-INT", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(killed.success());
+    let started = std::time::Instant::now();
+    let output = child.wait_with_output().unwrap();
+    assert!(
+        started.elapsed() < std::time::Duration::from_secs(20),
+        "Ctrl-C took {:?}",
+        started.elapsed()
+    );
+    let log = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success(), "{log}");
+    assert!(log.contains("interrupted"), "{log}");
+    // The previous outputs are untouched, and nothing else is left.
+    assert!(files(&out.join("cornell_moving")) == before);
+    let names: Vec<String> = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    assert_eq!(names, vec!["cornell_moving".to_string()]);
+    let _ = std::fs::remove_dir_all(&out);
+}

@@ -526,3 +526,78 @@ fn morph_targets_and_skins_from_the_khronos_samples_deform() {
     assert!(a[0].abs_diff_eq(b[0], 1e-6));
     assert!(a.iter().zip(&b).any(|(p, q)| p.distance(*q) > 0.05));
 }
+
+#[test]
+fn the_first_camera_is_read_with_its_animation_in_normalised_space() {
+    let mut d = Doc::new();
+    let mesh = d.mesh(&QUAD, Some(&QUAD_INDICES), None);
+    let quad = d.node(json!({"mesh": mesh, "scale": [10.0, 10.0, 1.0]}));
+    d.push(
+        "cameras",
+        json!({"type": "perspective", "perspective": {"yfov": 0.8, "znear": 0.5, "aspectRatio": 1.5}}),
+    );
+    // The camera sits under a parent that moves along +X from 0 to 4 over one second.
+    let camera = d.node(json!({"camera": 0, "translation": [5.0, 5.0, 10.0]}));
+    let rig = d.node(json!({"children": [camera]}));
+    d.scene(&[quad, rig]);
+    d.animation(
+        "dolly",
+        &[(
+            rig,
+            "translation",
+            &[0.0, 1.0],
+            &[0.0, 0.0, 0.0, 4.0, 0.0, 0.0],
+            "LINEAR",
+        )],
+    );
+    let options = LoadOptions { fps: 4.0, ..opts() };
+    let scene = load(&d.gltf(), &options).unwrap();
+    let camera = scene.camera.as_ref().expect("a camera");
+    assert_eq!(camera.poses.len(), scene.frames.count);
+    assert_eq!(camera.aspect, Some(1.5));
+    let n = scene.normalisation;
+    let radius = n.radius;
+    for f in 0..scene.frames.count {
+        let expected = DVec3::new(5.0 + 4.0 * f as f64 / 4.0, 5.0, 10.0);
+        let at = n.to_scene(camera.pose(f).translation);
+        assert!(at.distance(expected) < 1e-9, "frame {f}: {at}");
+    }
+    match camera.projection {
+        radiosity::scene::Projection::Perspective { yfov, znear, zfar } => {
+            assert!((yfov - 0.8).abs() < 1e-6);
+            assert!((znear - f64::from(0.5f32) / radius).abs() < 1e-12);
+            assert_eq!(zfar, None);
+        }
+        other => panic!("{other:?}"),
+    }
+
+    // A camera whose projection is unusable is ignored with a warning; the scene still loads.
+    d.json["cameras"][0] =
+        json!({"type": "perspective", "perspective": {"yfov": 0.0, "znear": 0.5}});
+    let scene = load(&d.gltf(), &options).unwrap();
+    assert!(scene.camera.is_none());
+    assert!(scene.warnings.iter().any(|w| w.contains("camera 0")));
+    // The type says orthographic but only a perspective object is given: the perspective is
+    // used (gltf-rs would panic on this file).
+    d.json["cameras"][0] =
+        json!({"type": "orthographic", "perspective": {"yfov": 0.5, "znear": 0.5}});
+    assert!(load(&d.gltf(), &options).unwrap().camera.is_some());
+}
+
+#[test]
+fn custom_vertex_attributes_are_accepted() {
+    // Application-specific attributes start with an underscore (glTF 2.0 §3.7.2.1); a baked
+    // glTF carries _RADIANCE, exporters add _BATCHID and the like.
+    let mut d = Doc::new();
+    let flat: Vec<f32> = QUAD.iter().flatten().copied().collect();
+    let positions = d.floats(&flat, "VEC3");
+    let custom = d.floats(&[1.0, 2.0, 3.0, 4.0], "SCALAR");
+    let indices = d.indices(&QUAD_INDICES, 5123);
+    let mesh = d.push(
+        "meshes",
+        json!({"primitives": [{"attributes": {"POSITION": positions, "_BATCHID": custom}, "indices": indices}]}),
+    );
+    let node = d.node(json!({"mesh": mesh}));
+    d.scene(&[node]);
+    assert_eq!(load_ok(&d).patches.len(), 2);
+}
