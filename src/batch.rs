@@ -466,3 +466,22 @@ pub fn bake_one(
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_gif_keeps_at_most_its_frame_budget_at_a_delay_browsers_honour() {
+        assert_eq!(gif_frames(25, 12.0), ((0..25).collect(), 83));
+        // 60 fps is faster than browsers show: every other frame.
+        let (frames, delay) = gif_frames(10, 60.0);
+        assert_eq!(frames, vec![0, 2, 4, 6, 8]);
+        assert_eq!(delay, 33);
+        let (frames, delay) = gif_frames(2001, 30.0);
+        assert!(frames.len() <= GIF_MAX_FRAMES && frames.len() > GIF_MAX_FRAMES / 2);
+        assert_eq!(delay, 9 * 1000 / 30);
+        assert_eq!(frame_name(7, 25, "png"), "frame_0007.png");
+        assert_eq!(frame_name(7, 100_000, "glb"), "frame_00007.glb");
+    }
+}

@@ -41,61 +41,61 @@ struct Buffers {
 }
 
 impl Buffers {
-    /// Appends `values` as a VEC3 float accessor (with bounds when `bounds`), returning its index.
-    fn vec3(&mut self, values: &[[f32; 3]], bounds: bool) -> usize {
+    /// Appends the 4-byte little-endian `words` as a bufferView for `target` and an accessor
+    /// of `count` elements of `kind` over it, returning the accessor, to which `extra` fields
+    /// are added.
+    fn push(
+        &mut self,
+        words: impl Iterator<Item = [u8; 4]>,
+        target: u32,
+        (component, kind, count): (u32, &str, usize),
+        extra: Value,
+    ) -> usize {
         let offset = self.bin.len();
-        for v in values {
-            v.iter()
-                .for_each(|c| self.bin.extend_from_slice(&c.to_le_bytes()));
-        }
+        words.for_each(|w| self.bin.extend_from_slice(&w));
         self.views.push(json!({
             "buffer": 0,
             "byteOffset": offset,
-            "byteLength": values.len() * 12,
-            "target": ARRAY_BUFFER,
+            "byteLength": self.bin.len() - offset,
+            "target": target,
         }));
         let mut accessor = json!({
             "bufferView": self.views.len() - 1,
-            "componentType": FLOAT,
-            "count": values.len(),
-            "type": "VEC3",
+            "componentType": component,
+            "count": count,
+            "type": kind,
         });
-        if bounds {
-            let mut min = [f32::INFINITY; 3];
-            let mut max = [f32::NEG_INFINITY; 3];
-            for v in values {
-                for c in 0..3 {
-                    min[c] = min[c].min(v[c]);
-                    max[c] = max[c].max(v[c]);
-                }
-            }
-            accessor["min"] = json!(min);
-            accessor["max"] = json!(max);
+        if let (Some(a), Value::Object(extra)) = (accessor.as_object_mut(), extra) {
+            a.extend(extra);
         }
         self.accessors.push(accessor);
         self.accessors.len() - 1
     }
 
+    /// Appends `values` as a VEC3 float accessor (with bounds when `bounds`), returning its index.
+    fn vec3(&mut self, values: &[[f32; 3]], bounds: bool) -> usize {
+        let extra = if bounds {
+            let mut min = [f32::INFINITY; 3];
+            let mut max = [f32::NEG_INFINITY; 3];
+            for v in values {
+                for (c, &x) in v.iter().enumerate() {
+                    min[c] = min[c].min(x);
+                    max[c] = max[c].max(x);
+                }
+            }
+            json!({ "min": min, "max": max })
+        } else {
+            json!({})
+        };
+        let words = values.iter().flatten().map(|c| c.to_le_bytes());
+        self.push(words, ARRAY_BUFFER, (FLOAT, "VEC3", values.len()), extra)
+    }
+
     /// Appends triangle indices, returning the accessor's index.
     fn indices(&mut self, triangles: &[[u32; 3]]) -> usize {
-        let offset = self.bin.len();
-        for t in triangles {
-            t.iter()
-                .for_each(|i| self.bin.extend_from_slice(&i.to_le_bytes()));
-        }
-        self.views.push(json!({
-            "buffer": 0,
-            "byteOffset": offset,
-            "byteLength": triangles.len() * 12,
-            "target": ELEMENT_ARRAY_BUFFER,
-        }));
-        self.accessors.push(json!({
-            "bufferView": self.views.len() - 1,
-            "componentType": UNSIGNED_INT,
-            "count": triangles.len() * 3,
-            "type": "SCALAR",
-        }));
-        self.accessors.len() - 1
+        let words = triangles.iter().flatten().map(|i| i.to_le_bytes());
+        let shape = (UNSIGNED_INT, "SCALAR", triangles.len() * 3);
+        self.push(words, ELEMENT_ARRAY_BUFFER, shape, json!({}))
     }
 }
 

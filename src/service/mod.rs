@@ -485,12 +485,12 @@ fn frame_binary(frame: usize, time: f64, s: &crate::solve::FrameSolution) -> Vec
     out
 }
 
-async fn timeline_frame(
-    State(state): State<AppState>,
-    Path((id, frame)): Path<(String, String)>,
-    headers: HeaderMap,
-) -> Result<Response, ApiError> {
-    let job = job(&state, &id)?;
+/// The frame named by the path segment `frame`: its number, result version and solution; 404
+/// if there is no such frame, 409 if it is not solved yet.
+fn solved_frame(
+    job: &Job,
+    frame: &str,
+) -> Result<(usize, u64, Arc<crate::solve::FrameSolution>), ApiError> {
     let frames = job.frame_times.len();
     let f = frame
         .parse::<usize>()
@@ -507,6 +507,16 @@ async fn timeline_frame(
             job.status()
         ))
     })?;
+    Ok((f, version, solution))
+}
+
+async fn timeline_frame(
+    State(state): State<AppState>,
+    Path((id, frame)): Path<(String, String)>,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
+    let job = job(&state, &id)?;
+    let (f, version, solution) = solved_frame(&job, &frame)?;
     let time = job.frame_times[f];
     let accept = headers
         .get(header::ACCEPT)
@@ -567,22 +577,7 @@ async fn frame_preview(
                 .ok_or_else(|| ApiError::Parameter("exposure must be a positive number".into()))?,
         ),
     };
-    let frames = job.frame_times.len();
-    let f = frame
-        .parse::<usize>()
-        .ok()
-        .filter(|&f| f < frames)
-        .ok_or_else(|| {
-            ApiError::NotFound(format!(
-                "no frame {frame:?}: the timeline has frames 0..{frames}"
-            ))
-        })?;
-    let (version, solution) = job.frame(f).ok_or_else(|| {
-        ApiError::NotReady(format!(
-            "frame {f} is not solved yet (status {:?})",
-            job.status()
-        ))
-    })?;
+    let (f, version, solution) = solved_frame(&job, &frame)?;
     let rendered = tokio::task::spawn_blocking(move || {
         let bake = job.bake.lock().ok()?;
         let bake = bake.as_ref()?;
