@@ -7,9 +7,10 @@ use std::sync::Arc;
 
 use rayon::prelude::*;
 
+use crate::direct::DirectLight;
 use crate::scene::{Material, Scene};
 use crate::solve::tally::{FrameTally, Tallies};
-use crate::solve::{FrameSolution, SolveParams, solve};
+use crate::solve::{FrameSolution, SolveParams, solve_lit};
 use crate::timeline::{Control, IntersectionList, LineParams, TraceError};
 use crate::trace::SceneTracer;
 
@@ -20,6 +21,9 @@ pub struct Bake {
     tracer: SceneTracer,
     list: IntersectionList,
     tallies: Tallies,
+    /// Direct light of the punctual lights per frame (per unit power, so lights can change
+    /// without tracing).
+    direct: DirectLight,
     /// Seed of the line set, reused (with the next batch index) by refinement.
     seed: u64,
 }
@@ -40,11 +44,13 @@ impl Bake {
         let list = IntersectionList::build(&scene, &tracer, params, control)?;
         let mut tallies = Tallies::default();
         tallies.update(&list, &tracer.surfaces());
+        let direct = DirectLight::compute(&scene, &tracer);
         Ok(Self {
             scene,
             tracer,
             list,
             tallies,
+            direct,
             seed: params.seed,
         })
     }
@@ -93,11 +99,40 @@ impl Bake {
     }
 
     /// Frames that share their solution: `representatives()[f]` is the first frame with the
-    /// same tallies as f.
+    /// same tallies and the same direct light as f.
     #[must_use]
     pub fn representatives(&self) -> Vec<usize> {
-        self.tallies
-            .representatives(&self.list, &self.tracer.surfaces())
+        let by_tally = self
+            .tallies
+            .representatives(&self.list, &self.tracer.surfaces());
+        if self.direct.is_empty() {
+            return by_tally;
+        }
+        let mut first: std::collections::HashMap<(usize, Option<usize>), usize> =
+            Default::default();
+        (0..by_tally.len())
+            .map(|f| {
+                *first
+                    .entry((by_tally[f], self.direct.state(f)))
+                    .or_insert(f)
+            })
+            .collect()
+    }
+
+    /// The direct light of the punctual lights.
+    #[must_use]
+    pub fn direct(&self) -> &DirectLight {
+        &self.direct
+    }
+
+    /// Each light's power (colour × intensity) as the scene gives it.
+    #[must_use]
+    pub fn light_power(&self) -> Vec<[f64; 3]> {
+        self.scene
+            .lights
+            .iter()
+            .map(|l| l.colour.map(|c| c * l.intensity))
+            .collect()
     }
 
     /// Material index of every patch.
@@ -105,7 +140,8 @@ impl Bake {
         self.scene.patches.iter().map(|p| p.material).collect()
     }
 
-    /// Solves one frame with `materials` (the scene's own, or new ones for relighting).
+    /// Solves one frame with `materials` (the scene's own, or new ones for relighting) and the
+    /// scene's lights.
     #[must_use]
     pub fn solve_frame(
         &self,
@@ -113,15 +149,30 @@ impl Bake {
         materials: &[Material],
         params: &SolveParams,
     ) -> FrameSolution {
-        solve(
+        self.solve_frame_lit(frame, materials, &self.light_power(), params)
+    }
+
+    /// Solves one frame with `materials` and the punctual lights at `power` (colour ×
+    /// intensity per light, in the scene's order): relighting either needs no tracing.
+    #[must_use]
+    pub fn solve_frame_lit(
+        &self,
+        frame: usize,
+        materials: &[Material],
+        power: &[[f64; 3]],
+        params: &SolveParams,
+    ) -> FrameSolution {
+        let direct = self.direct.irradiance(frame, power);
+        solve_lit(
             &self.frame_tally(frame),
             &self.patch_materials(),
             materials,
             params,
+            direct.as_deref(),
         )
     }
 
-    /// Solves every frame; frames with identical tallies share one solution.
+    /// Solves every frame; frames with identical tallies and direct light share one solution.
     #[must_use]
     pub fn solve_all(
         &self,
@@ -140,9 +191,7 @@ impl Bake {
         params: &SolveParams,
         control: &Control,
     ) -> Vec<Arc<FrameSolution>> {
-        let representatives = self
-            .tallies
-            .representatives(&self.list, &self.tracer.surfaces());
+        let representatives = self.representatives();
         let distinct: Vec<usize> = (0..representatives.len())
             .filter(|&f| representatives[f] == f)
             .collect();

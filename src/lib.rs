@@ -15,6 +15,8 @@
 //!   scene statistics measured by the lines.
 //! - [`solve`]: tallies of the list per frame (`N_i`, `S_ij`, with per-frame changes only for
 //!   what moves) and the radiosity solve with per-patch error bars.
+//! - [`direct`]: direct light from punctual lights (point, spot, directional) with shadows,
+//!   the light the interreflection starts from.
 //! - [`bake`]: a traced scene ready to solve, refine and relight any frame.
 //! - [`output`]: what people use and look at: the baked glTF (per-vertex radiance), PNG and
 //!   GIF previews, the tone map.
@@ -28,6 +30,7 @@
 pub mod bake;
 pub mod batch;
 pub mod bench;
+pub mod direct;
 pub mod lines;
 pub mod loader;
 pub mod output;

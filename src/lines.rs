@@ -102,39 +102,48 @@ impl Batch {
     /// Bundle `k` of this batch: its direction and the lines of its grid that meet `bounds`.
     #[must_use]
     pub fn bundle(&self, k: u32, bounds: &Bounds) -> Bundle {
-        let w = self.direction(k);
-        let (u, v) = w.any_orthonormal_pair();
         let mut rng =
             Xoshiro256PlusPlus::seed_from_u64(mix(self.seed, u64::from(self.index), u64::from(k)));
-        let (offset_u, offset_v): (f64, f64) = (rng.random(), rng.random());
-        // The projection of the box onto the plane (u, v): a rectangle around it.
-        let corners = bounds.corners();
-        let project = |axis: DVec3| {
-            corners
-                .iter()
-                .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), c| {
-                    let x = c.dot(axis);
-                    (lo.min(x), hi.max(x))
-                })
-        };
-        let ((u0, u1), (v0, v1)) = (project(u), project(v));
-        let step = self.cell_area.sqrt();
-        let columns = ((u1 - u0) / step).ceil() as i64 + 1;
-        let rows = ((v1 - v0) / step).ceil() as i64 + 1;
-        let direction = w.as_vec3();
-        let mut origins = Vec::new();
-        for j in 0..rows {
-            let y = v0 + (j as f64 + offset_v - 0.5) * step;
-            for i in 0..columns {
-                let x = u0 + (i as f64 + offset_u - 0.5) * step;
-                let point = u * x + v * y;
-                if meets_box(point, w, bounds) {
-                    origins.push((point - w * f64::from(ORIGIN_OFFSET)).as_vec3());
-                }
+        let offset: (f64, f64) = (rng.random(), rng.random());
+        parallel_bundle(self.direction(k), self.cell_area, offset, bounds)
+    }
+}
+
+/// The lines of direction `w` through a square grid of cells of `cell_area` (normalised units
+/// squared), shifted by `offset` (fractions of a cell, in [0, 1)), over the projection of
+/// `bounds`, keeping those that meet the box. Each line stands for the `cell_area` of the plane
+/// around it: a bundle of global lines, or the light of a directional light.
+#[must_use]
+pub fn parallel_bundle(w: DVec3, cell_area: f64, offset: (f64, f64), bounds: &Bounds) -> Bundle {
+    let (u, v) = w.any_orthonormal_pair();
+    let (offset_u, offset_v) = offset;
+    // The projection of the box onto the plane (u, v): a rectangle around it.
+    let corners = bounds.corners();
+    let project = |axis: DVec3| {
+        corners
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), c| {
+                let x = c.dot(axis);
+                (lo.min(x), hi.max(x))
+            })
+    };
+    let ((u0, u1), (v0, v1)) = (project(u), project(v));
+    let step = cell_area.sqrt();
+    let columns = ((u1 - u0) / step).ceil() as i64 + 1;
+    let rows = ((v1 - v0) / step).ceil() as i64 + 1;
+    let direction = w.as_vec3();
+    let mut origins = Vec::new();
+    for j in 0..rows {
+        let y = v0 + (j as f64 + offset_v - 0.5) * step;
+        for i in 0..columns {
+            let x = u0 + (i as f64 + offset_u - 0.5) * step;
+            let point = u * x + v * y;
+            if meets_box(point, w, bounds) {
+                origins.push((point - w * f64::from(ORIGIN_OFFSET)).as_vec3());
             }
         }
-        Bundle { direction, origins }
     }
+    Bundle { direction, origins }
 }
 
 /// Direction `k` of `n` on the rotated Fibonacci half-sphere lattice, with no component below

@@ -16,8 +16,9 @@ use glam::{DAffine3, DMat4, DVec3, Vec3};
 
 use crate::scene::subdivide::{self, Subdivision, triangle_area};
 use crate::scene::{
-    Bounds, Deformation, Faces, Frames, Material, Motion, MovingObject, Normalisation, Patch,
-    Projection, Provenance, Scene, SceneCamera, Side, SkinBinding, TriangleMesh,
+    Bounds, Deformation, Faces, Frames, Light, LightKind, Material, Motion, MovingObject,
+    Normalisation, Patch, Projection, Provenance, Scene, SceneCamera, Side, SkinBinding,
+    TriangleMesh,
 };
 pub use animation::{Interpolation, Sampler};
 
@@ -205,6 +206,16 @@ pub fn load(bytes: &[u8], options: &LoadOptions) -> Result<Scene, LoadError> {
     if let Some(n) = camera_node {
         wanted[n] = true;
     }
+    let light_nodes: Vec<(usize, usize)> = hierarchy
+        .order
+        .iter()
+        .filter_map(|&n| {
+            let node = document.as_json().nodes.get(n)?;
+            let light = node.extensions.as_ref()?.khr_lights_punctual.as_ref()?;
+            Some((n, light.light.value()))
+        })
+        .collect();
+    light_nodes.iter().for_each(|&(n, _)| wanted[n] = true);
     let mut budget = Budget(options.max_work);
     let animated = nodes::animated(&hierarchy, &timeline.tracks);
     let frame_count = timeline.frames.count as u64;
@@ -249,7 +260,82 @@ pub fn load(bytes: &[u8], options: &LoadOptions) -> Result<Scene, LoadError> {
     if let Some(camera) = camera {
         scene.camera = Some(camera.normalised(&scene.normalisation));
     }
+    let to_norm = scene.normalisation.to_normalised();
+    for &(n, index) in &light_nodes {
+        let mut light = read_light(&document, n, index, &poses)?;
+        light.poses.iter_mut().for_each(|p| *p = to_norm * *p);
+        light.range = light.range.map(|r| r / scene.normalisation.radius);
+        scene.lights.push(light);
+    }
     Ok(scene)
+}
+
+/// Light `index` (of `KHR_lights_punctual`) at node `n`, posed in scene units. Its values are
+/// checked here: gltf-rs would panic on a spot light without its `spot` object.
+fn read_light(
+    document: &gltf::Document,
+    n: usize,
+    index: usize,
+    poses: &nodes::Poses,
+) -> Result<Light, LoadError> {
+    use gltf::json::extensions::scene::khr_lights_punctual::Type;
+    let what = format!("light {index} (KHR_lights_punctual, node {n})");
+    let bad = |why: &str| LoadError::malformed(what.clone(), why);
+    let json = document
+        .as_json()
+        .extensions
+        .as_ref()
+        .and_then(|e| e.khr_lights_punctual.as_ref())
+        .and_then(|l| l.lights.get(index))
+        .ok_or_else(|| bad("does not exist"))?;
+    let colour = json.color.map(f64::from);
+    if colour.iter().any(|c| !c.is_finite() || *c < 0.0) {
+        return Err(bad("has a colour that is not finite and non-negative"));
+    }
+    let intensity = f64::from(json.intensity);
+    if !intensity.is_finite() || intensity < 0.0 {
+        return Err(bad("has an intensity that is not finite and non-negative"));
+    }
+    let range = match json.range.map(f64::from) {
+        Some(r) if !(r.is_finite() && r > 0.0) => {
+            return Err(bad("has a range that is not a positive number"));
+        }
+        r => r,
+    };
+    let kind = match json.type_ {
+        gltf::json::validation::Checked::Valid(Type::Point) => LightKind::Point,
+        gltf::json::validation::Checked::Valid(Type::Directional) => LightKind::Directional,
+        gltf::json::validation::Checked::Valid(Type::Spot) => {
+            let spot = json
+                .spot
+                .as_ref()
+                .ok_or_else(|| bad("is a spot light without its spot cone"))?;
+            let (inner, outer) = (
+                f64::from(spot.inner_cone_angle),
+                f64::from(spot.outer_cone_angle),
+            );
+            if !(inner >= 0.0 && inner < outer && outer <= std::f64::consts::FRAC_PI_2) {
+                return Err(bad(
+                    "needs 0 <= innerConeAngle < outerConeAngle <= pi/2 for its cone",
+                ));
+            }
+            LightKind::Spot { inner, outer }
+        }
+        gltf::json::validation::Checked::Invalid => return Err(bad("has an unknown type")),
+    };
+    let poses = match &poses.over_time[n] {
+        Some(worlds) => worlds.iter().map(|m| DAffine3::from_mat4(*m)).collect(),
+        None => vec![DAffine3::from_mat4(poses.first[n])],
+    };
+    Ok(Light {
+        node: n as u32,
+        name: json.name.clone(),
+        kind,
+        colour,
+        intensity,
+        range,
+        poses,
+    })
 }
 
 /// The camera of node `n`, placed in scene units; `None` (with a warning) if its projection is
@@ -834,5 +920,6 @@ fn build(
         source_triangles,
         warnings,
         camera: None,
+        lights: Vec::new(),
     })
 }

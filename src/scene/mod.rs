@@ -386,6 +386,77 @@ impl SceneCamera {
     }
 }
 
+/// A punctual light (glTF `KHR_lights_punctual`), placed by its node.
+///
+/// Units, as the extension defines them with the scene's units taken as metres: a point or spot
+/// light's intensity is in candela (lm/sr), a directional light's in lux (lm/m²). A surface at
+/// distance d from a point light of intensity I, tilted by θ, receives the irradiance
+/// E = I·cos θ / d² (lux); a diffuse surface of reflectance ρ then leaves with the radiance
+/// ρ·E/π (cd/m², nits), the unit the scene's emissive surfaces are read in.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Light {
+    /// The node the light is attached to.
+    pub node: u32,
+    /// The light's name, if any.
+    pub name: Option<String>,
+    /// Point, spot or directional.
+    pub kind: LightKind,
+    /// Linear RGB colour (each channel ≥ 0), multiplied by the intensity.
+    pub colour: [f64; 3],
+    /// Candela for point and spot lights, lux for directional ones.
+    pub intensity: f64,
+    /// Distance beyond which a point or spot light has no effect, in normalised units; with the
+    /// extension's recommended smooth falloff to zero there.
+    pub range: Option<f64>,
+    /// Light space to normalised space, per frame when the light moves, otherwise one pose for
+    /// every frame. The light sits at the origin of its space and points along its −Z.
+    pub poses: Vec<DAffine3>,
+}
+
+/// What kind of punctual light.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum LightKind {
+    /// Emits equally in every direction from a point.
+    Point,
+    /// A point light limited to a cone around −Z, with a smooth edge between the angles.
+    Spot {
+        /// Angle from the axis where the falloff starts, radians.
+        inner: f64,
+        /// Angle from the axis beyond which there is no light, radians.
+        outer: f64,
+    },
+    /// Parallel light travelling along −Z, as from an infinitely far source (the sun).
+    Directional,
+}
+
+impl Light {
+    /// The light's pose at `frame`.
+    #[must_use]
+    pub fn pose(&self, frame: usize) -> DAffine3 {
+        self.poses[frame.min(self.poses.len() - 1)]
+    }
+
+    /// Position at `frame`, normalised space.
+    #[must_use]
+    pub fn position(&self, frame: usize) -> DVec3 {
+        self.pose(frame).translation
+    }
+
+    /// Unit direction the light travels in at `frame` (its −Z), normalised space.
+    #[must_use]
+    pub fn direction(&self, frame: usize) -> DVec3 {
+        self.pose(frame)
+            .transform_vector3(DVec3::NEG_Z)
+            .normalize_or_zero()
+    }
+
+    /// Whether the light's pose changes over the frames.
+    #[must_use]
+    pub fn moves(&self) -> bool {
+        self.poses.len() > 1
+    }
+}
+
 /// A loaded scene, ready for the engine.
 #[derive(Clone, Debug)]
 pub struct Scene {
@@ -410,6 +481,8 @@ pub struct Scene {
     pub warnings: Vec<String>,
     /// The scene's camera, if it has one (used only for previews).
     pub camera: Option<SceneCamera>,
+    /// Punctual lights: the direct light they give starts the interreflection solve.
+    pub lights: Vec<Light>,
 }
 
 /// What the `scene` command and the service report about a loaded scene.
@@ -439,6 +512,10 @@ pub struct Summary {
     pub fps: f64,
     /// Patches that emit light.
     pub emitters: usize,
+    /// Punctual lights (KHR_lights_punctual).
+    pub lights: usize,
+    /// Punctual lights whose pose changes over the frames.
+    pub moving_lights: usize,
     /// Centre of the bounding sphere, scene units.
     pub center: [f64; 3],
     /// Radius of the bounding sphere, scene units.
@@ -472,6 +549,8 @@ impl Scene {
                 .iter()
                 .filter(|p| self.materials[p.material as usize].is_emitter())
                 .count(),
+            lights: self.lights.len(),
+            moving_lights: self.lights.iter().filter(|l| l.moves()).count(),
             center: self.normalisation.center.to_array(),
             radius: self.normalisation.radius,
             area: self.patches.iter().map(|p| p.area).sum(),
@@ -519,6 +598,11 @@ impl std::fmt::Display for Summary {
             self.frames, self.fps, self.start
         )?;
         writeln!(f, "emitters        {} patches", self.emitters)?;
+        writeln!(
+            f,
+            "lights          {} punctual ({} moving)",
+            self.lights, self.moving_lights
+        )?;
         writeln!(
             f,
             "bounds          centre [{}, {}, {}], radius {}",

@@ -90,6 +90,20 @@ pub fn solve(
     materials: &[Material],
     params: &SolveParams,
 ) -> FrameSolution {
+    solve_lit(tally, patch_material, materials, params, None)
+}
+
+/// [`solve`] with the direct irradiance `direct[i]` (RGB) from punctual lights: it leaves
+/// patch i as the radiance ρ_i·E_i/π, added to its emission as the light the interreflection
+/// starts from.
+#[must_use]
+pub fn solve_lit(
+    tally: &FrameTally,
+    patch_material: &[u32],
+    materials: &[Material],
+    params: &SolveParams,
+    direct: Option<&[[f64; 3]]>,
+) -> FrameSolution {
     let patches = patch_material.len();
     let mut radiance = vec![[0.0; 3]; patches];
     let mut stderr: Vec<Option<[f64; 3]>> = (0..patches)
@@ -103,7 +117,14 @@ pub fn solve(
             .collect();
         let emission: Vec<f64> = patch_material
             .iter()
-            .map(|&m| materials[m as usize].emission[c])
+            .enumerate()
+            .map(|(i, &m)| {
+                let material = &materials[m as usize];
+                let reflected = direct.map_or(0.0, |e| {
+                    material.reflectance[c] * e[i][c] * std::f64::consts::FRAC_1_PI
+                });
+                material.emission[c] + reflected
+            })
             .collect();
         let system = System::new(tally, &rho);
         let light = system.solve(&emission, params.sky[c], params);

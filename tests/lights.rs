@@ -1,0 +1,318 @@
+//! Punctual lights (KHR_lights_punctual) against closed forms: point, spot and directional
+//! irradiance, shadows, moving lights, relighting by intensity.
+
+#[allow(dead_code)] // the helpers serve several test binaries; this one uses a part
+mod common;
+
+use common::Doc;
+use glam::DVec3;
+use radiosity::bake::Bake;
+use radiosity::loader::{LoadOptions, load};
+use radiosity::scene::Scene;
+use radiosity::solve::SolveParams;
+use radiosity::timeline::LineParams;
+use serde_json::{Value, json};
+
+/// Half the side of the floor, metres.
+const HALF: f32 = 10.0;
+/// Reflectance of the floor.
+const RHO: f64 = 0.5;
+
+/// A square floor (y = 0, facing +Y) of side 2·HALF, subdivided into patches of `patch` m, the
+/// lights `lights` at the nodes `light_nodes`, and optional extra meshes.
+fn floor_scene(lights: Value, light_nodes: &[Value], extra: &[(Vec<[f32; 3]>, Vec<u32>)]) -> Doc {
+    let mut d = Doc::new();
+    let material = d.push(
+        "materials",
+        json!({"pbrMetallicRoughness": {"baseColorFactor": [RHO, RHO, RHO, 1.0], "metallicFactor": 0.0}}),
+    );
+    let floor = [
+        [-HALF, 0.0, -HALF],
+        [HALF, 0.0, -HALF],
+        [HALF, 0.0, HALF],
+        [-HALF, 0.0, HALF],
+    ];
+    let mesh = d.mesh(&floor, Some(&[0, 3, 2, 0, 2, 1]), Some(material));
+    let mut roots = vec![d.node(json!({"mesh": mesh}))];
+    for (positions, indices) in extra {
+        let mesh = d.mesh(positions, Some(indices), Some(material));
+        roots.push(d.node(json!({"mesh": mesh})));
+    }
+    for node in light_nodes {
+        roots.push(d.node(node.clone()));
+    }
+    d.json["extensions"] = json!({"KHR_lights_punctual": {"lights": lights}});
+    d.json["extensionsUsed"] = json!(["KHR_lights_punctual"]);
+    d.scene(&roots);
+    d
+}
+
+fn light_node(light: usize, translation: [f64; 3], rotation: [f64; 4]) -> Value {
+    json!({
+        "translation": translation,
+        "rotation": rotation,
+        "extensions": {"KHR_lights_punctual": {"light": light}},
+    })
+}
+
+/// −Z turned to −Y: a quarter turn about +X, clockwise seen from +X.
+const DOWN: [f64; 4] = [
+    -std::f64::consts::FRAC_1_SQRT_2,
+    0.0,
+    0.0,
+    std::f64::consts::FRAC_1_SQRT_2,
+];
+
+fn load_with(doc: &Doc, patch: f64, fps: f64) -> Scene {
+    let options = LoadOptions {
+        patch_size: Some(patch),
+        fps,
+        ..LoadOptions::default()
+    };
+    load(&doc.gltf(), &options).unwrap()
+}
+
+fn bake(scene: Scene) -> Bake {
+    Bake::trace(
+        scene,
+        &LineParams {
+            lines: 20_000,
+            bundles: None,
+            seed: 3,
+        },
+    )
+    .unwrap()
+}
+
+/// Centroid of each patch's triangle at frame 0, scene units, for the front patches of the
+/// floor (node 0).
+fn floor_centroids(scene: &Scene) -> Vec<(usize, DVec3)> {
+    let triangles = scene.triangles_at(0);
+    triangles
+        .iter()
+        .filter(|(_, faces)| scene.patches[faces.front as usize].source.node == 0)
+        .map(|(c, faces)| {
+            let centre = (c[0] + c[1] + c[2]).as_dvec3() / 3.0;
+            (faces.front as usize, scene.normalisation.to_scene(centre))
+        })
+        .collect()
+}
+
+#[test]
+fn a_point_light_above_a_floor_gives_i_cos_over_d_squared() {
+    let intensity = 50.0;
+    let height = 3.0;
+    let doc = floor_scene(
+        json!([{"type": "point", "intensity": intensity, "color": [1.0, 0.5, 0.25]}]),
+        &[light_node(0, [0.0, height, 0.0], [0.0, 0.0, 0.0, 1.0])],
+        &[],
+    );
+    let scene = load_with(&doc, 0.5, 1.0);
+    assert_eq!(scene.lights.len(), 1);
+    let bake = bake(scene);
+    let power = bake.light_power();
+    assert_eq!(power, vec![[intensity, intensity * 0.5, intensity * 0.25]]);
+    let direct = bake.direct().irradiance(0, &power).unwrap();
+    let solution = bake.solve_frame(0, &bake.scene.materials, &SolveParams::default());
+    let mut checked = 0;
+    for (patch, centre) in floor_centroids(&bake.scene) {
+        let d2 = centre.x * centre.x + centre.z * centre.z + height * height;
+        let cos = height / d2.sqrt();
+        let expected = intensity * cos / d2;
+        // The mean over a patch differs from the value at its centroid by the curvature of
+        // I·cos/d² across it: well under 1% for half-metre patches 3 m from the light.
+        let e = direct[patch][0];
+        assert!(
+            (e - expected).abs() < 0.01 * expected,
+            "patch at {centre}: {e} against {expected}"
+        );
+        assert!((direct[patch][1] - 0.5 * e).abs() < 1e-12 * e);
+        // A lone floor has nothing to interreflect with: its radiance is exactly ρ·E/π.
+        let l = solution.radiance[patch][0];
+        assert!((l - RHO * e / std::f64::consts::PI).abs() < 1e-9 * l, "{l}");
+        checked += 1;
+    }
+    assert!(checked > 1000, "{checked}");
+}
+
+#[test]
+fn a_spot_light_is_dark_outside_its_outer_cone() {
+    let (inner, outer) = (0.3f64, 0.5f64);
+    let (intensity, height) = (80.0, 4.0);
+    let doc = floor_scene(
+        json!([{"type": "spot", "intensity": intensity, "spot": {"innerConeAngle": inner, "outerConeAngle": outer}}]),
+        &[light_node(0, [0.0, height, 0.0], DOWN)],
+        &[],
+    );
+    let bake = bake(load_with(&doc, 0.5, 1.0));
+    let direct = bake.direct().irradiance(0, &bake.light_power()).unwrap();
+    let (mut dark, mut full) = (0, 0);
+    for (patch, centre) in floor_centroids(&bake.scene) {
+        let r = centre.x.hypot(centre.z);
+        let angle = r.atan2(height);
+        let e = direct[patch][0];
+        // Half a patch diagonal of margin around the cone's edges.
+        let margin = (0.36f64).atan2(height);
+        if angle > outer + margin {
+            assert_eq!(e, 0.0, "outside the cone at {centre}");
+            dark += 1;
+        } else if angle < inner - margin {
+            let d2 = r * r + height * height;
+            let expected = intensity * (height / d2.sqrt()) / d2;
+            assert!(
+                (e - expected).abs() < 0.01 * expected,
+                "{e} against {expected}"
+            );
+            full += 1;
+        }
+    }
+    assert!(dark > 1000 && full > 20, "{dark} dark, {full} fully lit");
+}
+
+#[test]
+fn a_directional_light_gives_its_intensity_times_cos_theta() {
+    let intensity = 1000.0;
+    // The sun 30° from the vertical.
+    let theta = 30f64.to_radians();
+    let half = theta / 2.0;
+    // −Z turned down, then tilted about +Z: a rotation of the DOWN direction by θ.
+    let tilt = glam::DQuat::from_rotation_z(theta) * glam::DQuat::from_array(DOWN);
+    let doc = floor_scene(
+        json!([{"type": "directional", "intensity": intensity}]),
+        &[light_node(0, [0.0, 50.0, 0.0], tilt.to_array())],
+        &[],
+    );
+    let _ = half;
+    let bake = bake(load_with(&doc, 1.0, 1.0));
+    let direct = bake.direct().irradiance(0, &bake.light_power()).unwrap();
+    let expected = intensity * theta.cos();
+    let values: Vec<f64> = floor_centroids(&bake.scene)
+        .iter()
+        .map(|&(p, _)| direct[p][0])
+        .collect();
+    let mean = values.iter().sum::<f64>() / values.len() as f64;
+    assert!(
+        (mean - expected).abs() < 0.005 * expected,
+        "mean {mean}, {expected}"
+    );
+    // Each patch gets about 256 lines: its share errs by the lines along its boundary.
+    for v in &values {
+        assert!(
+            (v - expected).abs() < 0.25 * expected,
+            "{v} against {expected}"
+        );
+    }
+    let rms = (values.iter().map(|v| (v - expected).powi(2)).sum::<f64>() / values.len() as f64)
+        .sqrt()
+        / expected;
+    assert!(rms < 0.06, "rms {rms}");
+}
+
+#[test]
+fn an_occluder_casts_a_shadow() {
+    // A 2 m square plate 1 m above the floor, under a point light at 3 m: the plate's shadow
+    // on the floor is the plate scaled by 3 / (3 − 1) = 1.5 about the light's foot.
+    let (p, h) = (1.0f32, 1.0f32);
+    let plate = vec![[-p, h, -p], [p, h, -p], [p, h, p], [-p, h, p]];
+    let doc = floor_scene(
+        json!([{"type": "point", "intensity": 10.0}]),
+        &[light_node(0, [0.0, 3.0, 0.0], [0.0, 0.0, 0.0, 1.0])],
+        // Facing up (towards the light), so the floor side is its back: one-sided, it still
+        // blocks.
+        &[(plate, vec![0, 3, 2, 0, 2, 1])],
+    );
+    let bake = bake(load_with(&doc, 0.25, 1.0));
+    let direct = bake.direct().irradiance(0, &bake.light_power()).unwrap();
+    let (mut shadowed, mut lit) = (0, 0);
+    for (patch, centre) in floor_centroids(&bake.scene) {
+        let inside = centre.x.abs().max(centre.z.abs());
+        if inside < 1.5 - 0.2 {
+            assert_eq!(direct[patch][0], 0.0, "lit in the shadow at {centre}");
+            shadowed += 1;
+        } else if inside > 1.5 + 0.2 {
+            assert!(
+                direct[patch][0] > 0.0,
+                "dark outside the shadow at {centre}"
+            );
+            lit += 1;
+        }
+    }
+    assert!(shadowed > 50 && lit > 1000);
+}
+
+#[test]
+fn a_moving_light_changes_its_frames_and_lights_relight_without_tracing() {
+    let mut doc = floor_scene(
+        json!([{"type": "point", "intensity": 20.0}]),
+        &[light_node(0, [0.0, 2.0, 0.0], [0.0, 0.0, 0.0, 1.0])],
+        &[],
+    );
+    // The light slides 4 m along +X over one second, then stays.
+    doc.animation(
+        "slide",
+        &[(
+            1,
+            "translation",
+            &[0.0, 1.0, 2.0],
+            &[0.0, 2.0, 0.0, 4.0, 2.0, 0.0, 4.0, 2.0, 0.0],
+            "LINEAR",
+        )],
+    );
+    let scene = load_with(&doc, 0.5, 2.0);
+    assert_eq!(scene.frames.count, 5);
+    assert!(scene.lights[0].moves() && scene.objects.is_empty());
+    let bake = bake(scene);
+    // Nothing moves but the light: one set of tallies; the frames differ by their direct
+    // light only, and the last three (the light at rest at x = 4) share it.
+    let representatives = bake.representatives();
+    assert_eq!(representatives, vec![0, 1, 2, 2, 2]);
+    let power = bake.light_power();
+    for f in 0..5 {
+        let x = (4.0 * f as f64 / 2.0).min(4.0);
+        let direct = bake.direct().irradiance(f, &power).unwrap();
+        for (patch, centre) in floor_centroids(&bake.scene) {
+            let d2 = (centre.x - x).powi(2) + centre.z.powi(2) + 4.0;
+            let expected = 20.0 * 2.0 / d2.sqrt() / d2;
+            assert!((direct[patch][0] - expected).abs() < 0.01 * expected);
+        }
+    }
+    let all = bake.solve_all(&bake.scene.materials, &SolveParams::default());
+    assert!(std::sync::Arc::ptr_eq(&all[2], &all[4]));
+    assert!(all[0].radiance != all[1].radiance);
+    // Twice the intensity, twice the light, no tracing.
+    let doubled: Vec<[f64; 3]> = power.iter().map(|p| p.map(|c| 2.0 * c)).collect();
+    let twice = bake.solve_frame_lit(2, &bake.scene.materials, &doubled, &SolveParams::default());
+    for (a, b) in twice.radiance.iter().zip(&all[2].radiance) {
+        assert!((a[0] - 2.0 * b[0]).abs() <= 1e-9 * a[0].max(1e-300));
+    }
+}
+
+#[test]
+fn bad_lights_are_refused_with_their_name() {
+    for (light, why) in [
+        (json!({"type": "spot", "intensity": 1.0}), "spot"),
+        (
+            json!({"type": "spot", "spot": {"innerConeAngle": 0.6, "outerConeAngle": 0.5}}),
+            "innerConeAngle",
+        ),
+        (json!({"type": "point", "intensity": -1.0}), "intensity"),
+        (json!({"type": "point", "range": 0.0}), "range"),
+        (
+            json!({"type": "point", "color": [1.0, -1.0, 0.0]}),
+            "colour",
+        ),
+    ] {
+        let doc = floor_scene(
+            json!([light]),
+            &[light_node(0, [0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0])],
+            &[],
+        );
+        let error = load(&doc.gltf(), &LoadOptions::default())
+            .err()
+            .unwrap_or_else(|| panic!("accepted {why}"))
+            .to_string();
+        // gltf-json's own validation names it lights[0].
+        let named = error.contains("light 0") || error.contains("lights[0]");
+        assert!(named && error.contains(why), "{error}");
+    }
+}
