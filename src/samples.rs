@@ -61,7 +61,14 @@ pub fn all() -> Vec<Sample> {
             file_name: "level.gltf",
             description: "Three 4 m x 3 m x 4 m rooms in a row joined by 1 m x 2 m doorways, one \
                           ceiling light each, and a door swinging 0-90-0 degrees over 2 s.",
-            gltf: level(),
+            gltf: level(false),
+        },
+        Sample {
+            file_name: "level_lamps.gltf",
+            description: "The level lit by KHR_lights_punctual lamps instead of glowing panels: a \
+                          warm point light, a spot light pointing down and a point light swinging \
+                          on a 1 m pendulum (+-30 degrees over 2 s), with the door swinging.",
+            gltf: level(true),
         },
         Sample {
             file_name: "morph_box.gltf",
@@ -190,12 +197,17 @@ const LIGHT_GAP: f32 = 0.02;
 const DOOR_THICKNESS: f32 = 0.04;
 
 /// Three rooms, three lights, one swinging door.
-fn level() -> String {
+/// The level; with `lamps`, lit by punctual lights under non-emissive fixtures.
+fn level(lamps: bool) -> String {
     let mut b = Builder::default();
     let floor = b.material(Material::diffuse("floor", [0.5; 3]));
     let wall = b.material(Material::diffuse("wall", [0.7; 3]));
     let ceiling = b.material(Material::diffuse("ceiling", [0.8; 3]));
-    let lamp = b.material(Material::emitter("lamp", [0.8; 3], 10.0));
+    let lamp = if lamps {
+        b.material(Material::diffuse("lamp_shade", [0.8; 3]))
+    } else {
+        b.material(Material::emitter("lamp", [0.8; 3], 10.0))
+    };
     let housing = b.material(Material::diffuse("lamp_housing", [0.8; 3]));
     let door = b.material(Material::diffuse("door", [0.55, 0.4, 0.25]));
 
@@ -269,7 +281,49 @@ fn level() -> String {
     let times = b.key_times(&[0.0, 1.0, 2.0]);
     let rotations = b.quats(&[Quat::IDENTITY, turn_y(90.0), Quat::IDENTITY]);
     b.animation("door_swing", times, &[(door, "rotation", rotations)]);
-    b.finish("level")
+    if !lamps {
+        return b.finish("level");
+    }
+
+    // Lamps 0.3 m under the fixtures: a warm point light, a spot pointing down (−Z turned to
+    // −Y), and a point light on a 1 m pendulum from the third fixture.
+    let centre = |(x0, x1): (f32, f32)| (x0 + x1) / 2.0;
+    let below = ROOM_HEIGHT - LIGHT_GAP - LIGHT_THICKNESS - 0.3;
+    let warm = b.light(
+        json!({"name": "warm_lamp", "type": "point", "color": [1.0, 0.85, 0.7], "intensity": 60.0}),
+    );
+    b.light_node(
+        "warm_lamp",
+        warm,
+        Vec3::new(centre(ROOMS_X[0]), below, 0.0),
+        Quat::IDENTITY,
+    );
+    let spot = b.light(json!({"name": "spot", "type": "spot", "intensity": 150.0,
+        "spot": {"innerConeAngle": 0.4, "outerConeAngle": 0.7}}));
+    let down = Quat::from_rotation_x(-std::f32::consts::FRAC_PI_2);
+    b.light_node(
+        "spot",
+        spot,
+        Vec3::new(centre(ROOMS_X[1]), below, 0.0),
+        down,
+    );
+    let swinging = b.light(json!({"name": "swinging_lamp", "type": "point", "intensity": 60.0}));
+    let pivot = Vec3::new(
+        centre(ROOMS_X[2]),
+        ROOM_HEIGHT - LIGHT_GAP - LIGHT_THICKNESS,
+        1.0,
+    );
+    let swing = |t: f32| {
+        let angle = 30f32.to_radians() * (std::f32::consts::PI * t).sin();
+        pivot + Vec3::new(angle.sin(), -angle.cos(), 0.0)
+    };
+    let node = b.light_node("swinging_lamp", swinging, swing(0.0), Quat::IDENTITY);
+    let keys: Vec<f32> = (0..=16).map(|k| k as f32 / 8.0).collect();
+    let times = b.key_times(&keys);
+    let path: Vec<Vec3> = keys.iter().map(|&t| swing(t)).collect();
+    let positions = b.vec3s(&path);
+    b.animation("lamp_swing", times, &[(node, "translation", positions)]);
+    b.finish("level_lamps")
 }
 
 /// A box that grows by a morph target.
@@ -582,6 +636,7 @@ struct Builder {
     meshes: Vec<Value>,
     nodes: Vec<Value>,
     animations: Vec<Value>,
+    lights: Vec<Value>,
     uses_emissive_strength: bool,
 }
 
@@ -648,6 +703,24 @@ impl Builder {
         if translation != Vec3::ZERO {
             node["translation"] = translation.to_array().into_iter().map(num).collect();
         }
+        if rotation != Quat::IDENTITY {
+            node["rotation"] = rotation.to_array().into_iter().map(num).collect();
+        }
+        push(&mut self.nodes, node)
+    }
+
+    /// Adds a `KHR_lights_punctual` light; returns its index.
+    fn light(&mut self, light: Value) -> usize {
+        push(&mut self.lights, light)
+    }
+
+    /// Adds a node carrying light `light`; returns its index.
+    fn light_node(&mut self, name: &str, light: usize, translation: Vec3, rotation: Quat) -> usize {
+        let mut node = json!({
+            "name": name,
+            "translation": translation.to_array().into_iter().map(num).collect::<Value>(),
+            "extensions": { "KHR_lights_punctual": { "light": light } },
+        });
         if rotation != Quat::IDENTITY {
             node["rotation"] = rotation.to_array().into_iter().map(num).collect();
         }
@@ -771,8 +844,16 @@ impl Builder {
         if !self.animations.is_empty() {
             doc["animations"] = Value::Array(self.animations);
         }
+        let mut extensions = Vec::new();
         if self.uses_emissive_strength {
-            doc["extensionsUsed"] = json!([EMISSIVE_STRENGTH]);
+            extensions.push(EMISSIVE_STRENGTH);
+        }
+        if !self.lights.is_empty() {
+            extensions.push("KHR_lights_punctual");
+            doc["extensions"] = json!({ "KHR_lights_punctual": { "lights": self.lights } });
+        }
+        if !extensions.is_empty() {
+            doc["extensionsUsed"] = json!(extensions);
         }
         let mut text =
             serde_json::to_string_pretty(&doc).expect("a serde_json::Value always serialises");
@@ -961,6 +1042,7 @@ mod tests {
                 "furnace.gltf",
                 "parallel_squares.gltf",
                 "level.gltf",
+                "level_lamps.gltf",
                 "morph_box.gltf",
             ]
         );

@@ -38,6 +38,7 @@ fn each_scene_loads_as_intended() {
         ("furnace.gltf", 0, 0, 1),
         ("parallel_squares.gltf", 0, 0, 1),
         ("level.gltf", 1, 0, 49),
+        ("level_lamps.gltf", 1, 0, 49),
         ("morph_box.gltf", 0, 1, 49),
     ] {
         let s = load_sample(name, &options).summary();
@@ -47,8 +48,13 @@ fn each_scene_loads_as_intended() {
             "{name}"
         );
         assert!(s.warnings.is_empty(), "{name}: {:?}", s.warnings);
-        assert!(s.emitters > 0, "{name} has no light");
+        assert!(s.emitters + s.lights > 0, "{name} has no light");
     }
+    let lamps = load_sample("level_lamps.gltf", &options).summary();
+    assert_eq!(
+        (lamps.emitters, lamps.lights, lamps.moving_lights),
+        (0, 3, 1)
+    );
     let furnace = load_sample("furnace.gltf", &options);
     assert_eq!(furnace.summary().emitters, furnace.patches.len());
     assert_eq!(furnace.materials[0].reflectance, [0.999f32 as f64; 3]);

@@ -84,6 +84,7 @@ async fn every_sample_scene_bakes_and_serves_every_frame() {
         "furnace.gltf",
         "parallel_squares.gltf",
         "level.gltf",
+        "level_lamps.gltf",
         "morph_box.gltf",
     ] {
         let (id, created) = create(&client, &base, "lines=20000&fps=4", name).await;
