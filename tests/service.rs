@@ -698,3 +698,95 @@ async fn a_frame_preview_is_the_png_the_command_line_writes() {
         assert_eq!(response.status(), 404, "{path}");
     }
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn lamps_relight_by_intensity_without_tracing() {
+    let base = start(Config::default()).await;
+    let client = reqwest::Client::new();
+    let (id, _) = create(&client, &base, "lines=20000&fps=1", "level_lamps.gltf").await;
+    let done = wait(&client, &base, &id, Duration::from_secs(60)).await;
+    assert_eq!(done["status"], "done");
+    let traced = done["progress"]["lines_traced"].clone();
+    let radiance = |frame: Value| -> Vec<f64> {
+        frame["radiance"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|l| l[0].as_f64().unwrap())
+            .collect()
+    };
+    let before = radiance(get_json(&client, format!("{base}/v1/timelines/{id}/frames/1")).await);
+    assert!(before.iter().any(|&l| l > 0.0), "the lamps light the level");
+    // Twice the warm lamp and the spot, the swinging lamp off: by name and by index.
+    let body = serde_json::json!({"lights": [
+        {"light": "warm_lamp", "intensity": 120.0},
+        {"light": 1, "intensity": 300.0},
+        {"light": "swinging_lamp", "intensity": 0.0},
+    ]});
+    let response = client
+        .post(format!("{base}/v1/timelines/{id}/materials"))
+        .json(&body)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(response.status(), 202);
+    let done = wait(&client, &base, &id, Duration::from_secs(60)).await;
+    assert_eq!(
+        done["progress"]["lines_traced"], traced,
+        "relighting traced lines"
+    );
+    // All lights off but two, doubled: with no emitters, the level is linear in them. Check
+    // against turning the swinging lamp off alone, at the old intensities, and doubling.
+    let doubled = radiance(get_json(&client, format!("{base}/v1/timelines/{id}/frames/1")).await);
+    let body = serde_json::json!({"lights": [
+        {"light": "warm_lamp", "intensity": 60.0},
+        {"light": "spot", "intensity": 150.0},
+    ]});
+    client
+        .post(format!("{base}/v1/timelines/{id}/materials"))
+        .json(&body)
+        .send()
+        .await
+        .unwrap();
+    wait(&client, &base, &id, Duration::from_secs(60)).await;
+    let single = radiance(get_json(&client, format!("{base}/v1/timelines/{id}/frames/1")).await);
+    for (d, s) in doubled.iter().zip(&single) {
+        assert!(
+            (d - 2.0 * s).abs() <= 1e-5 * d.max(1e-30),
+            "{d} against 2 × {s}"
+        );
+    }
+    assert!(
+        single.iter().zip(&before).any(|(s, b)| s < b),
+        "the swinging lamp is off"
+    );
+    // Unknown lights and bad values are refused, naming what is wrong.
+    for (body, needle) in [
+        (
+            serde_json::json!({"lights": [{"light": "sun", "intensity": 1.0}]}),
+            "warm_lamp",
+        ),
+        (
+            serde_json::json!({"lights": [{"light": 0, "intensity": -1.0}]}),
+            "intensity",
+        ),
+        (
+            serde_json::json!({"lights": [{"light": 0, "color": [1.0, "x", 0.0]}]}),
+            "body",
+        ),
+        (
+            serde_json::json!({"lights": [{"light": 0, "power": 1.0}]}),
+            "power",
+        ),
+    ] {
+        let response = client
+            .post(format!("{base}/v1/timelines/{id}/materials"))
+            .json(&body)
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(response.status(), 400, "{body}");
+        let text = response.text().await.unwrap();
+        assert!(text.contains(needle), "{body}: {text}");
+    }
+}

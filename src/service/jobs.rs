@@ -103,10 +103,31 @@ pub struct Job {
     pub bake: Mutex<Option<Bake>>,
     /// The materials the frames are solved with (the scene's, until relit).
     pub materials: Mutex<Vec<Material>>,
+    /// The punctual lights' names and power (the scene's, until relit).
+    pub lights: Mutex<Vec<LightSetting>>,
     /// Signals each newly solved frame (its count) and the end of the job.
     pub solved: watch::Sender<usize>,
     /// Where finished results are kept, if anywhere.
     store: Option<Store>,
+}
+
+/// A punctual light as relighting sees it: its name and power.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LightSetting {
+    /// The light's name in the scene, if any.
+    pub name: Option<String>,
+    /// Linear RGB colour.
+    pub colour: [f64; 3],
+    /// Candela (point, spot) or lux (directional).
+    pub intensity: f64,
+}
+
+impl LightSetting {
+    /// Colour × intensity.
+    #[must_use]
+    pub fn power(&self) -> [f64; 3] {
+        self.colour.map(|c| c * self.intensity)
+    }
 }
 
 impl Job {
@@ -129,6 +150,17 @@ impl Job {
             version: AtomicU64::new(1),
             bake: Mutex::new(None),
             materials: Mutex::new(scene.materials.clone()),
+            lights: Mutex::new(
+                scene
+                    .lights
+                    .iter()
+                    .map(|l| LightSetting {
+                        name: l.name.clone(),
+                        colour: l.colour,
+                        intensity: l.intensity,
+                    })
+                    .collect(),
+            ),
             patches: scene.patches.len(),
             warnings: scene.warnings.clone(),
             scene: Mutex::new(Some(scene)),
@@ -205,6 +237,7 @@ impl Job {
             version: AtomicU64::new(record.version),
             bake: Mutex::new(None),
             materials: Mutex::new(Vec::new()),
+            lights: Mutex::new(Vec::new()),
             solved: watch::channel(solved).0,
             store,
         }
@@ -370,6 +403,11 @@ impl Job {
         };
         let representatives = bake.representatives();
         let materials = self.materials.lock().map(|m| m.clone()).unwrap_or_default();
+        let power: Vec<[f64; 3]> = self
+            .lights
+            .lock()
+            .map(|l| l.iter().map(LightSetting::power).collect())
+            .unwrap_or_default();
         let chunk = 2 * rayon::current_num_threads().max(1);
         let frames = self.frame_times.len();
         let mut frame = 0;
@@ -390,7 +428,7 @@ impl Job {
                             .filter(|(v, _)| *v == version);
                         match shared {
                             Some((_, s)) => s,
-                            None => Arc::new(bake.solve_frame(f, &materials, &params)),
+                            None => Arc::new(bake.solve_frame_lit(f, &materials, &power, &params)),
                         }
                     })
                     .collect()

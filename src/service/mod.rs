@@ -741,11 +741,56 @@ struct MaterialChange {
     reflectance: Option<[f64; 3]>,
 }
 
+/// One light's change in `POST /v1/timelines/{id}/materials`.
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct LightChange {
+    /// The light, by name or index (in the file's `KHR_lights_punctual` order of use).
+    light: serde_json::Value,
+    /// New intensity: candela for point and spot lights, lux for directional ones.
+    intensity: Option<f64>,
+    /// New linear RGB colour.
+    color: Option<[f64; 3]>,
+}
+
 /// The body of `POST /v1/timelines/{id}/materials`.
 #[derive(serde::Deserialize)]
 #[serde(deny_unknown_fields)]
 struct Relight {
+    #[serde(default)]
     materials: Vec<MaterialChange>,
+    #[serde(default)]
+    lights: Vec<LightChange>,
+}
+
+/// The index in `names` of `wanted` (a number or a name); `what` names the kind in the error.
+fn find_by_name_or_index(
+    wanted: &serde_json::Value,
+    names: &[Option<String>],
+    what: &str,
+) -> Result<usize, ApiError> {
+    match wanted {
+        serde_json::Value::Number(n) => n.as_u64().map(|i| i as usize).filter(|&i| i < names.len()),
+        serde_json::Value::String(name) => names
+            .iter()
+            .position(|m| m.as_deref() == Some(name.as_str())),
+        _ => None,
+    }
+    .ok_or_else(|| {
+        let listed: Vec<String> = names
+            .iter()
+            .enumerate()
+            .map(|(i, m)| format!("{i} ({})", m.as_deref().unwrap_or("unnamed")))
+            .collect();
+        ApiError::Parameter(format!(
+            "no {what} {wanted}; the scene has {}",
+            if listed.is_empty() {
+                "none".to_string()
+            } else {
+                listed.join(", ")
+            }
+        ))
+    })
 }
 
 /// `POST /v1/timelines/{id}/materials`: new emission or reflectance per material, re-solved
@@ -756,36 +801,20 @@ async fn relight_timeline(
     body: Bytes,
 ) -> Result<Response, ApiError> {
     let job = job(&state, &id)?;
-    let relight: Relight = serde_json::from_slice(&body)
-        .map_err(|e| ApiError::Parameter(format!("the body must be {{\"materials\": [{{\"material\", \"emission\", \"reflectance\"}}]}}: {e}")))?;
+    let relight: Relight = serde_json::from_slice(&body).map_err(|e| {
+        ApiError::Parameter(format!(
+            "the body must be {{\"materials\": [{{\"material\", \"emission\", \"reflectance\"}}], \
+             \"lights\": [{{\"light\", \"intensity\", \"color\"}}]}}: {e}"
+        ))
+    })?;
     let mut materials = job
         .materials
         .lock()
         .map(|m| m.clone())
         .map_err(|_| ApiError::Internal("materials lock".into()))?;
+    let names: Vec<Option<String>> = materials.iter().map(|m| m.name.clone()).collect();
     for change in relight.materials {
-        let index = match &change.material {
-            serde_json::Value::Number(n) => n
-                .as_u64()
-                .map(|i| i as usize)
-                .filter(|&i| i < materials.len()),
-            serde_json::Value::String(name) => materials
-                .iter()
-                .position(|m| m.name.as_deref() == Some(name.as_str())),
-            _ => None,
-        }
-        .ok_or_else(|| {
-            let names: Vec<String> = materials
-                .iter()
-                .enumerate()
-                .map(|(i, m)| format!("{i} ({})", m.name.as_deref().unwrap_or("unnamed")))
-                .collect();
-            ApiError::Parameter(format!(
-                "no material {}; the scene has {}",
-                change.material,
-                names.join(", ")
-            ))
-        })?;
+        let index = find_by_name_or_index(&change.material, &names, "material")?;
         if let Some(e) = change.emission {
             if e.iter().any(|v| !v.is_finite() || *v < 0.0) {
                 return Err(ApiError::Parameter(format!(
@@ -803,6 +832,31 @@ async fn relight_timeline(
             materials[index].reflectance = r;
         }
     }
+    let mut lights = job
+        .lights
+        .lock()
+        .map(|l| l.clone())
+        .map_err(|_| ApiError::Internal("lights lock".into()))?;
+    let names: Vec<Option<String>> = lights.iter().map(|l| l.name.clone()).collect();
+    for change in relight.lights {
+        let index = find_by_name_or_index(&change.light, &names, "light")?;
+        if let Some(i) = change.intensity {
+            if !i.is_finite() || i < 0.0 {
+                return Err(ApiError::Parameter(format!(
+                    "intensity must be a finite number ≥ 0, not {i}"
+                )));
+            }
+            lights[index].intensity = i;
+        }
+        if let Some(c) = change.color {
+            if c.iter().any(|v| !v.is_finite() || *v < 0.0) {
+                return Err(ApiError::Parameter(format!(
+                    "color must be three finite numbers ≥ 0, not {c:?}"
+                )));
+            }
+            lights[index].colour = c;
+        }
+    }
     if job.status() != Status::Done {
         return Err(ApiError::NotReady(format!(
             "timeline {id} is {:?}: relight it once it is done",
@@ -811,6 +865,9 @@ async fn relight_timeline(
     }
     if let Ok(mut m) = job.materials.lock() {
         *m = materials;
+    }
+    if let Ok(mut l) = job.lights.lock() {
+        *l = lights;
     }
     rerun(&state, job, Work::Relight)
 }
