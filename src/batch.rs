@@ -1,7 +1,8 @@
 //! Batch baking: what a build pipeline runs overnight (`radiosity bake`).
 //!
 //! Each scene bakes into `OUT/<scene name>/`:
-//! - `radiance.bin`: every frame's radiance per patch (layout in [`write_radiance`]);
+//! - `radiance.bin`: every frame's radiance per patch (layout in the README and beside
+//!   `write_radiance`);
 //! - `summary.json`: frames, patches, parameters, error figures, warnings and the content hash
 //!   that makes re-runs incremental;
 //! - `baked/frame_NNNN.glb`: the baked glTF of the chosen frames (see [`crate::output::glb`]);

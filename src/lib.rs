@@ -22,7 +22,7 @@
 //!   GIF previews, the tone map.
 //! - [`service`]: the HTTP service (axum): jobs, their status and their frames.
 //! - [`batch`]: batch baking of scenes into files (`radiosity bake`).
-//! - [`bench`]: the measurements behind the README's figures (`radiosity bench`).
+//! - [`bench`](mod@bench): the measurements behind the README's figures (`radiosity bench`).
 //! - [`samples`]: the generator of the sample scenes in `scenes/`.
 //!
 //! The method is described in `METHOD.md` (shared with the team) and the README.
