@@ -44,7 +44,7 @@ impl Bake {
         let list = IntersectionList::build(&scene, &tracer, params, control)?;
         let mut tallies = Tallies::default();
         tallies.update(&list, &tracer.surfaces());
-        let direct = DirectLight::compute(&scene, &tracer);
+        let direct = DirectLight::compute(&scene, &tracer, control)?;
         Ok(Self {
             scene,
             tracer,

@@ -212,13 +212,11 @@ fn frame_name(f: usize, count: usize, extension: &str) -> String {
 /// there are at most [`GIF_MAX_FRAMES`] and none is shorter than browsers allow.
 fn gif_frames(count: usize, fps: f64) -> (Vec<usize>, u32) {
     let frame_ms = 1000.0 / fps;
-    let mut step = count.div_ceil(GIF_MAX_FRAMES).max(1);
-    while (step as f64) * frame_ms < GIF_MIN_DELAY_MS {
-        step += 1;
-    }
+    let fast = (GIF_MIN_DELAY_MS / frame_ms).ceil().min(count as f64) as usize;
+    let step = count.div_ceil(GIF_MAX_FRAMES).max(fast).max(1);
     let delay = (step as f64 * frame_ms)
         .round()
-        .min(f64::from(u16::MAX) * 10.0) as u32;
+        .clamp(GIF_MIN_DELAY_MS, f64::from(u16::MAX) * 10.0) as u32;
     ((0..count).step_by(step).collect(), delay)
 }
 
@@ -482,6 +480,8 @@ mod tests {
         let (frames, delay) = gif_frames(2001, 30.0);
         assert!(frames.len() <= GIF_MAX_FRAMES && frames.len() > GIF_MAX_FRAMES / 2);
         assert_eq!(delay, 9 * 1000 / 30);
+        // Absurd rates end at once, with one frame.
+        assert_eq!(gif_frames(1001, 1e12), (vec![0], 20));
         assert_eq!(frame_name(7, 25, "png"), "frame_0007.png");
         assert_eq!(frame_name(7, 100_000, "glb"), "frame_00007.glb");
     }

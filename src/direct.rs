@@ -8,11 +8,16 @@
 //!
 //! - **Point and spot lights**: each patch is sampled at the centroids of 1, 4, 16 or 64 equal
 //!   sub-triangles, more as the patch looks larger from the light (its longest edge against its
-//!   distance), each with a shadow ray to the light. A patch that faces away, lies outside a
-//!   spot's cone or beyond the light's range, or does not reflect, costs nothing.
+//!   distance), each with a shadow ray to the light. A patch that faces away, or lies outside
+//!   a spot's cone or beyond the light's range, costs nothing. (Black patches are lit too: a
+//!   relighting may give them a reflectance.)
 //! - **Directional lights** are a bundle of parallel lines (METHOD.md §1's construction with
-//!   one direction): each line carries the flux of its cell, `E⊥·Δ`, to the first surface it
-//!   meets, so a patch receives `E⊥·cos θ` on average and nothing in shadow.
+//!   one direction), about 256 per patch of median area. A patch facing the light at θ gets
+//!   `E⊥·cos θ` times the fraction of the lines crossing it whose first crossing it is: exact
+//!   where nothing shadows it, line-sampled where a shadow edge crosses it.
+//!
+//! Each light's result is kept per distinct state (its pose, and the moving geometry's): a
+//! fixed lamp over static geometry is computed once for the whole timeline.
 
 use std::collections::HashMap;
 use std::hash::{Hash, Hasher};
@@ -22,10 +27,11 @@ use rayon::prelude::*;
 
 use crate::lines::parallel_bundle;
 use crate::scene::{Faces, Light, LightKind, Scene};
+use crate::timeline::{Control, TraceError};
 use crate::trace::{FrameMeshes, Hit, Line, SceneTracer};
 
-/// Lines of a directional light per patch of median area. A patch's share of a jittered grid
-/// errs by about the lines along its boundary: a few per cent at 256.
+/// Lines of a directional light per patch of median area: they resolve shadow edges to about
+/// 1/16 of such a patch's side.
 const LINES_PER_PATCH: f64 = 256.0;
 
 /// Most lines of one directional light at one frame.
@@ -39,36 +45,95 @@ const SHADOW_EPSILON: f32 = 1e-5;
 /// nothing it depends on changes.
 #[derive(Clone, Debug, Default)]
 pub struct DirectLight {
-    /// For each frame, its entry in `terms`.
-    frame_term: Vec<usize>,
-    /// Per distinct state: per light, the irradiance of each patch per unit of light power.
-    terms: Vec<Vec<Vec<f64>>>,
+    /// Per light: for each frame, its entry in that light's `terms`. A light that does not move
+    /// over static geometry has one entry for the whole timeline, whatever the others do.
+    frame_term: Vec<Vec<u32>>,
+    /// Per light, per distinct state: the irradiance of each patch per unit of light power
+    /// (f32: far finer than the sampling of the patch).
+    terms: Vec<Vec<Vec<f32>>>,
+    /// For each frame, the index of its combination of every light's state: frames with equal
+    /// states have equal direct light.
+    frame_state: Vec<u32>,
 }
 
 impl DirectLight {
-    /// Computes the direct light of every frame of `scene` (nothing if it has no lights).
-    /// Frames whose moving geometry and lights are posed alike share one computation.
-    #[must_use]
-    pub fn compute(scene: &Scene, tracer: &SceneTracer) -> Self {
+    /// Computes the direct light of every frame of `scene` (nothing if it has no lights),
+    /// counting one unit of `control`'s stage per light state computed and stopping early if
+    /// it is cancelled. Frames where a light and the moving geometry are posed alike share
+    /// that light's computation.
+    ///
+    /// # Errors
+    /// [`TraceError::Cancelled`] if `control` was cancelled.
+    pub fn compute(
+        scene: &Scene,
+        tracer: &SceneTracer,
+        control: &Control,
+    ) -> Result<Self, TraceError> {
         if scene.lights.is_empty() {
-            return Self::default();
+            return Ok(Self::default());
         }
-        let mut first_of: HashMap<u64, usize> = HashMap::new();
-        let mut frame_term = Vec::with_capacity(scene.frames.count);
-        let mut distinct = Vec::new();
-        for f in 0..scene.frames.count {
-            let key = state_key(scene, f);
-            let term = *first_of.entry(key).or_insert_with(|| {
-                distinct.push(f);
-                distinct.len() - 1
-            });
-            frame_term.push(term);
-        }
-        let terms = distinct
-            .par_iter()
-            .map(|&f| frame_irradiance(scene, tracer, f))
+        let frames = scene.frames.count;
+        let moving = !scene.objects.is_empty();
+        let geometry: Vec<u64> = (0..frames)
+            .map(|f| if moving { geometry_key(scene, f) } else { 0 })
             .collect();
-        Self { frame_term, terms }
+        // Per light: each frame's state and the first frame of every distinct state.
+        let mut frame_term = Vec::with_capacity(scene.lights.len());
+        let mut jobs: Vec<(usize, usize)> = Vec::new();
+        for (l, light) in scene.lights.iter().enumerate() {
+            let mut first_of: HashMap<(u64, u64), u32> = HashMap::new();
+            let mut states = Vec::with_capacity(frames);
+            let mut count = 0;
+            for (f, &g) in geometry.iter().enumerate() {
+                let key = (pose_key(light, f), g);
+                let state = *first_of.entry(key).or_insert_with(|| {
+                    jobs.push((l, f));
+                    count += 1;
+                    count - 1
+                });
+                states.push(state);
+            }
+            frame_term.push(states);
+        }
+        control.add_work(jobs.len() as u64);
+        // One posed scene per frame that needs one, shared by its lights. In frame order, so
+        // each light's states come out in the order they were numbered.
+        let mut grouped: std::collections::BTreeMap<usize, Vec<usize>> = Default::default();
+        for &(l, f) in &jobs {
+            grouped.entry(f).or_default().push(l);
+        }
+        let by_frame: Vec<(usize, Vec<usize>)> = grouped.into_iter().collect();
+        let computed: Vec<Vec<(usize, Vec<f32>)>> = by_frame
+            .par_iter()
+            .map(|(f, lights)| {
+                if control.is_cancelled() {
+                    return Vec::new();
+                }
+                let out = frame_irradiance(scene, tracer, *f, lights);
+                control.advance(lights.len() as u64);
+                out
+            })
+            .collect();
+        if control.is_cancelled() {
+            return Err(TraceError::Cancelled);
+        }
+        let mut terms: Vec<Vec<Vec<f32>>> = vec![Vec::new(); scene.lights.len()];
+        for (l, term) in computed.into_iter().flatten() {
+            terms[l].push(term);
+        }
+        let mut combos: HashMap<Vec<u32>, u32> = HashMap::new();
+        let frame_state = (0..frames)
+            .map(|f| {
+                let combo: Vec<u32> = frame_term.iter().map(|states| states[f]).collect();
+                let next = combos.len() as u32;
+                *combos.entry(combo).or_insert(next)
+            })
+            .collect();
+        Ok(Self {
+            frame_term,
+            terms,
+            frame_state,
+        })
     }
 
     /// Whether there is any direct light.
@@ -77,24 +142,25 @@ impl DirectLight {
         self.terms.is_empty()
     }
 
-    /// Which distinct state frame `frame` is in: frames with equal states have equal direct
-    /// light.
+    /// Which combination of light states frame `frame` is in: frames with equal states have
+    /// equal direct light.
     #[must_use]
     pub fn state(&self, frame: usize) -> Option<usize> {
-        self.frame_term.get(frame).copied()
+        self.frame_state.get(frame).map(|&s| s as usize)
     }
 
     /// Irradiance of every patch at `frame` (RGB, lux) with the lights at `power` (colour ×
     /// intensity per light, in the scene's order); `None` without lights.
     #[must_use]
     pub fn irradiance(&self, frame: usize, power: &[[f64; 3]]) -> Option<Vec<[f64; 3]>> {
-        let per_light = &self.terms[self.state(frame)?];
-        let patches = per_light.first().map_or(0, Vec::len);
+        self.state(frame)?;
+        let patches = self.terms.first()?.first().map_or(0, Vec::len);
         let mut out = vec![[0.0; 3]; patches];
-        for (unit, p) in per_light.iter().zip(power) {
+        for ((states, terms), p) in self.frame_term.iter().zip(&self.terms).zip(power) {
+            let unit = &terms[states[frame] as usize];
             for (e, &u) in out.iter_mut().zip(unit) {
                 for c in 0..3 {
-                    e[c] += p[c] * u;
+                    e[c] += p[c] * f64::from(u);
                 }
             }
         }
@@ -104,26 +170,25 @@ impl DirectLight {
     /// Memory held, bytes.
     #[must_use]
     pub fn memory(&self) -> usize {
-        self.terms
-            .iter()
-            .flatten()
-            .map(|v| v.len() * 8)
-            .sum::<usize>()
-            + self.frame_term.len() * std::mem::size_of::<usize>()
+        let terms: usize = self.terms.iter().flatten().map(|v| v.len() * 4).sum();
+        terms + 4 * (self.frame_term.iter().map(Vec::len).sum::<usize>() + self.frame_state.len())
     }
 }
 
-/// A hash of everything the direct light at `frame` depends on that can change: the poses of
-/// the lights and of the moving geometry (its vertices).
-fn state_key(scene: &Scene, frame: usize) -> u64 {
+/// The bits of a light's pose at `frame`, hashed.
+fn pose_key(light: &Light, frame: usize) -> u64 {
     let mut h = std::collections::hash_map::DefaultHasher::new();
-    for light in &scene.lights {
-        light
-            .pose(frame)
-            .to_cols_array()
-            .iter()
-            .for_each(|v| v.to_bits().hash(&mut h));
-    }
+    light
+        .pose(frame)
+        .to_cols_array()
+        .iter()
+        .for_each(|v| v.to_bits().hash(&mut h));
+    h.finish()
+}
+
+/// The moving geometry's vertices at `frame`, hashed: a shadow can change only with them.
+fn geometry_key(scene: &Scene, frame: usize) -> u64 {
+    let mut h = std::collections::hash_map::DefaultHasher::new();
     for object in &scene.objects {
         object
             .positions_at(frame)
@@ -133,8 +198,13 @@ fn state_key(scene: &Scene, frame: usize) -> u64 {
     h.finish()
 }
 
-/// Unit irradiance per light and patch at `frame`.
-fn frame_irradiance(scene: &Scene, tracer: &SceneTracer, frame: usize) -> Vec<Vec<f64>> {
+/// Unit irradiance per patch at `frame` of each light in `lights` (indices into the scene's).
+fn frame_irradiance(
+    scene: &Scene,
+    tracer: &SceneTracer,
+    frame: usize,
+    lights: &[usize],
+) -> Vec<(usize, Vec<f32>)> {
     let deformed = tracer.deformed_at(scene, frame);
     let triangles = scene.triangles_at(frame);
     let at = Frame {
@@ -144,12 +214,15 @@ fn frame_irradiance(scene: &Scene, tracer: &SceneTracer, frame: usize) -> Vec<Ve
         triangles: &triangles,
         frame,
     };
-    scene
-        .lights
+    lights
         .iter()
-        .map(|light| match light.kind {
-            LightKind::Directional => directional(&at, light),
-            _ => point(&at, light),
+        .map(|&l| {
+            let light = &scene.lights[l];
+            let unit = match light.kind {
+                LightKind::Directional => directional(&at, light),
+                _ => point(&at, light),
+            };
+            (l, unit.into_iter().map(|e| e as f32).collect())
         })
         .collect()
 }
@@ -165,15 +238,6 @@ struct Frame<'a> {
 }
 
 impl Frame<'_> {
-    /// Whether the patch reflects any light (a black patch needs no direct light).
-    fn reflects(&self, patch: u32) -> bool {
-        let material = self.scene.patches[patch as usize].material;
-        self.scene.materials[material as usize]
-            .reflectance
-            .iter()
-            .any(|&r| r > 0.0)
-    }
-
     /// Whether anything but triangle `own` crosses the segment from `from` to `to`.
     fn blocked(&self, from: DVec3, to: DVec3, own: u32, hits: &mut Vec<Hit>) -> bool {
         let d = to - from;
@@ -248,7 +312,7 @@ fn point(at: &Frame<'_>, light: &Light) -> Vec<f64> {
                 .normalize_or_zero();
             let sides = [(Some(faces.front), normal), (faces.back, -normal)];
             sides.map(|(patch, n)| {
-                let patch = patch.filter(|&p| at.reflects(p))?;
+                let patch = patch?;
                 let value = patch_irradiance(at, light, t as u32, corners, n, position, axis, hits);
                 Some((patch, value / (radius * radius)))
             })
@@ -326,22 +390,34 @@ fn patch_irradiance(
 }
 
 /// Unit irradiance per patch from a directional light: one bundle of parallel lines.
+///
+/// A patch facing the light at θ receives `cos θ` (per lux) where it is not in shadow; the
+/// bundle measures the shadow: of the lines that cross the patch, the fraction whose first
+/// crossing it is. An unshadowed patch is therefore exact, and the lines' only error is where
+/// a shadow edge crosses a patch. A patch smaller than the grid, which no line crosses, is
+/// tested with one shadow ray from its centroid.
 fn directional(at: &Frame<'_>, light: &Light) -> Vec<f64> {
     let scene = at.scene;
+    let patches = scene.patches.len();
     let w = light.direction(at.frame);
-    let mut out = vec![0.0; scene.patches.len()];
+    let mut out = vec![0.0; patches];
     if w == DVec3::ZERO {
         return out;
     }
-    let areas: Vec<f64> = at
+    let geometry: Vec<(DVec3, f64)> = at
         .triangles
         .iter()
         .map(|(c, _)| {
             let [a, b, c] = c.map(|p| p.as_dvec3());
-            0.5 * (b - a).cross(c - a).length()
+            let cross = (b - a).cross(c - a);
+            (cross.normalize_or_zero(), 0.5 * cross.length())
         })
         .collect();
-    let mut sorted: Vec<f64> = areas.iter().copied().filter(|&a| a > 0.0).collect();
+    let mut sorted: Vec<f64> = geometry
+        .iter()
+        .map(|&(_, area)| area)
+        .filter(|&a| a > 0.0)
+        .collect();
     if sorted.is_empty() {
         return out;
     }
@@ -353,40 +429,67 @@ fn directional(at: &Frame<'_>, light: &Light) -> Vec<f64> {
     let cell = (median / LINES_PER_PATCH).max(projected / MAX_DIRECTIONAL_LINES);
     // A fixed grid offset: equal frames get equal light.
     let bundle = parallel_bundle(w, cell, (0.5, 0.5), &scene.bounds);
-    let first: Vec<Option<u32>> = bundle
+    // Per patch: lines crossing it towards its face, and those among them it stops first.
+    // Integer sums, so the result does not depend on how the lines are split between threads.
+    let (crossed, lit) = bundle
         .origins
         .par_iter()
-        .map_init(Vec::new, |hits, &origin| {
-            let line = Line {
-                origin,
-                direction: bundle.direction,
-            };
-            at.tracer.trace_frame(&line, at.frame, at.deformed, hits);
-            let hit = hits.first()?;
-            let faces = at.triangles[hit.surface() as usize].1;
-            let patch = if hit.front() {
-                Some(faces.front)
-            } else {
-                faces.back
-            }?;
-            at.reflects(patch).then_some(patch)
-        })
-        .collect();
-    let faces_area: Vec<f64> = {
-        let mut a = vec![0.0; scene.patches.len()];
-        for ((_, faces), &area) in at.triangles.iter().zip(&areas) {
-            a[faces.front as usize] = area;
-            if let Some(b) = faces.back {
-                a[b as usize] = area;
-            }
+        .fold(
+            || (vec![0u32; patches], vec![0u32; patches], Vec::new()),
+            |(mut crossed, mut lit, mut hits), &origin| {
+                let line = Line {
+                    origin,
+                    direction: bundle.direction,
+                };
+                at.tracer
+                    .trace_frame(&line, at.frame, at.deformed, &mut hits);
+                for (k, hit) in hits.iter().enumerate() {
+                    let faces = at.triangles[hit.surface() as usize].1;
+                    let facing = if hit.front() {
+                        Some(faces.front)
+                    } else {
+                        faces.back
+                    };
+                    if let Some(p) = facing {
+                        crossed[p as usize] += 1;
+                        lit[p as usize] += u32::from(k == 0);
+                    }
+                }
+                (crossed, lit, hits)
+            },
+        )
+        .map(|(crossed, lit, _)| (crossed, lit))
+        .reduce(
+            || (vec![0u32; patches], vec![0u32; patches]),
+            |(mut a, mut b), (c, d)| {
+                a.iter_mut().zip(c).for_each(|(x, y)| *x += y);
+                b.iter_mut().zip(d).for_each(|(x, y)| *x += y);
+                (a, b)
+            },
+        );
+    let mut hits = Vec::new();
+    for (t, ((corners, faces), &(normal, area))) in at.triangles.iter().zip(&geometry).enumerate() {
+        if area <= 0.0 {
+            continue;
         }
-        a
-    };
-    for patch in first.into_iter().flatten() {
-        out[patch as usize] += cell;
-    }
-    for (e, &area) in out.iter_mut().zip(&faces_area) {
-        *e = if area > 0.0 { *e / area } else { 0.0 };
+        for (patch, n) in [(Some(faces.front), normal), (faces.back, -normal)] {
+            let Some(p) = patch.map(|p| p as usize) else {
+                continue;
+            };
+            let cos = -n.dot(w);
+            if cos <= 0.0 {
+                continue;
+            }
+            let visible = if crossed[p] > 0 {
+                f64::from(lit[p]) / f64::from(crossed[p])
+            } else {
+                // Smaller than the grid: one shadow ray from the centroid, out of the scene.
+                let centre = corners.iter().map(|c| c.as_dvec3()).sum::<DVec3>() / 3.0;
+                let away = centre - w * f64::from(crate::lines::LINE_LENGTH);
+                f64::from(u8::from(!at.blocked(centre, away, t as u32, &mut hits)))
+            };
+            out[p] = cos * visible;
+        }
     }
     out
 }

@@ -601,3 +601,32 @@ fn custom_vertex_attributes_are_accepted() {
     d.scene(&[node]);
     assert_eq!(load_ok(&d).patches.len(), 2);
 }
+
+#[test]
+fn a_mirrored_node_keeps_its_faces_facing_the_same_way() {
+    // glTF §3.7.2.1: a negative determinant turns the front face to the clockwise side. The quad
+    // faces +Z; mirrored in x it still faces +Z (static) and so does its moving copy.
+    let mut d = Doc::new();
+    let mesh = d.mesh(&QUAD, Some(&QUAD_INDICES), None);
+    let still = d.node(json!({"mesh": mesh, "scale": [-1.0, 1.0, 1.0]}));
+    let moving =
+        d.node(json!({"mesh": mesh, "scale": [-1.0, 1.0, 1.0], "translation": [3.0, 0.0, 0.0]}));
+    d.scene(&[still, moving]);
+    d.animation(
+        "slide",
+        &[(
+            moving,
+            "translation",
+            &[0.0, 1.0],
+            &[3.0, 0.0, 0.0, 4.0, 0.0, 0.0],
+            "LINEAR",
+        )],
+    );
+    let scene = load_ok(&d);
+    assert_eq!(scene.objects.len(), 1);
+    for (corners, _) in scene.triangles_at(0) {
+        let [a, b, c] = corners;
+        let normal = (b - a).cross(c - a);
+        assert!(normal.z > 0.0, "a mirrored quad faces {normal}");
+    }
+}

@@ -480,7 +480,7 @@ fn place(
     };
     let n = node.index();
     let skin = node.skin();
-    let geometry = mesh::read(
+    let mut geometry = mesh::read(
         document,
         buffers,
         &gmesh,
@@ -601,6 +601,14 @@ fn place(
                 "its transforms give non-finite positions",
             ));
         }
+    }
+    // glTF 2.0 §3.7.2.1: under a global transform with a negative determinant (a mirror), a
+    // triangle's front face is the one it winds clockwise round. Reversing the winding keeps
+    // "counter-clockwise is front" for the rest of the engine. A skinned mesh ignores its node's
+    // transform; its joints are taken as authored.
+    let skinned = matches!(&placement, Placement::Deforming(d) if d.skin.is_some());
+    if !skinned && poses.world(n, 0).determinant() < 0.0 {
+        geometry.triangles.iter_mut().for_each(|t| t.swap(1, 2));
     }
     let kept = keep_triangles(&geometry, &placement, frame_count);
     Ok(Instance {

@@ -4,6 +4,8 @@
 //! global operator on luminance (Reinhard et al. 2002, eq. 3–4), which keeps hue and compresses
 //! emitters smoothly instead of clipping the whole room.
 
+use std::hash::{Hash, Hasher};
+
 use crate::scene::Scene;
 use crate::solve::FrameSolution;
 
@@ -33,18 +35,28 @@ impl ToneMap {
         // Luminances below this fraction of the brightest are treated as this (the "delta"
         // of the log average), so unlit corners do not drag the exposure to infinity.
         const FLOOR: f64 = 1e-4;
-        // Frames that share a solution share its `Arc`: visit each once, weighted by how many
-        // frames show it (in order of first appearance, so the sum is deterministic).
+        // Frames with equal radiance count once, weighted by how many frames show it, in order
+        // of first appearance: the sum is the same whether shared frames share an `Arc` (a
+        // batch bake) or hold equal copies (the service solves frames in parallel chunks).
         let mut distinct: Vec<(&FrameSolution, f64)> = Vec::new();
-        let mut seen: std::collections::HashMap<*const FrameSolution, usize> = Default::default();
+        let mut seen: std::collections::HashMap<u64, Vec<usize>> = Default::default();
         for frame in frames {
-            let k = *seen
-                .entry(std::sync::Arc::as_ptr(frame))
-                .or_insert_with(|| {
-                    distinct.push((frame, 0.0));
-                    distinct.len() - 1
-                });
-            distinct[k].1 += 1.0;
+            let mut h = std::collections::hash_map::DefaultHasher::new();
+            frame
+                .radiance
+                .iter()
+                .for_each(|l| l.map(f64::to_bits).hash(&mut h));
+            let candidates = seen.entry(h.finish()).or_default();
+            match candidates
+                .iter()
+                .find(|&&k| distinct[k].0.radiance == frame.radiance)
+            {
+                Some(&k) => distinct[k].1 += 1.0,
+                None => {
+                    candidates.push(distinct.len());
+                    distinct.push((frame, 1.0));
+                }
+            }
         }
         let brightest = distinct
             .iter()
@@ -86,7 +98,15 @@ impl ToneMap {
     pub fn apply(&self, radiance: [f64; 3]) -> [f32; 3] {
         let x = radiance.map(|c| c.max(0.0) * self.exposure);
         let scale = 1.0 / (1.0 + luminance(x));
-        x.map(|c| (c * scale).clamp(0.0, 1.0) as f32)
+        // An overflowing channel (∞ · 0) is as bright as can be shown.
+        x.map(|c| {
+            let v = c * scale;
+            if v.is_nan() {
+                1.0
+            } else {
+                v.clamp(0.0, 1.0) as f32
+            }
+        })
     }
 }
 
@@ -107,5 +127,8 @@ mod tests {
         let c = map.apply([0.1, 0.05, 0.0]);
         assert!((c[0] / c[1] - 2.0).abs() < 1e-5);
         assert_eq!(map.apply([-1.0, f64::MIN_POSITIVE, 0.0])[0], 0.0);
+        // Overflow shows white, never NaN (which would cast to black).
+        let huge = ToneMap { exposure: 1e300 }.apply([1e300, 0.0, 0.0]);
+        assert_eq!(huge, [1.0, 0.0, 0.0]);
     }
 }

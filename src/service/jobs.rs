@@ -385,7 +385,7 @@ impl Job {
             s.timings.trace += started.elapsed().as_secs_f64();
             s.memory = Some((
                 memory.static_hits + memory.moving_hits,
-                memory.bytes + bake.tallies().bytes(),
+                memory.bytes + bake.tallies().bytes() + bake.direct().memory(),
             ));
         }
     }

@@ -839,22 +839,37 @@ async fn relight_timeline(
         .map_err(|_| ApiError::Internal("lights lock".into()))?;
     let names: Vec<Option<String>> = lights.iter().map(|l| l.name.clone()).collect();
     for change in relight.lights {
-        let index = find_by_name_or_index(&change.light, &names, "light")?;
-        if let Some(i) = change.intensity {
-            if !i.is_finite() || i < 0.0 {
+        let first = find_by_name_or_index(&change.light, &names, "light")?;
+        // A light used by several nodes is several lights of one name: a name changes them all.
+        let indices: Vec<usize> = match &change.light {
+            serde_json::Value::String(_) => (0..names.len())
+                .filter(|&i| names[i] == names[first])
+                .collect(),
+            _ => vec![first],
+        };
+        for index in indices {
+            if let Some(i) = change.intensity {
+                if !i.is_finite() || i < 0.0 {
+                    return Err(ApiError::Parameter(format!(
+                        "intensity must be a finite number ≥ 0, not {i}"
+                    )));
+                }
+                lights[index].intensity = i;
+            }
+            if let Some(c) = change.color {
+                if c.iter().any(|v| !v.is_finite() || *v < 0.0) {
+                    return Err(ApiError::Parameter(format!(
+                        "color must be three finite numbers ≥ 0, not {c:?}"
+                    )));
+                }
+                lights[index].colour = c;
+            }
+            if lights[index].power().iter().any(|p| !p.is_finite()) {
                 return Err(ApiError::Parameter(format!(
-                    "intensity must be a finite number ≥ 0, not {i}"
+                    "light {}: color × intensity overflows",
+                    change.light
                 )));
             }
-            lights[index].intensity = i;
-        }
-        if let Some(c) = change.color {
-            if c.iter().any(|v| !v.is_finite() || *v < 0.0) {
-                return Err(ApiError::Parameter(format!(
-                    "color must be three finite numbers ≥ 0, not {c:?}"
-                )));
-            }
-            lights[index].colour = c;
         }
     }
     if job.status() != Status::Done {
