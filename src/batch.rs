@@ -79,6 +79,9 @@ impl Default for Outputs {
 /// Largest side of a preview, pixels: a preview, not a render farm.
 pub const MAX_PREVIEW_SIDE: u32 = 2048;
 
+/// Memory the previews of one scene may hold at once, bytes.
+const RENDER_MEMORY: usize = 1 << 30;
+
 /// Most frames in `preview.gif`; longer timelines are shown every k-th frame.
 pub const GIF_MAX_FRAMES: usize = 240;
 
@@ -257,20 +260,30 @@ fn write_outputs(
         Ok(())
     })?;
     let (width, height) = outputs.preview_size;
-    pngs.par_iter().try_for_each(|&f| {
-        if control.is_cancelled() {
-            return Err("cancelled".to_string());
-        }
-        let image = output::preview_image(scene, f, &frames[f].radiance, tone, width, height);
-        let bytes = output::preview::encode_png(&image).map_err(|e| e.to_string())?;
-        std::fs::write(dir.join("preview").join(frame_name(f, count, "png")), bytes).map_err(io)?;
-        control.advance(1);
-        Ok(())
-    })?;
+    // Renders at once: each holds its sample buffers, so large previews take turns.
+    let at_once = |w: u32, h: u32| {
+        let bytes = output::preview::render_bytes(w, h).max(1);
+        (RENDER_MEMORY / bytes).max(1)
+    };
+    let png_threads = at_once(width, height);
+    pngs.par_iter()
+        .with_min_len(pngs.len().div_ceil(png_threads))
+        .try_for_each(|&f| {
+            if control.is_cancelled() {
+                return Err("cancelled".to_string());
+            }
+            let image = output::preview_image(scene, f, &frames[f].radiance, tone, width, height);
+            let bytes = output::preview::encode_png(&image).map_err(|e| e.to_string())?;
+            std::fs::write(dir.join("preview").join(frame_name(f, count, "png")), bytes)
+                .map_err(io)?;
+            control.advance(1);
+            Ok(())
+        })?;
     if !gif.is_empty() {
         let (w, h) = ((width / 2).max(1), (height / 2).max(1));
         let images: Vec<image::RgbImage> = gif
             .par_iter()
+            .with_min_len(gif.len().div_ceil(at_once(w, h)))
             .map(|&f| {
                 let image = output::preview_image(scene, f, &frames[f].radiance, tone, w, h);
                 control.advance(1);

@@ -86,6 +86,14 @@ struct Projected {
     key: f64,
 }
 
+/// Memory a render of `width` × `height` holds while it runs, bytes: a depth and an owner per
+/// sample.
+#[must_use]
+pub fn render_bytes(width: u32, height: u32) -> usize {
+    let samples = (width.max(1) * SUPERSAMPLE) as usize * (height.max(1) * SUPERSAMPLE) as usize;
+    samples * (std::mem::size_of::<f32>() + std::mem::size_of::<u32>())
+}
+
 /// Renders `triangles` seen by `camera` into a `width` × `height` sRGB image (sides of 0 are
 /// taken as 1).
 #[must_use]
@@ -121,7 +129,7 @@ pub fn render(triangles: &[Triangle], camera: &Camera, width: u32, height: u32) 
             key,
         }
     };
-    let mut depth = vec![f64::NEG_INFINITY; (sw * sh) as usize];
+    let mut depth = vec![f32::NEG_INFINITY; (sw * sh) as usize];
     let mut owner = vec![u32::MAX; (sw * sh) as usize];
     for (index, triangle) in triangles.iter().enumerate() {
         let corners = triangle.corners.map(|c| view.transform_point3(c));
@@ -188,7 +196,7 @@ fn fill(
     mut v: [Projected; 3],
     index: u32,
     (sw, sh): (u32, u32),
-    depth: &mut [f64],
+    depth: &mut [f32],
     owner: &mut [u32],
 ) {
     let area = (v[1].p - v[0].p).perp_dot(v[2].p - v[0].p);
@@ -228,7 +236,8 @@ fn fill(
             if !inside {
                 continue;
             }
-            let key = weights[0] * v[0].key + weights[1] * v[1].key + weights[2] * v[2].key;
+            let key =
+                (weights[0] * v[0].key + weights[1] * v[1].key + weights[2] * v[2].key) as f32;
             let s = (y * sw + x) as usize;
             if key > depth[s] {
                 depth[s] = key;
@@ -413,7 +422,7 @@ mod tests {
         let drawn: Vec<Vec<u32>> = halves
             .iter()
             .map(|&tri| {
-                let mut depth = vec![f64::NEG_INFINITY; 24 * 24];
+                let mut depth = vec![f32::NEG_INFINITY; 24 * 24];
                 let mut owner = vec![u32::MAX; 24 * 24];
                 fill(tri, 0, size, &mut depth, &mut owner);
                 owner
