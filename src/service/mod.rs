@@ -285,11 +285,26 @@ fn estimate_bytes(scene: &Scene, lines: u64) -> u64 {
     let lines = lines as f64;
     let static_hits = lines * 2.0 * static_area / aw;
     let moving_hits = lines * frames * 2.0 * moving_area / aw;
+    // The direct light of the punctual lights: 4 bytes per patch and state of each light, a
+    // state per frame when it or the geometry moves (an upper bound: repeated poses share).
+    let direct: f64 = scene
+        .lights
+        .iter()
+        .map(|l| {
+            let states = if l.moves() || !scene.objects.is_empty() {
+                frames
+            } else {
+                1.0
+            };
+            states * scene.patches.len() as f64 * 4.0
+        })
+        .sum();
     // The list, plus tallies of about the same size as the static crossings, plus the solver.
     let bytes = lines * 8.0
         + static_hits * 8.0 * 2.0
         + moving_hits * 12.0
-        + scene.patches.len() as f64 * 200.0;
+        + scene.patches.len() as f64 * 200.0
+        + direct;
     bytes as u64
 }
 
