@@ -47,6 +47,21 @@ async fn post(
         .unwrap()
 }
 
+/// POSTs a relighting (`/materials`) body to a timeline.
+async fn relight(
+    client: &reqwest::Client,
+    base: &str,
+    id: &str,
+    body: &Value,
+) -> reqwest::Response {
+    client
+        .post(format!("{base}/v1/timelines/{id}/materials"))
+        .json(body)
+        .send()
+        .await
+        .unwrap()
+}
+
 /// Polls a timeline until it ends; its final status document.
 async fn wait(client: &reqwest::Client, base: &str, id: &str, limit: Duration) -> Value {
     let start = Instant::now();
@@ -379,12 +394,7 @@ async fn refine_lowers_the_error_and_relight_needs_no_tracing() {
     // line is traced (the list holds the same crossings).
     let lamp_emission: Vec<f64> = vec![30.0, 30.0, 30.0];
     let body = serde_json::json!({"materials": [{"material": "light", "emission": lamp_emission}]});
-    let response = client
-        .post(format!("{base}/v1/timelines/{id}/materials"))
-        .json(&body)
-        .send()
-        .await
-        .unwrap();
+    let response = relight(&client, &base, &id, &body).await;
     assert_eq!(response.status(), 202, "{}", response.text().await.unwrap());
     let relit = wait(&client, &base, &id, Duration::from_secs(60)).await;
     assert_eq!(relit["memory"]["hits"], hits);
@@ -411,12 +421,7 @@ async fn refine_lowers_the_error_and_relight_needs_no_tracing() {
         serde_json::json!({"materials": [{"material": 0, "colour": [1, 1, 1]}]}),
         serde_json::json!({"paint": []}),
     ] {
-        let response = client
-            .post(format!("{base}/v1/timelines/{id}/materials"))
-            .json(&bad)
-            .send()
-            .await
-            .unwrap();
+        let response = relight(&client, &base, &id, &bad).await;
         assert_eq!(response.status(), 400, "{bad}");
     }
     // The statistics of the lines.
@@ -723,12 +728,7 @@ async fn lamps_relight_by_intensity_without_tracing() {
         {"light": 1, "intensity": 300.0},
         {"light": "swinging_lamp", "intensity": 0.0},
     ]});
-    let response = client
-        .post(format!("{base}/v1/timelines/{id}/materials"))
-        .json(&body)
-        .send()
-        .await
-        .unwrap();
+    let response = relight(&client, &base, &id, &body).await;
     assert_eq!(response.status(), 202);
     let done = wait(&client, &base, &id, Duration::from_secs(60)).await;
     assert_eq!(
@@ -742,12 +742,7 @@ async fn lamps_relight_by_intensity_without_tracing() {
         {"light": "warm_lamp", "intensity": 60.0},
         {"light": "spot", "intensity": 150.0},
     ]});
-    client
-        .post(format!("{base}/v1/timelines/{id}/materials"))
-        .json(&body)
-        .send()
-        .await
-        .unwrap();
+    relight(&client, &base, &id, &body).await;
     wait(&client, &base, &id, Duration::from_secs(60)).await;
     let single = radiance(get_json(&client, format!("{base}/v1/timelines/{id}/frames/1")).await);
     for (d, s) in doubled.iter().zip(&single) {
@@ -779,12 +774,7 @@ async fn lamps_relight_by_intensity_without_tracing() {
             "power",
         ),
     ] {
-        let response = client
-            .post(format!("{base}/v1/timelines/{id}/materials"))
-            .json(&body)
-            .send()
-            .await
-            .unwrap();
+        let response = relight(&client, &base, &id, &body).await;
         assert_eq!(response.status(), 400, "{body}");
         let text = response.text().await.unwrap();
         assert!(text.contains(needle), "{body}: {text}");
