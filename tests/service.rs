@@ -780,3 +780,56 @@ async fn lamps_relight_by_intensity_without_tracing() {
         assert!(text.contains(needle), "{body}: {text}");
     }
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn concurrent_relights_apply_exactly_the_one_accepted() {
+    let base = start(Config::default()).await;
+    let client = reqwest::Client::new();
+    let (id, _) = create(&client, &base, "lines=20000&fps=1", "level_lamps.gltf").await;
+    assert_eq!(
+        wait(&client, &base, &id, Duration::from_secs(60)).await["status"],
+        "done"
+    );
+    // Only the warm lamp, at intensity k, from eight clients at once.
+    let only = |k: f64| {
+        serde_json::json!({"lights": [
+            {"light": 0, "intensity": k}, {"light": 1, "intensity": 0.0}, {"light": 2, "intensity": 0.0},
+        ]})
+    };
+    let requests = (1..=8).map(|k| {
+        let (client, base, id, body) = (client.clone(), base.clone(), id.clone(), only(k as f64));
+        async move { (k, relight(&client, &base, &id, &body).await.status()) }
+    });
+    let answers = futures_util::future::join_all(requests).await;
+    let accepted: Vec<u64> = answers
+        .iter()
+        .filter(|(_, s)| *s == 202)
+        .map(|(k, _)| *k)
+        .collect();
+    assert_eq!(accepted.len(), 1, "{answers:?}");
+    assert!(
+        answers.iter().all(|(_, s)| *s == 202 || *s == 409),
+        "{answers:?}"
+    );
+    wait(&client, &base, &id, Duration::from_secs(60)).await;
+    let radiance = |frame: Value| -> Vec<f64> {
+        frame["radiance"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|l| l[0].as_f64().unwrap())
+            .collect()
+    };
+    let url = format!("{base}/v1/timelines/{id}/frames/0");
+    let raced = radiance(get_json(&client, url.clone()).await);
+    assert_eq!(relight(&client, &base, &id, &only(1.0)).await.status(), 202);
+    wait(&client, &base, &id, Duration::from_secs(60)).await;
+    let unit = radiance(get_json(&client, url).await);
+    let k = accepted[0] as f64;
+    for (r, u) in raced.iter().zip(&unit) {
+        assert!(
+            (r - k * u).abs() <= 1e-5 * r.max(1e-30),
+            "{r} against {k} × {u}"
+        );
+    }
+}

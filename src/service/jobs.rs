@@ -447,19 +447,22 @@ impl Job {
         }
     }
 
-    /// Makes the job run again for `work` (refinement or relighting): a new version.
-    fn reopen(&self) -> bool {
+    /// Makes the job run again (refinement or relighting) after `change`: a new version.
+    fn reopen<E>(&self, change: impl FnOnce() -> Result<(), E>) -> Result<bool, E> {
         let Ok(mut s) = self.state.lock() else {
-            return false;
+            return Ok(false);
         };
         if s.status != Status::Done {
-            return false;
+            return Ok(false);
         }
+        // Under the state lock: two requests cannot both change a done job, and a change that
+        // fails leaves it done and as it was.
+        change()?;
         s.status = Status::Queued;
         s.stage_started = Instant::now();
         self.version.fetch_add(1, Ordering::AcqRel);
         self.frames_solved.store(0, Ordering::Release);
-        true
+        Ok(true)
     }
 }
 
@@ -508,13 +511,19 @@ impl Jobs {
         }
     }
 
-    /// Runs `work` on a finished job (a new version); false if the job is not `done`.
-    pub fn rerun(&self, job: Arc<Job>, work: Work) -> bool {
-        if !job.reopen() {
-            return false;
+    /// Runs `work` on a finished job (a new version) after applying `change` to it; false if
+    /// the job is not `done`, and the change's error (the job untouched) if it fails.
+    pub fn rerun<E>(
+        &self,
+        job: Arc<Job>,
+        work: Work,
+        change: impl FnOnce() -> Result<(), E>,
+    ) -> Result<bool, E> {
+        if !job.reopen(change)? {
+            return Ok(false);
         }
         self.schedule(job, work);
-        true
+        Ok(true)
     }
 
     fn schedule(&self, job: Arc<Job>, work: Work) {

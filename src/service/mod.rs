@@ -704,7 +704,12 @@ async fn timeline_frames(
 }
 
 /// The answer to a refinement or relighting: the job runs again for a new version.
-fn rerun(state: &AppState, job: Arc<Job>, work: Work) -> Result<Response, ApiError> {
+fn rerun(
+    state: &AppState,
+    job: Arc<Job>,
+    work: Work,
+    change: impl FnOnce() -> Result<(), ApiError>,
+) -> Result<Response, ApiError> {
     if job.status() == Status::Done && !job.bake.lock().is_ok_and(|b| b.is_some()) {
         return Err(ApiError::NotReady(format!(
             "timeline {} was restored from disk: its lines are not kept there, so it cannot be \
@@ -712,7 +717,7 @@ fn rerun(state: &AppState, job: Arc<Job>, work: Work) -> Result<Response, ApiErr
             job.id
         )));
     }
-    if !state.0.jobs.rerun(job.clone(), work) {
+    if !state.0.jobs.rerun(job.clone(), work, change)? {
         return Err(ApiError::NotReady(format!(
             "timeline {} is {:?}: refine or relight it once it is done",
             job.id,
@@ -741,7 +746,7 @@ async fn refine_timeline(
         .and_then(|v| v.parse::<u64>().ok())
         .filter(|n| (1_000..=max).contains(n))
         .ok_or_else(|| ApiError::Parameter(format!("add must be an integer in [1000, {max}]")))?;
-    rerun(&state, job, Work::Refine(add))
+    rerun(&state, job, Work::Refine(add), || Ok(()))
 }
 
 /// One material change of `POST /v1/timelines/{id}/materials`.
@@ -822,84 +827,83 @@ async fn relight_timeline(
              \"lights\": [{{\"light\", \"intensity\", \"color\"}}]}}: {e}"
         ))
     })?;
-    let mut materials = job
-        .materials
-        .lock()
-        .map(|m| m.clone())
-        .map_err(|_| ApiError::Internal("materials lock".into()))?;
-    let names: Vec<Option<String>> = materials.iter().map(|m| m.name.clone()).collect();
-    for change in relight.materials {
-        let index = find_by_name_or_index(&change.material, &names, "material")?;
-        if let Some(e) = change.emission {
-            if e.iter().any(|v| !v.is_finite() || *v < 0.0) {
-                return Err(ApiError::Parameter(format!(
-                    "emission must be three finite numbers ≥ 0, not {e:?}"
-                )));
-            }
-            materials[index].emission = e;
-        }
-        if let Some(r) = change.reflectance {
-            if r.iter().any(|v| !(0.0..=1.0).contains(v)) {
-                return Err(ApiError::Parameter(format!(
-                    "reflectance must be three numbers in [0, 1], not {r:?}"
-                )));
-            }
-            materials[index].reflectance = r;
-        }
-    }
-    let mut lights = job
-        .lights
-        .lock()
-        .map(|l| l.clone())
-        .map_err(|_| ApiError::Internal("lights lock".into()))?;
-    let names: Vec<Option<String>> = lights.iter().map(|l| l.name.clone()).collect();
-    for change in relight.lights {
-        let first = find_by_name_or_index(&change.light, &names, "light")?;
-        // A light used by several nodes is several lights of one name: a name changes them all.
-        let indices: Vec<usize> = match &change.light {
-            serde_json::Value::String(_) => (0..names.len())
-                .filter(|&i| names[i] == names[first])
-                .collect(),
-            _ => vec![first],
-        };
-        for index in indices {
-            if let Some(i) = change.intensity {
-                if !i.is_finite() || i < 0.0 {
+    let target = job.clone();
+    let change = move || -> Result<(), ApiError> {
+        let job = target;
+        let mut materials = job
+            .materials
+            .lock()
+            .map(|m| m.clone())
+            .map_err(|_| ApiError::Internal("materials lock".into()))?;
+        let names: Vec<Option<String>> = materials.iter().map(|m| m.name.clone()).collect();
+        for change in relight.materials {
+            let index = find_by_name_or_index(&change.material, &names, "material")?;
+            if let Some(e) = change.emission {
+                if e.iter().any(|v| !v.is_finite() || *v < 0.0) {
                     return Err(ApiError::Parameter(format!(
-                        "intensity must be a finite number ≥ 0, not {i}"
+                        "emission must be three finite numbers ≥ 0, not {e:?}"
                     )));
                 }
-                lights[index].intensity = i;
+                materials[index].emission = e;
             }
-            if let Some(c) = change.color {
-                if c.iter().any(|v| !v.is_finite() || *v < 0.0) {
+            if let Some(r) = change.reflectance {
+                if r.iter().any(|v| !(0.0..=1.0).contains(v)) {
                     return Err(ApiError::Parameter(format!(
-                        "color must be three finite numbers ≥ 0, not {c:?}"
+                        "reflectance must be three numbers in [0, 1], not {r:?}"
                     )));
                 }
-                lights[index].colour = c;
-            }
-            if lights[index].power().iter().any(|p| !p.is_finite()) {
-                return Err(ApiError::Parameter(format!(
-                    "light {}: color × intensity overflows",
-                    change.light
-                )));
+                materials[index].reflectance = r;
             }
         }
-    }
-    if job.status() != Status::Done {
-        return Err(ApiError::NotReady(format!(
-            "timeline {id} is {:?}: relight it once it is done",
-            job.status()
-        )));
-    }
-    if let Ok(mut m) = job.materials.lock() {
-        *m = materials;
-    }
-    if let Ok(mut l) = job.lights.lock() {
-        *l = lights;
-    }
-    rerun(&state, job, Work::Relight)
+        let mut lights = job
+            .lights
+            .lock()
+            .map(|l| l.clone())
+            .map_err(|_| ApiError::Internal("lights lock".into()))?;
+        let names: Vec<Option<String>> = lights.iter().map(|l| l.name.clone()).collect();
+        for change in relight.lights {
+            let first = find_by_name_or_index(&change.light, &names, "light")?;
+            // A light used by several nodes is several lights of one name: a name changes them all.
+            let indices: Vec<usize> = match &change.light {
+                serde_json::Value::String(_) => (0..names.len())
+                    .filter(|&i| names[i] == names[first])
+                    .collect(),
+                _ => vec![first],
+            };
+            for index in indices {
+                if let Some(i) = change.intensity {
+                    if !i.is_finite() || i < 0.0 {
+                        return Err(ApiError::Parameter(format!(
+                            "intensity must be a finite number ≥ 0, not {i}"
+                        )));
+                    }
+                    lights[index].intensity = i;
+                }
+                if let Some(c) = change.color {
+                    if c.iter().any(|v| !v.is_finite() || *v < 0.0) {
+                        return Err(ApiError::Parameter(format!(
+                            "color must be three finite numbers ≥ 0, not {c:?}"
+                        )));
+                    }
+                    lights[index].colour = c;
+                }
+                if lights[index].power().iter().any(|p| !p.is_finite()) {
+                    return Err(ApiError::Parameter(format!(
+                        "light {}: color × intensity overflows",
+                        change.light
+                    )));
+                }
+            }
+        }
+        if let Ok(mut m) = job.materials.lock() {
+            *m = materials;
+        }
+        if let Ok(mut l) = job.lights.lock() {
+            *l = lights;
+        }
+        Ok(())
+    };
+    rerun(&state, job, Work::Relight, change)
 }
 
 /// `GET /v1/timelines/{id}/stats?frame=f`: the scene statistics measured by the lines.
