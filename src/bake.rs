@@ -8,7 +8,7 @@ use std::sync::Arc;
 use rayon::prelude::*;
 
 use crate::direct::DirectLight;
-use crate::scene::{Material, Scene};
+use crate::scene::{Light, Material, Scene};
 use crate::solve::tally::{FrameTally, Tallies};
 use crate::solve::{FrameSolution, SolveParams, solve_lit};
 use crate::timeline::{Control, IntersectionList, LineParams, TraceError};
@@ -128,11 +128,7 @@ impl Bake {
     /// Each light's power (colour × intensity) as the scene gives it.
     #[must_use]
     pub fn light_power(&self) -> Vec<[f64; 3]> {
-        self.scene
-            .lights
-            .iter()
-            .map(|l| l.colour.map(|c| c * l.intensity))
-            .collect()
+        self.scene.lights.iter().map(Light::power).collect()
     }
 
     /// Material index of every patch.

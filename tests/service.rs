@@ -47,6 +47,16 @@ async fn post(
         .unwrap()
 }
 
+/// The red channel of a frame document's radiance, per patch.
+fn radiance(frame: Value) -> Vec<f64> {
+    frame["radiance"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|l| l[0].as_f64().unwrap())
+        .collect()
+}
+
 /// POSTs a relighting (`/materials`) body to a timeline.
 async fn relight(
     client: &reqwest::Client,
@@ -712,14 +722,6 @@ async fn lamps_relight_by_intensity_without_tracing() {
     let done = wait(&client, &base, &id, Duration::from_secs(60)).await;
     assert_eq!(done["status"], "done");
     let traced = done["progress"]["lines_traced"].clone();
-    let radiance = |frame: Value| -> Vec<f64> {
-        frame["radiance"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|l| l[0].as_f64().unwrap())
-            .collect()
-    };
     let before = radiance(get_json(&client, format!("{base}/v1/timelines/{id}/frames/1")).await);
     assert!(before.iter().any(|&l| l > 0.0), "the lamps light the level");
     // Twice the warm lamp and the spot, the swinging lamp off: by name and by index.
@@ -812,14 +814,6 @@ async fn concurrent_relights_apply_exactly_the_one_accepted() {
         "{answers:?}"
     );
     wait(&client, &base, &id, Duration::from_secs(60)).await;
-    let radiance = |frame: Value| -> Vec<f64> {
-        frame["radiance"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|l| l[0].as_f64().unwrap())
-            .collect()
-    };
     let url = format!("{base}/v1/timelines/{id}/frames/0");
     let raced = radiance(get_json(&client, url.clone()).await);
     assert_eq!(relight(&client, &base, &id, &only(1.0)).await.status(), 202);

@@ -323,10 +323,6 @@ fn read_light(
         }
         gltf::json::validation::Checked::Invalid => return Err(bad("has an unknown type")),
     };
-    let poses = match &poses.over_time[n] {
-        Some(worlds) => worlds.iter().map(|m| DAffine3::from_mat4(*m)).collect(),
-        None => vec![DAffine3::from_mat4(poses.first[n])],
-    };
     Ok(Light {
         node: n as u32,
         name: json.name.clone(),
@@ -334,7 +330,7 @@ fn read_light(
         colour,
         intensity,
         range,
-        poses,
+        poses: poses.placements(n),
     })
 }
 
@@ -403,15 +399,11 @@ fn read_camera(
         .and_then(|p| p.aspect_ratio)
         .and_then(finite)
         .filter(|&a| a > 0.0);
-    let poses: Vec<DAffine3> = match &poses.over_time[n] {
-        Some(worlds) => worlds.iter().map(|m| DAffine3::from_mat4(*m)).collect(),
-        None => vec![DAffine3::from_mat4(poses.first[n])],
-    };
     Some(SceneCamera {
         name: node.name().map(str::to_string),
         projection,
         aspect,
-        poses,
+        poses: poses.placements(n),
     })
 }
 

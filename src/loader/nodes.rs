@@ -292,6 +292,18 @@ pub struct Poses {
 }
 
 impl Poses {
+    /// World transforms of `node`: one per frame if it can change, else only frame 0's.
+    #[must_use]
+    pub fn placements(&self, node: usize) -> Vec<glam::DAffine3> {
+        match &self.over_time[node] {
+            Some(worlds) => worlds
+                .iter()
+                .map(|m| glam::DAffine3::from_mat4(*m))
+                .collect(),
+            None => vec![glam::DAffine3::from_mat4(self.first[node])],
+        }
+    }
+
     /// World transform of `node` at `frame`.
     #[must_use]
     pub fn world(&self, node: usize, frame: usize) -> DMat4 {

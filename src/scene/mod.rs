@@ -450,6 +450,12 @@ impl Light {
             .normalize_or_zero()
     }
 
+    /// Colour × intensity: what the direct light of a unit light is scaled by.
+    #[must_use]
+    pub fn power(&self) -> [f64; 3] {
+        self.colour.map(|c| c * self.intensity)
+    }
+
     /// Whether the light's pose changes over the frames.
     #[must_use]
     pub fn moves(&self) -> bool {

@@ -783,6 +783,17 @@ struct Relight {
     lights: Vec<LightChange>,
 }
 
+/// `rgb` if its three values are finite and ≥ 0; otherwise a 400 naming the field.
+fn non_negative_rgb(field: &str, rgb: [f64; 3]) -> Result<[f64; 3], ApiError> {
+    if rgb.iter().all(|v| v.is_finite() && *v >= 0.0) {
+        Ok(rgb)
+    } else {
+        Err(ApiError::Parameter(format!(
+            "{field} must be three finite numbers ≥ 0, not {rgb:?}"
+        )))
+    }
+}
+
 /// The index in `names` of `wanted` (a number or a name); `what` names the kind in the error.
 fn find_by_name_or_index(
     wanted: &serde_json::Value,
@@ -839,12 +850,7 @@ async fn relight_timeline(
         for change in relight.materials {
             let index = find_by_name_or_index(&change.material, &names, "material")?;
             if let Some(e) = change.emission {
-                if e.iter().any(|v| !v.is_finite() || *v < 0.0) {
-                    return Err(ApiError::Parameter(format!(
-                        "emission must be three finite numbers ≥ 0, not {e:?}"
-                    )));
-                }
-                materials[index].emission = e;
+                materials[index].emission = non_negative_rgb("emission", e)?;
             }
             if let Some(r) = change.reflectance {
                 if r.iter().any(|v| !(0.0..=1.0).contains(v)) {
@@ -880,12 +886,7 @@ async fn relight_timeline(
                     lights[index].intensity = i;
                 }
                 if let Some(c) = change.color {
-                    if c.iter().any(|v| !v.is_finite() || *v < 0.0) {
-                        return Err(ApiError::Parameter(format!(
-                            "color must be three finite numbers ≥ 0, not {c:?}"
-                        )));
-                    }
-                    lights[index].colour = c;
+                    lights[index].colour = non_negative_rgb("color", c)?;
                 }
                 if lights[index].power().iter().any(|p| !p.is_finite()) {
                     return Err(ApiError::Parameter(format!(
