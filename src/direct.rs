@@ -28,6 +28,7 @@ use rayon::prelude::*;
 use crate::lines::parallel_bundle;
 use crate::scene::{Faces, Light, LightKind, Scene};
 use crate::timeline::{Control, TraceError};
+use crate::trace::coincident::{COINCIDENT, resolve};
 use crate::trace::{FrameMeshes, Hit, Line, SceneTracer};
 
 /// Lines of a directional light per patch of median area: they resolve shadow edges to about
@@ -238,19 +239,32 @@ struct Frame<'a> {
 }
 
 impl Frame<'_> {
-    /// Whether anything but triangle `own` crosses the segment from `from` to `to`.
-    fn blocked(&self, from: DVec3, to: DVec3, own: u32, hits: &mut Vec<Hit>) -> bool {
+    /// Whether anything but triangle `own` crosses the segment from `from`, a point on one of
+    /// `own`'s faces (its back if `back`), to `to`. A surface touching that face (a contact,
+    /// [`crate::trace::coincident`]) blocks it too: a face pressed against a wall is not lit
+    /// through the wall.
+    fn blocked(&self, from: DVec3, to: DVec3, own: u32, back: bool, hits: &mut Vec<Hit>) -> bool {
         let d = to - from;
         let length = d.length();
+        let direction = d / length;
+        // Start a little behind the point, so that a touching surface is crossed whichever side
+        // of the point rounding puts it.
+        let behind = f64::from(4.0 * COINCIDENT);
         let line = Line {
-            origin: from.as_vec3(),
-            direction: (d / length).as_vec3(),
+            origin: (from - direction * behind).as_vec3(),
+            direction: direction.as_vec3(),
         };
         self.tracer
             .trace_frame(&line, self.frame, self.deformed, hits);
-        let end = length as f32 - SHADOW_EPSILON;
-        hits.iter()
-            .any(|h| h.t > SHADOW_EPSILON && h.t < end && h.surface() != own)
+        let (start, end) = (behind as f32, (behind + length) as f32 - SHADOW_EPSILON);
+        // The line leaves the lit face, so it arrives at `own` from its other side.
+        let me = Hit::new(start, own, back);
+        let surfaces = self.tracer.surfaces();
+        hits.iter().any(|&h| {
+            h.surface() != own
+                && ((h.t > start + SHADOW_EPSILON && h.t < end)
+                    || ((h.t - start).abs() <= COINCIDENT && surfaces.contact(me, h)))
+        })
     }
 }
 
@@ -310,10 +324,16 @@ fn point(at: &Frame<'_>, light: &Light) -> Vec<f64> {
             let normal = (corners[1] - corners[0])
                 .cross(corners[2] - corners[0])
                 .normalize_or_zero();
-            let sides = [(Some(faces.front), normal), (faces.back, -normal)];
-            sides.map(|(patch, n)| {
+            let sides = [(Some(faces.front), false), (faces.back, true)];
+            sides.map(|(patch, back)| {
                 let patch = patch?;
-                let value = patch_irradiance(at, light, t as u32, corners, n, position, axis, hits);
+                let face = Face {
+                    own: t as u32,
+                    back,
+                    corners,
+                    n: if back { -normal } else { normal },
+                };
+                let value = patch_irradiance(at, light, &face, position, axis, hits);
                 Some((patch, value / (radius * radius)))
             })
         })
@@ -325,19 +345,33 @@ fn point(at: &Frame<'_>, light: &Light) -> Vec<f64> {
     out
 }
 
-/// Mean irradiance over one face of triangle `own` (normal `n`) from a point or spot light at
-/// `position`, in units of 1/(normalised distance)²; 0 for a face the light cannot reach.
-#[allow(clippy::too_many_arguments)] // one call site; a struct would only rename them
+/// One face of a traced triangle, as a receiver of direct light.
+struct Face {
+    /// The triangle (global index).
+    own: u32,
+    /// Whether it is the triangle's back face.
+    back: bool,
+    corners: [DVec3; 3],
+    /// The face's unit normal (zero if degenerate).
+    n: DVec3,
+}
+
+/// Mean irradiance over `face` from a point or spot light at `position`, in units of
+/// 1/(normalised distance)²; 0 for a face the light cannot reach.
 fn patch_irradiance(
     at: &Frame<'_>,
     light: &Light,
-    own: u32,
-    corners: [DVec3; 3],
-    n: DVec3,
+    face: &Face,
     position: DVec3,
     axis: DVec3,
     hits: &mut Vec<Hit>,
 ) -> f64 {
+    let Face {
+        own,
+        back,
+        corners,
+        n,
+    } = *face;
     // The light behind the face's plane: nothing (exact, the face is flat).
     if n == DVec3::ZERO || (position - corners[0]).dot(n) <= 0.0 {
         return 0.0;
@@ -382,7 +416,7 @@ fn patch_irradiance(
         if let LightKind::Spot { inner, outer } = light.kind {
             e *= spot_attenuation(axis.dot(-to_light / d), inner, outer);
         }
-        if e > 0.0 && !at.blocked(x, position, own, hits) {
+        if e > 0.0 && !at.blocked(x, position, own, back, hits) {
             sum += e;
         }
     }
@@ -443,7 +477,10 @@ fn directional(at: &Frame<'_>, light: &Light) -> Vec<f64> {
                 };
                 at.tracer
                     .trace_frame(&line, at.frame, at.deformed, &mut hits);
-                for (k, hit) in hits.iter().enumerate() {
+                // The sun reaches the first crossing; coincident ones resolved as the tallies
+                // do (a face in contact is in shadow, an overlap is shared).
+                let resolved = resolve(&hits, &at.tracer.surfaces());
+                for (k, hit) in resolved.as_deref().unwrap_or(&hits).iter().enumerate() {
                     let faces = at.triangles[hit.surface() as usize].1;
                     let facing = if hit.front() {
                         Some(faces.front)
@@ -472,7 +509,8 @@ fn directional(at: &Frame<'_>, light: &Light) -> Vec<f64> {
         if area <= 0.0 {
             continue;
         }
-        for (patch, n) in [(Some(faces.front), normal), (faces.back, -normal)] {
+        for (patch, back) in [(Some(faces.front), false), (faces.back, true)] {
+            let n = if back { -normal } else { normal };
             let Some(p) = patch.map(|p| p as usize) else {
                 continue;
             };
@@ -486,7 +524,9 @@ fn directional(at: &Frame<'_>, light: &Light) -> Vec<f64> {
                 // Smaller than the grid: one shadow ray from the centroid, out of the scene.
                 let centre = corners.iter().map(|c| c.as_dvec3()).sum::<DVec3>() / 3.0;
                 let away = centre - w * f64::from(crate::lines::LINE_LENGTH);
-                f64::from(u8::from(!at.blocked(centre, away, t as u32, &mut hits)))
+                f64::from(u8::from(
+                    !at.blocked(centre, away, t as u32, back, &mut hits),
+                ))
             };
             out[p] = cos * visible;
         }

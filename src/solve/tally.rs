@@ -16,13 +16,14 @@ use std::ops::Range;
 
 use rayon::prelude::*;
 
-use crate::scene::Faces;
 use crate::timeline::IntersectionList;
-use crate::trace::Hit;
+use crate::trace::coincident::{is_contact, resolve};
+use crate::trace::{Hit, Surfaces};
 
 /// Column of the segments that leave the scene.
 pub const SKY: u32 = (1 << 27) - 1;
-/// Column of the segments absorbed by the back of a one-sided triangle.
+/// Column of the segments that carry no light: absorbed by the back of a one-sided triangle,
+/// or across a contact (two faces touching, [`crate::trace::coincident`]).
 pub const ABSORBED: u32 = (1 << 27) - 2;
 /// Patches are numbered below this (the columns have 27 bits in a key).
 pub const MAX_PATCHES: usize = ABSORBED as usize;
@@ -45,60 +46,12 @@ pub fn unkey(k: u64) -> (u32, u32, u8) {
     ((k >> 32) as u32, ((k >> 4) as u32) & SKY, (k & 15) as u8)
 }
 
-/// Crossings closer than this along a line (normalised units, the scene's radius being 1) are
-/// one place: coplanar surfaces in contact, such as a box standing on a floor, or the two faces
-/// of an edge a line grazes, whose computed distances differ by a few ulps.
-const COINCIDENT: f32 = 4e-6;
-
-/// Resolves runs of coincident crossings (closer than [`COINCIDENT`] along the line), whose order
-/// the distances' rounding decides:
-/// - crossings of different nodes are a contact (a box on a floor): arrivals at back faces are
-///   put before arrivals at front faces, since the line leaves one region before it enters the
-///   next, so the touching faces see each other instead of the sky or the other solid's inside;
-/// - an even run within one node is a graze of an edge or vertex (in and out at one point):
-///   it is dropped, as the line does not really pass (in the wrong order the touched faces
-///   would see the sky through a closed surface: a leak that ρ = 0.999 multiplies by 1000).
-///
-/// `None` when nothing changes.
-fn resolve_coincident(hits: &[Hit], nodes: &[u32]) -> Option<Vec<Hit>> {
-    if !hits.windows(2).any(|w| w[1].t - w[0].t <= COINCIDENT) {
-        return None;
-    }
-    let node = |h: &Hit| nodes[h.surface() as usize];
-    let mut out = Vec::with_capacity(hits.len());
-    let mut start = 0;
-    while start < hits.len() {
-        let mut end = start + 1;
-        while end < hits.len() && hits[end].t - hits[end - 1].t <= COINCIDENT {
-            end += 1;
-        }
-        let run = &hits[start..end];
-        if run.iter().any(|h| node(h) != node(&run[0])) {
-            let mut sorted = run.to_vec();
-            sorted.sort_by_key(|h| (h.front(), h.surface()));
-            out.extend(sorted);
-        } else if run.len() % 2 == 1 {
-            out.extend_from_slice(run);
-        }
-        start = end;
-    }
-    Some(out)
-}
-
-/// What the tallies need to know of the traced triangles.
-#[derive(Clone, Copy, Debug)]
-pub struct Surfaces<'a> {
-    /// The patches on the faces of each traced triangle.
-    pub faces: &'a [Faces],
-    /// The node each traced triangle comes from.
-    pub nodes: &'a [u32],
-}
-
 /// Calls `visit(from, to)` for every segment of a line in both directions, `from` being a patch
-/// and `to` a patch, [`SKY`] or [`ABSORBED`].
+/// and `to` a patch, [`SKY`] or [`ABSORBED`]. Coincident crossings are resolved first
+/// ([`resolve`]); the segment across a contact is dark both ways.
 fn walk(hits: &[Hit], surfaces: &Surfaces<'_>, mut visit: impl FnMut(u32, u32)) {
     let faces = surfaces.faces;
-    let reordered = resolve_coincident(hits, surfaces.nodes);
+    let reordered = resolve(hits, surfaces);
     let hits = reordered.as_deref().unwrap_or(hits);
     let Some(first) = hits.first() else { return };
     // The face the line arrives at, and the face it leaves from, at a crossing.
@@ -116,6 +69,12 @@ fn walk(hits: &[Hit], surfaces: &Surfaces<'_>, mut visit: impl FnMut(u32, u32)) 
     for w in hits.windows(2) {
         // `a` faces the segment from one end, `b` from the other; a missing face absorbs.
         let (a, b) = (exit(&w[0]), entry(&w[1]));
+        if is_contact(&w[0], &w[1]) {
+            a.into_iter()
+                .chain(b)
+                .for_each(|face| visit(face, ABSORBED));
+            continue;
+        }
         if let Some(a) = a {
             visit(a, b.unwrap_or(ABSORBED));
         }
@@ -440,6 +399,7 @@ fn tally_static(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::scene::Faces;
 
     #[test]
     fn segments_are_used_both_ways_and_the_ends_see_the_sky() {
@@ -459,33 +419,14 @@ mod tests {
         let mut seen = Vec::new();
         let surfaces = Surfaces {
             faces: &faces,
-            nodes: &[0, 0],
+            spaces: &[0, 0],
+            normals: &[glam::Vec3::Z; 2],
         };
         walk(&hits, &surfaces, |a, b| seen.push((a, b)));
         seen.sort_unstable();
         // Patch 0 sees the sky behind it; the segment between leaves 0's back (absorbed: it is
         // one-sided) and enters 1's back (patch 2); patch 1 (front) sees the sky beyond.
         assert_eq!(seen, vec![(0, SKY), (1, SKY), (2, ABSORBED)]);
-    }
-
-    /// Regression: 10 million lines through the furnace found two segments reaching the sky:
-    /// lines grazing the cube's edge from outside, whose two crossings came out in the wrong
-    /// order by rounding.
-    #[test]
-    fn grazes_are_dropped_and_contacts_ordered() {
-        // Triangles 0 and 1 belong to node 0 (one closed surface), triangle 2 to node 1.
-        let nodes = [0, 0, 1];
-        let graze = [Hit::new(1.0, 1, true), Hit::new(1.0 + 1e-7, 0, false)];
-        assert_eq!(resolve_coincident(&graze, &nodes), Some(vec![]));
-        // Floor (node 1) and a box bottom (node 0) at one place: leave, then enter.
-        let contact = [Hit::new(2.0, 0, true), Hit::new(2.0, 2, false)];
-        assert_eq!(
-            resolve_coincident(&contact, &nodes),
-            Some(vec![contact[1], contact[0]])
-        );
-        // Crossings that are far apart are left alone.
-        let apart = [Hit::new(1.0, 0, true), Hit::new(1.5, 1, false)];
-        assert_eq!(resolve_coincident(&apart, &nodes), None);
     }
 
     #[test]
@@ -504,7 +445,8 @@ mod tests {
         let mut raw = Vec::new();
         let surfaces = Surfaces {
             faces: &faces,
-            nodes: &[0, 1],
+            spaces: &[0, 1],
+            normals: &[glam::Vec3::Z; 2],
         };
         walk(&hits, &surfaces, |a, b| raw.push((key(a, b, 0), 1)));
         let entries = aggregate(raw);

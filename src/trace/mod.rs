@@ -5,6 +5,7 @@
 //! per frame ([`FrameMeshes`]). Each crossing is a [`Hit`]: where along the line, which traced
 //! triangle, and from which side.
 
+pub mod coincident;
 pub mod triangle;
 
 use std::time::Duration;
@@ -18,6 +19,7 @@ use obvhs::ray::Ray;
 
 use crate::lines::LINE_LENGTH;
 use crate::scene::{Faces, Motion, Scene};
+pub use coincident::Surfaces;
 use triangle::ShearedLine;
 
 /// One crossing of a line with a traced triangle: 8 bytes.
@@ -169,6 +171,10 @@ pub struct SceneTracer {
     faces: Vec<Faces>,
     /// The node every traced triangle comes from, by global index.
     nodes: Vec<u32>,
+    /// The space of every traced triangle's normal (see [`Surfaces::spaces`]).
+    spaces: Vec<u32>,
+    /// Unit normal of every traced triangle in its space.
+    normals: Vec<Vec3>,
 }
 
 impl SceneTracer {
@@ -177,13 +183,27 @@ impl SceneTracer {
     pub fn new(scene: &Scene) -> Self {
         let statics = &scene.statics;
         let corners = |positions: &[Vec3], t: &[u32; 3]| t.map(|i| positions[i as usize]);
+        let normal = |positions: &[Vec3], t: &[u32; 3]| {
+            let [a, b, c] = t.map(|i| positions[i as usize].as_dvec3());
+            (b - a).cross(c - a).normalize_or_zero().as_vec3()
+        };
         let mut faces = statics.faces.clone();
+        let mut spaces = vec![0; faces.len()];
+        let mut normals: Vec<Vec3> = statics
+            .triangles
+            .iter()
+            .map(|t| normal(&statics.positions, t))
+            .collect();
         let mut first_ids = Vec::with_capacity(scene.objects.len());
         let mut rigid = Vec::with_capacity(scene.objects.len());
-        for object in &scene.objects {
+        for (k, object) in scene.objects.iter().enumerate() {
             let first = faces.len() as u32;
             first_ids.push(first);
             faces.extend_from_slice(&object.mesh.faces);
+            spaces.extend(std::iter::repeat_n(1 + k as u32, object.mesh.faces.len()));
+            // A rigid object's own space; a deforming one's frame-0 pose.
+            let mesh = &object.mesh;
+            normals.extend(mesh.triangles.iter().map(|t| normal(&mesh.positions, t)));
             rigid.push(match &object.motion {
                 Motion::Rigid { poses } => TraceMesh::new(
                     object
@@ -210,6 +230,8 @@ impl SceneTracer {
             .collect();
         Self {
             nodes,
+            spaces,
+            normals,
             statics: TraceMesh::new(
                 statics
                     .triangles
@@ -229,13 +251,20 @@ impl SceneTracer {
         &self.faces
     }
 
-    /// The faces and source nodes of every traced triangle, for the tallies.
+    /// The faces, spaces and normals of every traced triangle, for the tallies and shadow rays.
     #[must_use]
-    pub fn surfaces(&self) -> crate::solve::tally::Surfaces<'_> {
-        crate::solve::tally::Surfaces {
+    pub fn surfaces(&self) -> Surfaces<'_> {
+        Surfaces {
             faces: &self.faces,
-            nodes: &self.nodes,
+            spaces: &self.spaces,
+            normals: &self.normals,
         }
+    }
+
+    /// The source node of every traced triangle, by global index.
+    #[must_use]
+    pub fn nodes(&self) -> &[u32] {
+        &self.nodes
     }
 
     /// Number of traced triangles (static and moving).

@@ -1,0 +1,480 @@
+//! No light where there is none: contacts between surfaces, coplanar overlaps (issue 11).
+//!
+//! The scene is a closed room 2 units wide, lit by an emissive panel under its ceiling, with a box
+//! of side 0.6 on its floor. Where the box touches the floor no light passes: the box's bottom and
+//! the floor under it are dark, and a floor patch partly under the box is the area average of its
+//! lit and dark parts, which a bake with the floor cut along the box's outline measures.
+
+#[allow(dead_code)] // the helpers serve several test binaries; this one uses a part
+mod common;
+
+use common::Doc;
+use radiosity::bake::Bake;
+use radiosity::loader::{LoadOptions, load};
+use radiosity::scene::{Scene, Side};
+use radiosity::solve::{FrameSolution, SolveParams};
+use radiosity::timeline::LineParams;
+use serde_json::json;
+
+/// Half the room's side.
+const ROOM: f32 = 1.0;
+/// Half the box's side.
+const BOX: f32 = 0.3;
+/// The floor's grid step: cells at the box's edges are partly under it.
+const STEP: f32 = 0.125;
+/// A coarser step, whose cells under the box's edges are mostly lit.
+const COARSE: f32 = 0.4;
+
+/// How the test room is built.
+#[derive(Clone, Copy)]
+struct Room {
+    /// The box's bottom above the floor (negative: sunk into it).
+    lift: f32,
+    /// Every material double-sided (as Blender exports them).
+    double_sided: bool,
+    /// The floor also cut along the box's outline.
+    cut: bool,
+    /// Every coordinate multiplied by this.
+    scale: f32,
+    /// The floor's grid step.
+    step: f32,
+    /// The box moves: at rest on the floor at frame 0, `lift` above it at frame 1.
+    moving: bool,
+    /// The box's centre along x (0: the middle of the room; `ROOM - BOX`: against the wall).
+    x: f32,
+    /// A point light at this x, at the box's height, instead of the emissive panel.
+    point_light: Option<f32>,
+}
+
+impl Default for Room {
+    fn default() -> Self {
+        Self {
+            lift: 0.0,
+            double_sided: false,
+            cut: false,
+            scale: 1.0,
+            step: STEP,
+            moving: false,
+            x: 0.0,
+            point_light: None,
+        }
+    }
+}
+
+/// A horizontal grid at height `y` over the cells between `coords` (both axes), facing up or down.
+fn grid(coords: &[f32], y: f32, up: bool) -> (Vec<[f32; 3]>, Vec<u32>) {
+    let n = coords.len();
+    let positions = coords
+        .iter()
+        .flat_map(|&z| coords.iter().map(move |&x| [x, y, z]))
+        .collect();
+    let mut indices = Vec::new();
+    for j in 0..n - 1 {
+        for i in 0..n - 1 {
+            let k = (j * n + i) as u32;
+            let (a, b, c, d) = (k, k + 1, k + 1 + n as u32, k + n as u32);
+            // Counter-clockwise seen from +y is a → d → c (x to the right, z towards the viewer).
+            if up {
+                indices.extend([a, d, c, a, c, b]);
+            } else {
+                indices.extend([a, b, c, a, c, d]);
+            }
+        }
+    }
+    (positions, indices)
+}
+
+impl Room {
+    fn floor_coords(&self) -> Vec<f32> {
+        let cells = (2.0 * ROOM / self.step).round() as usize;
+        let mut xs: Vec<f32> = (0..=cells).map(|k| -ROOM + k as f32 * self.step).collect();
+        if self.cut {
+            xs.extend([-BOX, BOX]);
+            xs.sort_by(f32::total_cmp);
+        }
+        xs
+    }
+
+    fn gltf(&self) -> Vec<u8> {
+        let mut doc = Doc::new();
+        let material = |doc: &mut Doc, name: &str, grey: f32, emission: f32| {
+            doc.push(
+                "materials",
+                json!({"name": name, "doubleSided": self.double_sided,
+                       "emissiveFactor": [emission, emission, emission],
+                       "pbrMetallicRoughness": {"baseColorFactor": [grey, grey, grey, 1.0],
+                                                "metallicFactor": 0.0}}),
+            )
+        };
+        let wall = material(&mut doc, "wall", 0.5, 0.0);
+        let lamp = material(
+            &mut doc,
+            "lamp",
+            0.0,
+            if self.point_light.is_some() { 0.0 } else { 1.0 },
+        );
+        let box_material = material(&mut doc, "box", 0.5, 0.0);
+        let s = self.scale;
+        let scaled = |p: Vec<[f32; 3]>| -> Vec<[f32; 3]> {
+            p.into_iter().map(|v| v.map(|c| c * s)).collect()
+        };
+        let mut roots = Vec::new();
+        let (p, i) = grid(&self.floor_coords(), -ROOM, true);
+        let m = doc.mesh(&scaled(p), Some(&i), Some(wall));
+        roots.push(doc.node(json!({"name": "floor", "mesh": m})));
+        // Ceiling and walls: the room's box without its floor.
+        let (p, i) = common::cuboid([2.0 * ROOM; 3], [0.0; 3], true);
+        let floor_quad = 2; // the quad at y = -ROOM (vertices 0, 1, 5, 4)
+        let i: Vec<u32> = i
+            .chunks(6)
+            .enumerate()
+            .filter(|&(q, _)| q != floor_quad)
+            .flat_map(|(_, c)| c.to_vec())
+            .collect();
+        let m = doc.mesh(&scaled(p), Some(&i), Some(wall));
+        roots.push(doc.node(json!({"name": "walls", "mesh": m})));
+        let (p, i) = grid(&[-0.4, 0.0, 0.4], 0.95 * ROOM, false);
+        let m = doc.mesh(&scaled(p), Some(&i), Some(lamp));
+        roots.push(doc.node(json!({"name": "lamp", "mesh": m})));
+        let (p, i) = common::cuboid([2.0 * BOX; 3], [0.0; 3], false);
+        let m = doc.mesh(&scaled(p), Some(&i), Some(box_material));
+        let rest = [
+            s * self.x,
+            s * (-ROOM + BOX + if self.moving { 0.0 } else { self.lift }),
+            0.0,
+        ];
+        let node = doc.node(json!({"name": "box", "mesh": m, "translation": rest}));
+        roots.push(node);
+        if self.moving {
+            let lifted = [rest[0], rest[1] + s * self.lift, rest[2]];
+            let values: Vec<f32> = rest.iter().chain(&lifted).copied().collect();
+            doc.animation(
+                "lift",
+                &[(node, "translation", &[0.0, 1.0], &values, "STEP")],
+            );
+        }
+        if let Some(x) = self.point_light {
+            doc.json["extensionsUsed"] = json!(["KHR_lights_punctual"]);
+            doc.json["extensions"] = json!({"KHR_lights_punctual": {"lights": [
+                {"type": "point", "intensity": 100.0}]}});
+            roots.push(doc.node(json!({"name": "outside",
+                "translation": [s * x, s * (-ROOM + BOX), 0.0],
+                "extensions": {"KHR_lights_punctual": {"light": 0}}})));
+        }
+        doc.scene(&roots);
+        doc.gltf()
+    }
+
+    fn scene(&self) -> Scene {
+        let options = LoadOptions {
+            fps: 1.0,
+            ..LoadOptions::default()
+        };
+        load(&self.gltf(), &options).unwrap()
+    }
+}
+
+/// Bakes `scene` with `lines` lines and solves every frame.
+fn bake(scene: Scene, lines: u64, seed: u64) -> (Bake, Vec<FrameSolution>) {
+    let bake = Bake::trace(
+        scene,
+        &LineParams {
+            lines,
+            bundles: None,
+            seed,
+        },
+    )
+    .unwrap();
+    let solved = (0..bake.scene.frames.count)
+        .map(|f| bake.solve_frame(f, &bake.scene.materials, &SolveParams::default()))
+        .collect();
+    (bake, solved)
+}
+
+/// The node index of the scene's node named `name` (roots in the order [`Room::gltf`] makes).
+fn node(name: &str) -> u32 {
+    ["floor", "walls", "lamp", "box"]
+        .iter()
+        .position(|&n| n == name)
+        .unwrap() as u32
+}
+
+/// Each patch's corners in scene units at `frame`, with the patch's id and side.
+fn patch_corners(scene: &Scene, frame: usize) -> Vec<(u32, [glam::DVec3; 3])> {
+    let n = &scene.normalisation;
+    scene
+        .triangles_at(frame)
+        .iter()
+        .flat_map(|(corners, faces)| {
+            let c = corners.map(|p| n.to_scene(p.as_dvec3()));
+            std::iter::once((faces.front, c)).chain(faces.back.map(|b| (b, c)))
+        })
+        .collect()
+}
+
+/// Area-weighted mean radiance (grey: channel 0) of the patches `chosen`, and its standard error
+/// (patches taken as independent).
+fn mean(scene: &Scene, s: &FrameSolution, chosen: &[u32]) -> (f64, f64) {
+    let area: f64 = chosen.iter().map(|&p| scene.patches[p as usize].area).sum();
+    let m = chosen
+        .iter()
+        .map(|&p| scene.patches[p as usize].area * s.radiance[p as usize][0])
+        .sum::<f64>()
+        / area;
+    let var = chosen
+        .iter()
+        .map(|&p| {
+            let e = s.stderr[p as usize].map_or(0.0, |e| e[0]);
+            (scene.patches[p as usize].area * e / area).powi(2)
+        })
+        .sum::<f64>();
+    (m, var.sqrt())
+}
+
+/// Area-weighted mean radiance of every non-emitting patch facing into the room.
+fn scene_mean(scene: &Scene, s: &FrameSolution) -> f64 {
+    let lit: Vec<u32> = (0..scene.patches.len() as u32)
+        .filter(|&p| {
+            let patch = &scene.patches[p as usize];
+            !scene.materials[patch.material as usize].is_emitter()
+                && s.radiance[p as usize][0] > 0.0
+        })
+        .collect();
+    mean(scene, s, &lit).0
+}
+
+/// The box's bottom face (front side, facing the floor) at `frame`.
+fn box_bottom(scene: &Scene, frame: usize) -> Vec<u32> {
+    let faces: Vec<(u32, [glam::DVec3; 3])> = patch_corners(scene, frame)
+        .into_iter()
+        .filter(|&(p, _)| {
+            let patch = &scene.patches[p as usize];
+            patch.source.node == node("box") && patch.side == Side::Front
+        })
+        .collect();
+    let low = faces
+        .iter()
+        .flat_map(|(_, c)| c.iter().map(|v| v.y))
+        .fold(f64::INFINITY, f64::min);
+    let tolerance = 1e-6 * scene.normalisation.radius;
+    faces
+        .into_iter()
+        .filter(|(_, c)| c.iter().all(|v| v.y - low < tolerance))
+        .map(|(p, _)| p)
+        .collect()
+}
+
+/// Floor patches (front, facing up) whose corners all lie within `inside` of the centre
+/// (in x and z, scene units).
+fn floor_within(scene: &Scene, inside: f64) -> Vec<u32> {
+    patch_corners(scene, 0)
+        .into_iter()
+        .filter(|&(p, c)| {
+            let patch = &scene.patches[p as usize];
+            patch.source.node == node("floor")
+                && patch.side == Side::Front
+                && c.iter().all(|v| v.x.abs() <= inside && v.z.abs() <= inside)
+        })
+        .map(|(p, _)| p)
+        .collect()
+}
+
+#[test]
+fn a_box_on_the_floor_leaves_its_contact_dark() {
+    let room = Room::default();
+    let (bake, solved) = bake(room.scene(), 400_000, 1);
+    let (scene, s) = (&bake.scene, &solved[0]);
+    let reference = scene_mean(scene, s);
+    let bottom = box_bottom(scene, 0);
+    assert_eq!(bottom.len(), 2);
+    let under = floor_within(scene, f64::from(BOX) + 1e-6);
+    assert_eq!(under.len(), 32, "the 4 × 4 floor cells under the box");
+    for (what, patches) in [("box bottom", &bottom), ("floor under the box", &under)] {
+        for &p in patches.iter() {
+            assert!(s.samples[p as usize] > 0, "{what}: patch {p} unsampled");
+            let l = s.radiance[p as usize][0];
+            assert!(
+                l <= 0.01 * reference,
+                "{what}: patch {p} has radiance {l}, the scene's mean is {reference}"
+            );
+        }
+    }
+    // Only the contact is dark: the box's other faces and the floor around it are lit.
+    let (around, _) = mean(scene, s, &floor_within(scene, 0.6));
+    assert!(around > 0.3 * reference, "{around} {reference}");
+}
+
+#[test]
+fn a_floor_patch_partly_under_the_box_is_the_average_of_its_parts() {
+    let (lines, seed) = (1_000_000, 2);
+    let coarse = Room {
+        step: COARSE,
+        ..Room::default()
+    };
+    let (whole, whole_s) = bake(coarse.scene(), lines, seed);
+    let cut_room = Room {
+        cut: true,
+        ..coarse
+    };
+    let (cut, cut_s) = bake(cut_room.scene(), lines, seed + 1);
+    // Per floor cell of the grid that the box's edge crosses: the area average of the whole
+    // bake's two triangles against that of the cut bake's pieces in the cell.
+    let cell_of = |c: &[glam::DVec3; 3]| {
+        let centre = (c[0] + c[1] + c[2]) / 3.0;
+        let k = |v: f64| ((v + f64::from(ROOM)) / f64::from(COARSE)).floor() as i32;
+        (k(centre.x), k(centre.z))
+    };
+    let per_cell = |scene: &Scene, s: &FrameSolution| {
+        let mut cells: std::collections::BTreeMap<(i32, i32), Vec<u32>> = Default::default();
+        for (p, c) in patch_corners(scene, 0) {
+            let patch = &scene.patches[p as usize];
+            if patch.source.node == node("floor") && patch.side == Side::Front {
+                cells.entry(cell_of(&c)).or_default().push(p);
+            }
+        }
+        cells
+            .into_iter()
+            .map(|(k, patches)| (k, mean(scene, s, &patches)))
+            .collect::<std::collections::BTreeMap<_, _>>()
+    };
+    let (a, b) = (
+        per_cell(&whole.scene, &whole_s[0]),
+        per_cell(&cut.scene, &cut_s[0]),
+    );
+    // The 8 cells around the middle one, which the box's outline crosses.
+    let edge: Vec<(i32, i32)> = a
+        .keys()
+        .copied()
+        .filter(|&(i, j)| (1..=3).contains(&i) && (1..=3).contains(&j) && (i, j) != (2, 2))
+        .collect();
+    assert_eq!(edge.len(), 8);
+    let z: Vec<f64> = edge
+        .iter()
+        .map(|cell| {
+            let ((la, ea), (lb, eb)) = (a[cell], b[cell]);
+            (la - lb) / (ea * ea + eb * eb).sqrt()
+        })
+        .collect();
+    // Each cell within 4 combined standard errors, and their mean within 4 standard errors of
+    // a mean of 8 (a leak across the contact brightens every one of them).
+    let worst = z.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    let mean_z = z.iter().sum::<f64>() / (z.len() as f64).sqrt();
+    assert!(
+        worst < 4.0,
+        "a cell off by {worst:.1} standard errors: {z:.1?}"
+    );
+    assert!(
+        mean_z.abs() < 4.0,
+        "cells off by {mean_z:.1} standard errors together: {z:.1?}"
+    );
+}
+
+#[test]
+fn a_slit_under_the_box_lets_light_through_at_any_scale() {
+    for scale in [1e-4, 1.0, 1e5] {
+        let touching = Room {
+            scale,
+            ..Room::default()
+        };
+        let lifted = Room {
+            lift: 2e-3 * ROOM,
+            scale,
+            ..Room::default()
+        };
+        let (bake_t, solved_t) = bake(touching.scene(), 100_000, 3);
+        let (bake_l, solved_l) = bake(lifted.scene(), 100_000, 3);
+        let dark = mean(&bake_t.scene, &solved_t[0], &box_bottom(&bake_t.scene, 0)).0;
+        let (lit, sigma) = mean(&bake_l.scene, &solved_l[0], &box_bottom(&bake_l.scene, 0));
+        assert_eq!(dark, 0.0, "scale {scale}: the touching box's bottom");
+        assert!(
+            lit > 5.0 * sigma && lit > 0.0,
+            "scale {scale}: the lifted box's bottom {lit} ± {sigma}"
+        );
+    }
+}
+
+#[test]
+fn a_box_sunk_into_the_floor_keeps_its_buried_faces_dark() {
+    let room = Room {
+        lift: -BOX,
+        ..Room::default()
+    };
+    let (bake, solved) = bake(room.scene(), 200_000, 4);
+    let (scene, s) = (&bake.scene, &solved[0]);
+    let floor_y = f64::from(-ROOM);
+    let buried: Vec<u32> = patch_corners(scene, 0)
+        .into_iter()
+        .filter(|&(p, c)| {
+            scene.patches[p as usize].source.node == node("box")
+                && c.iter().all(|v| v.y <= floor_y + 1e-9)
+        })
+        .map(|(p, _)| p)
+        .collect();
+    assert!(!buried.is_empty());
+    for p in buried {
+        assert_eq!(s.radiance[p as usize][0], 0.0, "buried patch {p}");
+    }
+}
+
+#[test]
+fn double_sided_surfaces_in_contact_are_dark_too() {
+    let room = Room {
+        double_sided: true,
+        ..Room::default()
+    };
+    let (bake, solved) = bake(room.scene(), 400_000, 5);
+    let (scene, s) = (&bake.scene, &solved[0]);
+    let reference = scene_mean(scene, s);
+    for p in box_bottom(scene, 0)
+        .into_iter()
+        .chain(floor_within(scene, f64::from(BOX) + 1e-6))
+    {
+        let l = s.radiance[p as usize][0];
+        assert!(l <= 0.01 * reference, "patch {p}: {l} against {reference}");
+    }
+}
+
+#[test]
+fn a_moving_box_is_dark_underneath_only_where_it_touches() {
+    let room = Room {
+        lift: 0.2,
+        moving: true,
+        ..Room::default()
+    };
+    let (bake, solved) = bake(room.scene(), 300_000, 6);
+    let scene = &bake.scene;
+    assert_eq!(scene.frames.count, 2);
+    let touching = mean(scene, &solved[0], &box_bottom(scene, 0)).0;
+    let (lifted, sigma) = mean(scene, &solved[1], &box_bottom(scene, 1));
+    assert_eq!(touching, 0.0);
+    assert!(lifted > 5.0 * sigma && lifted > 0.0, "{lifted} ± {sigma}");
+    let under = floor_within(scene, f64::from(BOX) + 1e-6);
+    for p in &under {
+        assert_eq!(solved[0].radiance[*p as usize][0], 0.0, "floor patch {p}");
+    }
+}
+
+/// Regression: a shadow ray from a face pressed against a wall ignored the wall, which it
+/// crosses at its very start, so a lamp behind the wall lit the face.
+#[test]
+fn a_lamp_behind_a_wall_does_not_light_a_face_pressed_against_it() {
+    let room = Room {
+        x: ROOM - BOX,
+        point_light: Some(ROOM + 0.5),
+        ..Room::default()
+    };
+    let (baked, solved) = bake(room.scene(), 20_000, 7);
+    let (scene, s) = (&baked.scene, &solved[0]);
+    assert_eq!(scene.lights.len(), 1);
+    // Nothing inside the closed room is lit: not the box's face against the wall either.
+    for (p, l) in s.radiance.iter().enumerate() {
+        assert_eq!(l[0], 0.0, "patch {p} ({:?})", scene.patches[p].source);
+    }
+    // The same lamp inside the room lights it (the test can see light).
+    let inside = Room {
+        point_light: Some(0.0),
+        ..room
+    };
+    let (_, solved) = bake(inside.scene(), 20_000, 7);
+    assert!(solved[0].radiance.iter().any(|l| l[0] > 0.0));
+}
