@@ -20,6 +20,8 @@
 //! - [`bake`]: a traced scene ready to solve, refine and relight any frame.
 //! - [`output`]: what people use and look at: the baked glTF (per-vertex radiance), PNG and
 //!   GIF previews, the tone map.
+//! - [`params`]: the rules on parameters that the CLI and the HTTP API share (the sky's
+//!   `r,g,b`, a timeline's start and end), so the two front ends cannot disagree.
 //! - [`service`]: the HTTP service (axum): jobs, their status and their frames.
 //! - [`batch`]: batch baking of scenes into files (`radiosity bake`).
 //! - [`bench`](mod@bench): the measurements behind the README's figures (`radiosity bench`).
@@ -34,6 +36,7 @@ pub mod direct;
 pub mod lines;
 pub mod loader;
 pub mod output;
+pub mod params;
 pub mod samples;
 pub mod scene;
 pub mod service;

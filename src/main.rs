@@ -33,16 +33,21 @@ struct SceneArgs {
     patch_size: Option<f64>,
 }
 
-impl From<SceneArgs> for LoadOptions {
-    fn from(a: SceneArgs) -> Self {
-        Self {
+impl TryFrom<SceneArgs> for LoadOptions {
+    type Error = String;
+
+    /// The load options, checked by the rules the service applies too.
+    fn try_from(a: SceneArgs) -> Result<Self, String> {
+        let options = Self {
             fps: a.fps,
             animation: a.animation,
             start: a.start,
             end: a.end,
             patch_size: a.patch_size,
             ..Self::default()
-        }
+        };
+        radiosity::params::validate_load(&options).map_err(|e| e.to_string())?;
+        Ok(options)
     }
 }
 
@@ -69,9 +74,9 @@ enum Command {
         /// Seed of the lines.
         #[arg(long, default_value_t = 1)]
         seed: u64,
-        /// Radiance of the sky, r,g,b.
-        #[arg(long, value_delimiter = ',', num_args = 3, default_values_t = [0.0, 0.0, 0.0])]
-        sky: Vec<f64>,
+        /// Radiance of the sky: three numbers ≥ 0, r,g,b (such as 1,1,1).
+        #[arg(long, value_name = "R,G,B", default_value = "0,0,0")]
+        sky: radiosity::params::Sky,
         /// Bake even scenes whose outputs are up to date.
         #[arg(long)]
         force: bool,
@@ -200,17 +205,14 @@ fn run(cli: Cli) -> Result<(), String> {
                     .unwrap_or(radiosity::timeline::Preset::Default)
                     .lines()
             });
-            if sky.len() != 3 || sky.iter().any(|v| !v.is_finite() || *v < 0.0) {
-                return Err("--sky takes three non-negative numbers r,g,b".into());
-            }
             let params = radiosity::batch::BatchParams {
-                load: args.into(),
+                load: args.try_into()?,
                 lines: radiosity::timeline::LineParams {
                     lines,
                     bundles: None,
                     seed,
                 },
-                sky: [sky[0], sky[1], sky[2]],
+                sky: sky.0,
                 outputs: radiosity::batch::Outputs {
                     glb_frames,
                     preview_frames,
@@ -238,9 +240,10 @@ fn run(cli: Cli) -> Result<(), String> {
             serve(&addr, config)
         }
         Command::Scene { file, args, json } => {
+            let options = args.try_into()?;
             let bytes = std::fs::read(&file).map_err(|e| format!("{}: {e}", file.display()))?;
-            let scene = loader::load(&bytes, &args.into())
-                .map_err(|e| format!("{}: {e}", file.display()))?;
+            let scene =
+                loader::load(&bytes, &options).map_err(|e| format!("{}: {e}", file.display()))?;
             let summary = scene.summary();
             if json {
                 let text = serde_json::to_string_pretty(&summary).map_err(|e| e.to_string())?;
@@ -257,9 +260,10 @@ fn run(cli: Cli) -> Result<(), String> {
             seed,
             json,
         } => {
+            let options = args.try_into()?;
             let bytes = std::fs::read(&file).map_err(|e| format!("{}: {e}", file.display()))?;
-            let scene = loader::load(&bytes, &args.into())
-                .map_err(|e| format!("{}: {e}", file.display()))?;
+            let scene =
+                loader::load(&bytes, &options).map_err(|e| format!("{}: {e}", file.display()))?;
             let report = radiosity::bench::trace(&scene, lines, seed).map_err(|e| e.to_string())?;
             if json {
                 let text = serde_json::to_string_pretty(&report).map_err(|e| e.to_string())?;

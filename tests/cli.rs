@@ -281,3 +281,94 @@ fn ctrl_c_stops_a_bake_and_keeps_the_previous_outputs_whole() {
     assert_eq!(names, vec!["cornell_moving".to_string()]);
     let _ = std::fs::remove_dir_all(&out);
 }
+
+/// Regression (issue 11): `--start` after `--end` is refused by every subcommand that takes
+/// them, before any work (a static scene was baked).
+#[test]
+fn start_after_end_is_refused_by_every_subcommand() {
+    let out = scratch("span");
+    let furnace = sample("furnace.gltf");
+    let furnace = furnace.to_str().unwrap();
+    let span = ["--start", "2", "--end", "1"];
+    for command in [
+        vec![
+            "bake",
+            furnace,
+            "--out",
+            out.to_str().unwrap(),
+            "--lines",
+            "2000",
+        ],
+        vec!["scene", furnace],
+        vec!["bench", furnace, "--lines", "2000"],
+    ] {
+        let output = radiosity().args(&command).args(span).output().unwrap();
+        let log = String::from_utf8_lossy(&output.stderr);
+        assert!(!output.status.success(), "{command:?}: {log}");
+        assert!(
+            log.contains("start") && log.contains("end") && log.contains("after"),
+            "{command:?}: {log}"
+        );
+    }
+    assert!(!out.join("furnace").exists());
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+/// Regression (issue 11): `--sky r,g,b` as the README documents (only `--sky 1 1 1` was read),
+/// with the service's rule: exactly three finite numbers ≥ 0.
+#[test]
+fn the_sky_is_r_g_b_as_in_the_service() {
+    let out = scratch("sky");
+    let squares = sample("parallel_squares.gltf");
+    let bake = |sky: &[&str]| {
+        radiosity()
+            .args([
+                "bake",
+                squares.to_str().unwrap(),
+                "--out",
+                out.to_str().unwrap(),
+            ])
+            .args([
+                "--lines",
+                "2000",
+                "--glb-frames",
+                "none",
+                "--preview-frames",
+                "none",
+            ])
+            .args(["--no-gif", "--force", "--sky"])
+            .args(sky)
+            .output()
+            .unwrap()
+    };
+    let output = bake(&["1,0.5,0"]);
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let summary: serde_json::Value = serde_json::from_slice(
+        &std::fs::read(out.join("parallel_squares").join("summary.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(summary["sky"], serde_json::json!([1.0, 0.5, 0.0]));
+    // Refused, naming the value and the form; the old `--sky 1 1 1` too (its first value is
+    // not r,g,b).
+    for sky in [
+        &["1,x,2,3"][..],
+        &["1,2"],
+        &["1,2,3,4"],
+        &["1,-2,3"],
+        &["1,inf,3"],
+        &["1", "1", "1"],
+    ] {
+        let output = bake(sky);
+        let log = String::from_utf8_lossy(&output.stderr);
+        assert!(!output.status.success(), "{sky:?}: {log}");
+        assert!(
+            log.contains(&format!("{:?}", sky[0])) && log.contains("r,g,b"),
+            "{sky:?}: {log}"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&out);
+}

@@ -827,3 +827,95 @@ async fn concurrent_relights_apply_exactly_the_one_accepted() {
         );
     }
 }
+
+/// Regression (issue 11): parameters are strict. `start > end` is refused, also for a static
+/// scene (it was accepted); `sky` is exactly r,g,b (`1,x,2,3` was read as `1,2,3`); and every
+/// route refuses a query parameter it does not take, naming it (`/frames/0?side=x` was a 200).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn parameters_are_strict_and_their_refusals_name_them() {
+    let base = start(Config::default()).await;
+    let client = reqwest::Client::new();
+    let refused = |response: reqwest::Response, what: String, needles: Vec<String>| async move {
+        assert_eq!(response.status(), 400, "{what}");
+        assert_eq!(
+            response.headers()["content-type"],
+            "application/problem+json",
+            "{what}"
+        );
+        let problem: Value = response.json().await.unwrap();
+        let detail = problem["detail"].as_str().unwrap();
+        for needle in needles {
+            assert!(
+                detail.contains(&needle),
+                "{what}: {detail:?} lacks {needle:?}"
+            );
+        }
+    };
+    for (query, needles) in [
+        ("start=2&end=1", vec!["start", "end"]),
+        ("start=0.5&end=-0.5", vec!["start", "end"]),
+        ("sky=1,x,2,3", vec!["sky", "1,x,2,3"]),
+        ("sky=1,2,3,4", vec!["sky", "1,2,3,4"]),
+        ("sky=1,,2,3", vec!["sky", "1,,2,3"]),
+        ("sky=1,2,3,", vec!["sky", "1,2,3,"]),
+        ("sky=1,inf,3", vec!["sky", "1,inf,3"]),
+        ("fps=abc", vec!["fps", "abc"]),
+        ("seed=-1", vec!["seed", "-1"]),
+    ] {
+        let query = format!("lines=2000&{query}");
+        let response = post(
+            &client,
+            &base,
+            &query,
+            "model/gltf+json",
+            scene("cornell_box.gltf"),
+        )
+        .await;
+        let needles = needles.into_iter().map(String::from).collect();
+        refused(response, query, needles).await;
+    }
+    // Equal times (one frame) and a well-formed sky are accepted.
+    let (id, _) = create(
+        &client,
+        &base,
+        "lines=2000&start=1&end=1&sky=0.5,0.5,0.5",
+        "cornell_box.gltf",
+    )
+    .await;
+    assert_eq!(
+        wait(&client, &base, &id, Duration::from_secs(60)).await["status"],
+        "done"
+    );
+    // Every described route, each with a parameter it does not take (beside one it takes,
+    // where it takes some): 400, naming it, and nothing done.
+    let spec: Value = serde_json::from_str(radiosity::service::OPENAPI).unwrap();
+    for (path, methods) in spec["paths"].as_object().unwrap() {
+        let url = format!(
+            "{base}{}",
+            path.replace("{id}", &id).replace("{frame}", "0")
+        );
+        for (method, operation) in methods.as_object().unwrap() {
+            let known = operation["parameters"]
+                .as_array()
+                .into_iter()
+                .flatten()
+                .find(|p| p["in"] == "query")
+                .map(|p| format!("{}=1&", p["name"].as_str().unwrap()))
+                .unwrap_or_default();
+            let url = format!("{url}?{known}side=x");
+            let request = match method.as_str() {
+                "get" => client.get(&url),
+                "post" => client.post(&url),
+                "delete" => client.delete(&url),
+                other => panic!("method {other}"),
+            };
+            let response = request.send().await.unwrap();
+            refused(response, format!("{method} {url}"), vec!["side".into()]).await;
+        }
+    }
+    assert_eq!(
+        get_json(&client, format!("{base}/v1/timelines/{id}")).await["status"],
+        "done",
+        "the refused DELETE deleted nothing"
+    );
+}

@@ -6,6 +6,7 @@ use axum::response::{IntoResponse, Response};
 use serde::Serialize;
 
 use crate::loader::LoadError;
+use crate::params::ParamError;
 
 /// An error answered to a client.
 #[derive(Debug, thiserror::Error)]
@@ -34,6 +35,13 @@ pub enum ApiError {
     /// Something went wrong on our side; the detail is logged, not sent.
     #[error("internal error")]
     Internal(String),
+}
+
+impl From<ParamError> for ApiError {
+    /// A shared rule on parameters ([`crate::params`]) is broken: a bad parameter.
+    fn from(e: ParamError) -> Self {
+        Self::Parameter(e.to_string())
+    }
 }
 
 /// The problem document (RFC 9457).

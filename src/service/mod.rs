@@ -2,20 +2,22 @@
 //!
 //! `app` builds the router (tests drive it over a real socket); `serve` runs it until a
 //! shutdown signal. Heavy work runs on blocking threads, at most `max_running` jobs at once; the
-//! rest wait `queued`. Every error is `application/problem+json` with a 4xx for bad input.
+//! rest wait `queued`. Every error is `application/problem+json` with a 4xx for bad input. Each
+//! route reads its query string into a struct of `query` that refuses parameters it does not
+//! take.
 
 mod error;
 mod jobs;
+mod query;
 mod store;
 
-use std::collections::HashMap;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::Instant;
 
 use axum::body::{Body, Bytes};
 use axum::extract::rejection::BytesRejection;
-use axum::extract::{DefaultBodyLimit, Path, Query, State};
+use axum::extract::{DefaultBodyLimit, Path, State};
 use axum::http::{HeaderMap, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
@@ -24,10 +26,10 @@ use serde_json::json;
 
 pub use error::ApiError;
 use jobs::{Job, Jobs, Status, Work};
+use query::{CreateQuery, NoParameters, PreviewQuery, RefineQuery, StatsQuery, StrictQuery};
 
-use crate::loader::{self, LoadOptions};
+use crate::loader;
 use crate::scene::Scene;
-use crate::timeline::{LineParams, Preset};
 
 /// Server settings.
 #[derive(Clone, Debug)]
@@ -104,7 +106,7 @@ impl AppState {
 pub fn app(state: AppState) -> Router {
     let limit = state.0.config.max_body_bytes;
     Router::new()
-        .route("/healthz", get(|| async { Json(json!({"status": "ok"})) }))
+        .route("/healthz", get(healthz))
         .route("/v1/timelines", get(list_timelines).post(create_timeline))
         .route(
             "/v1/timelines/{id}",
@@ -151,118 +153,6 @@ pub async fn serve(
     axum::serve(listener, app(state))
         .with_graceful_shutdown(shutdown)
         .await
-}
-
-/// The query parameters of `POST /v1/timelines`.
-const CREATE_PARAMETERS: [&str; 9] = [
-    "fps",
-    "lines",
-    "preset",
-    "seed",
-    "patch_size",
-    "animation",
-    "sky",
-    "start",
-    "end",
-];
-
-fn number(query: &HashMap<String, String>, name: &str) -> Result<Option<f64>, ApiError> {
-    query
-        .get(name)
-        .map(|v| {
-            v.parse::<f64>()
-                .ok()
-                .filter(|x| x.is_finite())
-                .ok_or_else(|| {
-                    ApiError::Parameter(format!("{name} must be a finite number, not {v:?}"))
-                })
-        })
-        .transpose()
-}
-
-/// Checks the query and turns it into load options, lines and sky.
-fn parse_create(
-    query: &HashMap<String, String>,
-    config: &Config,
-) -> Result<(LoadOptions, LineParams, [f64; 3]), ApiError> {
-    if let Some(unknown) = query
-        .keys()
-        .find(|k| !CREATE_PARAMETERS.contains(&k.as_str()))
-    {
-        return Err(ApiError::Parameter(format!(
-            "unknown parameter {unknown:?}; expected one of {}",
-            CREATE_PARAMETERS.join(", ")
-        )));
-    }
-    let fps = number(query, "fps")?.unwrap_or(24.0);
-    if !(fps > 0.0 && fps <= 1000.0) {
-        return Err(ApiError::Parameter(format!(
-            "fps must be in (0, 1000], not {fps}"
-        )));
-    }
-    let lines = match (query.get("lines"), query.get("preset")) {
-        (Some(_), Some(_)) => {
-            return Err(ApiError::Parameter("give lines or preset, not both".into()));
-        }
-        (Some(v), None) => v
-            .parse::<u64>()
-            .ok()
-            .filter(|&n| (1_000..=config.max_lines).contains(&n))
-            .ok_or_else(|| {
-                ApiError::Parameter(format!(
-                    "lines must be an integer in [1000, {}], not {v:?}",
-                    config.max_lines
-                ))
-            })?,
-        (None, Some(p)) => p.parse::<Preset>().map_err(ApiError::Parameter)?.lines(),
-        (None, None) => Preset::Default.lines(),
-    };
-    let seed = match query.get("seed") {
-        Some(v) => v.parse::<u64>().map_err(|_| {
-            ApiError::Parameter(format!("seed must be an unsigned integer, not {v:?}"))
-        })?,
-        None => 1,
-    };
-    let patch_size = number(query, "patch_size")?;
-    if patch_size.is_some_and(|p| p <= 0.0) {
-        return Err(ApiError::Parameter("patch_size must be positive".into()));
-    }
-    let sky = match query.get("sky") {
-        None => [0.0; 3],
-        Some(v) => {
-            let parts: Vec<f64> = v
-                .split(',')
-                .filter_map(|p| p.trim().parse::<f64>().ok())
-                .collect();
-            match parts[..] {
-                [r, g, b] if parts.iter().all(|x| x.is_finite() && *x >= 0.0) => [r, g, b],
-                _ => {
-                    return Err(ApiError::Parameter(format!(
-                        "sky must be r,g,b with three non-negative numbers, not {v:?}"
-                    )));
-                }
-            }
-        }
-    };
-    let options = LoadOptions {
-        fps,
-        animation: query.get("animation").cloned(),
-        start: number(query, "start")?,
-        end: number(query, "end")?,
-        patch_size,
-        max_frames: config.max_frames,
-        max_patches: config.max_patches,
-        ..LoadOptions::default()
-    };
-    Ok((
-        options,
-        LineParams {
-            lines,
-            bundles: None,
-            seed,
-        },
-        sky,
-    ))
 }
 
 /// Memory a job will need, estimated from the scene before tracing: crossings per line from
@@ -328,14 +218,19 @@ fn new_id() -> String {
     format!("{:016x}", rng.random::<u64>())
 }
 
+/// `GET /healthz`: liveness.
+async fn healthz(_: StrictQuery<NoParameters>) -> Json<serde_json::Value> {
+    Json(json!({"status": "ok"}))
+}
+
 async fn create_timeline(
     State(state): State<AppState>,
-    Query(query): Query<HashMap<String, String>>,
+    StrictQuery(query): StrictQuery<CreateQuery>,
     headers: HeaderMap,
     body: Result<Bytes, BytesRejection>,
 ) -> Result<Response, ApiError> {
     let config = &state.0.config;
-    let (options, lines, sky) = parse_create(&query, config)?;
+    let (options, lines, sky) = query.validate(config)?;
     let content_type = headers
         .get(header::CONTENT_TYPE)
         .and_then(|v| v.to_str().ok())
@@ -454,12 +349,16 @@ fn status_json(job: &Job) -> serde_json::Value {
 async fn timeline_status(
     State(state): State<AppState>,
     Path(id): Path<String>,
+    _: StrictQuery<NoParameters>,
 ) -> Result<Json<serde_json::Value>, ApiError> {
     let job = job(&state, &id)?;
     Ok(Json(status_json(&job)))
 }
 
-async fn list_timelines(State(state): State<AppState>) -> Json<serde_json::Value> {
+async fn list_timelines(
+    State(state): State<AppState>,
+    _: StrictQuery<NoParameters>,
+) -> Json<serde_json::Value> {
     let timelines: Vec<_> = state
         .0
         .jobs
@@ -473,6 +372,7 @@ async fn list_timelines(State(state): State<AppState>) -> Json<serde_json::Value
 async fn delete_timeline(
     State(state): State<AppState>,
     Path(id): Path<String>,
+    _: StrictQuery<NoParameters>,
 ) -> Result<StatusCode, ApiError> {
     let job = job(&state, &id)?;
     job.cancel();
@@ -483,6 +383,7 @@ async fn delete_timeline(
 async fn timeline_patches(
     State(state): State<AppState>,
     Path(id): Path<String>,
+    _: StrictQuery<NoParameters>,
 ) -> Result<Json<serde_json::Value>, ApiError> {
     Ok(Json(job(&state, &id)?.patch_table.clone()))
 }
@@ -528,6 +429,7 @@ fn solved_frame(
 async fn timeline_frame(
     State(state): State<AppState>,
     Path((id, frame)): Path<(String, String)>,
+    _: StrictQuery<NoParameters>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
     let job = job(&state, &id)?;
@@ -560,38 +462,10 @@ async fn timeline_frame(
 async fn frame_preview(
     State(state): State<AppState>,
     Path((id, frame)): Path<(String, String)>,
-    Query(query): Query<HashMap<String, String>>,
+    StrictQuery(query): StrictQuery<PreviewQuery>,
 ) -> Result<Response, ApiError> {
     let job = job(&state, &id)?;
-    if let Some(unknown) = query
-        .keys()
-        .find(|k| !["width", "height", "exposure"].contains(&k.as_str()))
-    {
-        return Err(ApiError::Parameter(format!(
-            "unknown parameter {unknown:?}; expected width, height or exposure"
-        )));
-    }
-    let max = crate::batch::MAX_PREVIEW_SIDE;
-    let side = |name: &str, default: u32| match query.get(name) {
-        None => Ok(default),
-        Some(v) => v
-            .parse::<u32>()
-            .ok()
-            .filter(|s| (1..=max).contains(s))
-            .ok_or_else(|| {
-                ApiError::Parameter(format!("{name} must be a whole number from 1 to {max}"))
-            }),
-    };
-    let (width, height) = (side("width", 640)?, side("height", 480)?);
-    let exposure = match query.get("exposure") {
-        None => None,
-        Some(v) => Some(
-            v.parse::<f64>()
-                .ok()
-                .filter(|e| e.is_finite() && *e > 0.0)
-                .ok_or_else(|| ApiError::Parameter("exposure must be a positive number".into()))?,
-        ),
-    };
+    let (width, height, exposure) = query.validate()?;
     let (f, version, solution) = solved_frame(&job, &frame)?;
     let rendered = tokio::task::spawn_blocking(move || {
         let bake = job.bake.lock().ok()?;
@@ -666,6 +540,7 @@ fn frame_json(
 async fn timeline_frames(
     State(state): State<AppState>,
     Path(id): Path<String>,
+    _: StrictQuery<NoParameters>,
 ) -> Result<Response, ApiError> {
     let job = job(&state, &id)?;
     let solved = job.solved.subscribe();
@@ -732,20 +607,10 @@ fn rerun(
 async fn refine_timeline(
     State(state): State<AppState>,
     Path(id): Path<String>,
-    Query(query): Query<HashMap<String, String>>,
+    StrictQuery(query): StrictQuery<RefineQuery>,
 ) -> Result<Response, ApiError> {
     let job = job(&state, &id)?;
-    if let Some(unknown) = query.keys().find(|k| k.as_str() != "add") {
-        return Err(ApiError::Parameter(format!(
-            "unknown parameter {unknown:?}; expected add"
-        )));
-    }
-    let max = state.0.config.max_lines;
-    let add = query
-        .get("add")
-        .and_then(|v| v.parse::<u64>().ok())
-        .filter(|n| (1_000..=max).contains(n))
-        .ok_or_else(|| ApiError::Parameter(format!("add must be an integer in [1000, {max}]")))?;
+    let add = query.validate(&state.0.config)?;
     rerun(&state, job, Work::Refine(add), || Ok(()))
 }
 
@@ -829,6 +694,7 @@ fn find_by_name_or_index(
 async fn relight_timeline(
     State(state): State<AppState>,
     Path(id): Path<String>,
+    _: StrictQuery<NoParameters>,
     body: Bytes,
 ) -> Result<Response, ApiError> {
     let job = job(&state, &id)?;
@@ -911,23 +777,10 @@ async fn relight_timeline(
 async fn timeline_stats(
     State(state): State<AppState>,
     Path(id): Path<String>,
-    Query(query): Query<HashMap<String, String>>,
+    StrictQuery(query): StrictQuery<StatsQuery>,
 ) -> Result<Json<serde_json::Value>, ApiError> {
     let job = job(&state, &id)?;
-    if let Some(unknown) = query.keys().find(|k| k.as_str() != "frame") {
-        return Err(ApiError::Parameter(format!(
-            "unknown parameter {unknown:?}; expected frame"
-        )));
-    }
-    let frames = job.frame_times.len();
-    let frame = match query.get("frame") {
-        None => 0,
-        Some(v) => v
-            .parse::<usize>()
-            .ok()
-            .filter(|&f| f < frames)
-            .ok_or_else(|| ApiError::Parameter(format!("frame must be in 0..{frames}")))?,
-    };
+    let frame = query.validate(job.frame_times.len())?;
     let stats = tokio::task::spawn_blocking(move || {
         let bake = job.bake.lock().ok()?;
         let bake = bake.as_ref()?;
@@ -955,6 +808,7 @@ async fn timeline_stats(
 async fn timeline_events(
     State(state): State<AppState>,
     Path(id): Path<String>,
+    _: StrictQuery<NoParameters>,
 ) -> Result<Response, ApiError> {
     use axum::response::sse::{Event, KeepAlive, Sse};
     let job = job(&state, &id)?;
@@ -990,6 +844,6 @@ async fn timeline_events(
 /// The OpenAPI description of this service (the file checked in as `api/openapi.json`).
 pub const OPENAPI: &str = include_str!("../../api/openapi.json");
 
-async fn openapi() -> Response {
+async fn openapi(_: StrictQuery<NoParameters>) -> Response {
     ([(header::CONTENT_TYPE, "application/json")], OPENAPI).into_response()
 }
