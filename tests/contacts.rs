@@ -526,7 +526,7 @@ fn card_patches(scene: &Scene) -> std::collections::BTreeMap<(u32, u32, bool), u
     let first = scene
         .patches
         .iter()
-        .filter(|p| p.source.node >= node("box") + 1)
+        .filter(|p| p.source.node > node("box"))
         .map(|p| p.source.node)
         .min()
         .unwrap();
