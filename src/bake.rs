@@ -26,6 +26,8 @@ pub struct Bake {
     direct: DirectLight,
     /// Seed of the line set, reused (with the next batch index) by refinement.
     seed: u64,
+    /// What the lines found that the user should know (see [`Bake::warnings`]).
+    warnings: Vec<String>,
 }
 
 impl Bake {
@@ -45,6 +47,7 @@ impl Bake {
         let mut tallies = Tallies::default();
         tallies.update(&list, &tracer.surfaces());
         let direct = DirectLight::compute(&scene, &tracer, control)?;
+        let warnings = overlap_warnings(&tracer, &list);
         Ok(Self {
             scene,
             tracer,
@@ -52,6 +55,7 @@ impl Bake {
             tallies,
             direct,
             seed: params.seed,
+            warnings,
         })
     }
 
@@ -66,7 +70,16 @@ impl Bake {
         self.list
             .add_lines(&self.scene, &self.tracer, &params, control)?;
         self.tallies.update(&self.list, &self.tracer.surfaces());
+        self.warnings = overlap_warnings(&self.tracer, &self.list);
         Ok(())
+    }
+
+    /// What the lines found that the user should know: nodes with coplanar overlapping faces
+    /// (duplicated faces, decals), whose crossings are shared between them
+    /// ([`crate::trace::coincident`]).
+    #[must_use]
+    pub fn warnings(&self) -> &[String] {
+        &self.warnings
     }
 
     /// The intersection list.
@@ -213,4 +226,143 @@ impl Bake {
             })
             .collect()
     }
+}
+
+/// Overlaps below this share of a node's crossings are chance coincidences (lines through the
+/// seam where two surfaces meet), not overlapping faces.
+const OVERLAP_SHARE: f64 = 0.01;
+
+/// Warnings naming the nodes whose faces overlap coplanar: pairs of nodes (or a node with
+/// itself) where more than [`OVERLAP_SHARE`] of the crossings of either land on both. Static
+/// crossings count once; crossings with moving objects once per frame.
+fn overlap_warnings(tracer: &SceneTracer, list: &IntersectionList) -> Vec<String> {
+    use std::collections::BTreeMap;
+    let nodes = tracer.nodes();
+    let spaces = tracer.surfaces().spaces;
+    let node_count = nodes.iter().map(|&n| n as usize + 1).max().unwrap_or(0);
+    type Counts = (Vec<u64>, BTreeMap<(u32, u32), u64>);
+    let empty = || -> Counts { (vec![0; node_count], BTreeMap::new()) };
+    let (crossings, shared) = (0..list.lines())
+        .into_par_iter()
+        .fold_with(
+            (empty(), Vec::new()),
+            |((mut crossings, mut shared), mut merged), l| {
+                let mut pair = |a: u32, b: u32| {
+                    let (a, b) = (nodes[a as usize], nodes[b as usize]);
+                    *shared.entry((a.min(b), a.max(b))).or_insert(0) += 1;
+                };
+                let statics = list.static_hits(l);
+                statics
+                    .iter()
+                    .for_each(|h| crossings[nodes[h.surface() as usize] as usize] += 1);
+                crate::trace::coincident::overlaps(statics, &mut pair);
+                let moving = list.moving_hits(l);
+                moving
+                    .iter()
+                    .for_each(|h| crossings[nodes[h.hit.surface() as usize] as usize] += 1);
+                for frame in moving.chunk_by(|a, b| a.frame == b.frame) {
+                    list.frame_hits(l, frame[0].frame as usize, &mut merged);
+                    crate::trace::coincident::overlaps(&merged, |a, b| {
+                        // Static pairs were counted above.
+                        if spaces[a as usize] != 0 || spaces[b as usize] != 0 {
+                            pair(a, b);
+                        }
+                    });
+                }
+                ((crossings, shared), merged)
+            },
+        )
+        .map(|(counts, _)| counts)
+        .reduce(empty, |(mut ca, mut sa), (cb, sb)| {
+            ca.iter_mut().zip(cb).for_each(|(a, b)| *a += b);
+            sb.into_iter()
+                .for_each(|(k, v)| *sa.entry(k).or_insert(0) += v);
+            (ca, sa)
+        });
+    shared
+        .into_iter()
+        .filter_map(|((a, b), n)| {
+            let (fewer, most) = if crossings[a as usize] <= crossings[b as usize] {
+                (a, crossings[a as usize])
+            } else {
+                (b, crossings[b as usize])
+            };
+            let share = n as f64 / most.max(1) as f64;
+            (n >= 4 && share >= OVERLAP_SHARE).then(|| {
+                let which = if a == b {
+                    format!("node {a} has faces")
+                } else {
+                    format!("nodes {a} and {b} have faces")
+                };
+                format!(
+                    "{which} that overlap in one plane (duplicated faces or decals): {:.0}% of \
+                     node {fewer}'s crossings land on two faces at once, and each gets a share \
+                     of them, as if they were drawn in turn",
+                    100.0 * share.min(1.0)
+                )
+            })
+        })
+        .collect()
+}
+
+/// A warning for patches that no line crossed in some frame although their area should have
+/// drawn at least 10 crossings (the chance of none is then below 5e-5): geometry hidden from
+/// the lines, which bakes black (samples 0). Tiny patches that the lines simply missed are not
+/// worth one.
+#[must_use]
+pub fn unsampled_warning(scene: &Scene, frames: &[Arc<FrameSolution>]) -> Option<String> {
+    let total_area: f64 = scene.patches.iter().map(|p| p.area).sum();
+    if total_area <= 0.0 {
+        return None;
+    }
+    let mut missed = vec![false; scene.patches.len()];
+    let mut in_frames = Vec::new();
+    // Frames that share a solution are checked once.
+    let mut checked: std::collections::HashMap<*const FrameSolution, bool> = Default::default();
+    for (f, frame) in frames.iter().enumerate() {
+        let any = *checked.entry(Arc::as_ptr(frame)).or_insert_with(|| {
+            let crossings: u64 = frame.samples.iter().sum();
+            let mut any = false;
+            for (i, patch) in scene.patches.iter().enumerate() {
+                if frame.samples[i] == 0 && crossings as f64 * patch.area / total_area >= 10.0 {
+                    missed[i] = true;
+                    any = true;
+                }
+            }
+            any
+        });
+        if any {
+            in_frames.push(f as u32);
+        }
+    }
+    let patches: Vec<usize> = (0..missed.len()).filter(|&i| missed[i]).collect();
+    if patches.is_empty() {
+        return None;
+    }
+    let area: f64 = patches.iter().map(|&i| scene.patches[i].area).sum();
+    let mut nodes: Vec<u32> = patches
+        .iter()
+        .map(|&i| scene.patches[i].source.node)
+        .collect();
+    nodes.sort_unstable();
+    nodes.dedup();
+    let list = |v: &[u32]| {
+        let shown: Vec<String> = v.iter().take(8).map(u32::to_string).collect();
+        let more = if v.len() > 8 { ", …" } else { "" };
+        format!("{}{more}", shown.join(", "))
+    };
+    Some(format!(
+        "{} {} ({:.2}% of the scene's area, in nodes {}) crossed by no line in frame(s) {}, \
+         though their area should have drawn at least 10 crossings each: they bake black \
+         (samples 0)",
+        patches.len(),
+        if patches.len() == 1 {
+            "patch was"
+        } else {
+            "patches were"
+        },
+        100.0 * area / total_area,
+        list(&nodes),
+        list(&in_frames)
+    ))
 }

@@ -556,6 +556,8 @@ fn coplanar_overlapping_cards_share_their_crossings() {
         ..Room::default()
     };
     let (one, one_s) = bake(single.scene(), lines, seed);
+    // A card alone, and the box on the floor (a contact, not an overlap): no warning.
+    assert_eq!(one.warnings(), &[] as &[String]);
     let reference = card_patches(&one.scene);
     assert_eq!(reference.len(), 16);
     for in_one_mesh in [false, true] {
@@ -565,6 +567,16 @@ fn coplanar_overlapping_cards_share_their_crossings() {
             ..Room::default()
         };
         let (two, two_s) = bake(doubled.scene(), lines, seed + 1);
+        let expected = if in_one_mesh {
+            "node 4 has faces"
+        } else {
+            "nodes 4 and 5 have faces"
+        };
+        assert!(
+            two.warnings().len() == 1 && two.warnings()[0].starts_with(expected),
+            "{:?}",
+            two.warnings()
+        );
         let patches = card_patches(&two.scene);
         assert_eq!(patches.len(), 32);
         let mut z = Vec::new();
@@ -591,5 +603,82 @@ fn coplanar_overlapping_cards_share_their_crossings() {
             worst < 4.5,
             "one mesh: {in_one_mesh}; worst {worst:.1}σ: {z:.1?}"
         );
+    }
+}
+
+#[test]
+fn a_large_patch_no_line_crossed_gets_a_warning() {
+    let scene = Room::default().scene();
+    let patches = scene.patches.len();
+    let frame = |samples: Vec<u64>| {
+        std::sync::Arc::new(FrameSolution {
+            radiance: vec![[0.0; 3]; patches],
+            stderr: vec![None; patches],
+            samples,
+            iterations: 0,
+            residual: 0.0,
+            converged: true,
+        })
+    };
+    // The wall triangles are large: with 1,000 crossings per patch, one of them should have had
+    // hundreds; a floor cell (1/512 of the floor) at 1 crossing per patch would expect 0.3.
+    let wall = scene
+        .patches
+        .iter()
+        .position(|p| p.source.node == node("walls"))
+        .unwrap();
+    let mut samples = vec![1000; patches];
+    samples[wall] = 0;
+    let missed = frame(samples);
+    let fine = frame(vec![1000; patches]);
+    let warning =
+        radiosity::bake::unsampled_warning(&scene, &[fine.clone(), missed.clone(), missed])
+            .expect("a warning");
+    assert!(warning.starts_with("1 patch was"), "{warning}");
+    assert!(
+        warning.contains("in nodes 1)") && warning.contains("frame(s) 1, 2"),
+        "{warning}"
+    );
+    let mut sparse = vec![1; patches];
+    let floor = scene
+        .patches
+        .iter()
+        .position(|p| p.source.node == node("floor"))
+        .unwrap();
+    sparse[floor] = 0;
+    assert_eq!(
+        radiosity::bake::unsampled_warning(&scene, &[fine, frame(sparse)]),
+        None
+    );
+}
+
+/// Regression: surfaces no light can reach (inside a moving box, the outside of the closed room)
+/// got 1e-11 to 7e-4 in some frames.
+#[test]
+fn no_light_reaches_inside_a_moving_box_or_outside_the_room() {
+    let room = Room {
+        lift: 0.2,
+        moving: true,
+        double_sided: true,
+        ..Room::default()
+    };
+    let (bake, solved) = bake(room.scene(), 300_000, 9);
+    let scene = &bake.scene;
+    let hidden: Vec<usize> = (0..scene.patches.len())
+        .filter(|&p| {
+            let patch = &scene.patches[p];
+            patch.side == Side::Back
+                && [node("box"), node("walls"), node("floor")].contains(&patch.source.node)
+        })
+        .collect();
+    assert!(hidden.len() > 500);
+    for (f, s) in solved.iter().enumerate() {
+        for &p in &hidden {
+            assert_eq!(
+                s.radiance[p][0], 0.0,
+                "frame {f}, patch {p} ({:?})",
+                scene.patches[p].source
+            );
+        }
     }
 }

@@ -85,27 +85,43 @@ pub fn resolve(hits: &[Hit], surfaces: &Surfaces<'_>) -> Option<Vec<Hit>> {
         return None;
     }
     let mut out = Vec::with_capacity(hits.len());
-    let mut start = 0;
-    while start < hits.len() {
-        let mut end = start + 1;
-        while end < hits.len() && hits[end].t - hits[end - 1].t <= COINCIDENT {
-            end += 1;
-        }
-        let run = &hits[start..end];
+    for run in runs(hits) {
         if run.len() == 1 {
             out.push(run[0]);
-        } else {
-            let back = share(run, false);
-            let front = share(run, true);
-            match (back, front) {
-                (Some(b), Some(f)) if surfaces.contact(b, f) => out.extend([b, f]),
-                (Some(_), Some(_)) => {}
-                (b, f) => out.extend(b.or(f)),
-            }
+            continue;
         }
-        start = end;
+        match (share(run, false), share(run, true)) {
+            (Some(b), Some(f)) if surfaces.contact(b, f) => out.extend([b, f]),
+            (Some(_), Some(_)) => {}
+            (b, f) => out.extend(b.or(f)),
+        }
     }
     Some(out)
+}
+
+/// Calls `shared(a, b)` for every two triangles that the line (crossings sorted along it)
+/// crosses at one place from the same side: coplanar overlaps, whose crossing [`resolve`]
+/// shares between them. Each run's triangles are paired with its first (by index).
+pub fn overlaps(hits: &[Hit], mut shared: impl FnMut(u32, u32)) {
+    for run in runs(hits).filter(|run| run.len() > 1) {
+        for front in [false, true] {
+            let mut members: Vec<u32> = run
+                .iter()
+                .filter(|h| h.front() == front)
+                .map(|h| h.surface())
+                .collect();
+            members.sort_unstable();
+            if let Some((&first, rest)) = members.split_first() {
+                rest.iter().for_each(|&other| shared(first, other));
+            }
+        }
+    }
+}
+
+/// The runs of coincident crossings of a line sorted along it: its crossings grouped where
+/// consecutive ones are closer than [`COINCIDENT`] (most runs are a single crossing).
+fn runs(hits: &[Hit]) -> impl Iterator<Item = &[Hit]> {
+    hits.chunk_by(|a, b| b.t - a.t <= COINCIDENT)
 }
 
 /// The crossing that stands for the run's arrivals at front faces (`front`) or at back faces:
