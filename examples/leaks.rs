@@ -1,7 +1,7 @@
 //! Counts leaks at scale: traces 10 million lines through closed sample scenes and reports
 //! lines with an odd number of crossings, lines whose crossings do not alternate sides, and
-//! segments the tallies send to the sky or absorb (all should be 0 in the furnace; the level's
-//! non-alternating lines are contacts, such as the door against the wall).
+//! segments the tallies send to the sky, absorb or darken at a contact (all should be 0 in the
+//! furnace; the level's non-alternating lines are contacts, such as the door against the wall).
 //!
 //!     cargo run --release --example leaks
 
@@ -43,7 +43,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             .map(|k| t.counts[k])
             .sum();
         println!(
-            "{name}: {} lines, {odd} odd, {unordered} not alternating, {lost} segments to the sky or absorbed",
+            "{name}: {} lines, {odd} odd, {unordered} not alternating, {lost} segments to the sky, absorbed or at a contact",
             list.lines()
         );
     }
