@@ -31,6 +31,9 @@ struct SceneArgs {
     /// Subdivide triangles until every edge is at most this long (scene units).
     #[arg(long)]
     patch_size: Option<f64>,
+    /// Largest diffuse reflectance, in (0, 1]: higher ones are lowered to it, with a warning.
+    #[arg(long, default_value_t = loader::MAX_REFLECTANCE)]
+    max_reflectance: f64,
 }
 
 impl From<SceneArgs> for LoadOptions {
@@ -41,6 +44,7 @@ impl From<SceneArgs> for LoadOptions {
             start: a.start,
             end: a.end,
             patch_size: a.patch_size,
+            max_reflectance: a.max_reflectance,
             ..Self::default()
         }
     }
@@ -218,6 +222,7 @@ fn run(cli: Cli) -> Result<(), String> {
                     gif: !no_gif,
                 },
                 force,
+                max_iterations: radiosity::solve::SolveParams::default().max_iterations,
             };
             bake(&inputs, &out, &params)
         }

@@ -545,7 +545,12 @@ fn slivers_and_tiny_triangles_survive_rho_0_999() {
         }
     }
     let scene = mesh_scene(&positions, &indices);
-    assert!(scene.warnings.is_empty(), "{:?}", scene.warnings);
+    // No triangle dropped (the one warning is the default material's reflectance cap).
+    assert!(
+        !scene.warnings.iter().any(|w| w.contains("dropped")),
+        "{:?}",
+        scene.warnings
+    );
     let bake = Bake::trace(scene, &lines(20_000, 11)).unwrap();
     let rho = 0.999;
     let materials = vec![Material {

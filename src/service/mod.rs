@@ -27,6 +27,7 @@ use jobs::{Job, Jobs, Status, Work};
 
 use crate::loader::{self, LoadOptions};
 use crate::scene::Scene;
+use crate::solve::SolveParams;
 use crate::timeline::{LineParams, Preset};
 
 /// Server settings.
@@ -46,6 +47,9 @@ pub struct Config {
     pub max_patches: usize,
     /// Where finished results are kept across restarts; `None` keeps them in memory only.
     pub data_dir: Option<std::path::PathBuf>,
+    /// Iteration cap of each frame's solve (`SolveParams::max_iterations`): a frame that
+    /// reaches it fails its job.
+    pub max_iterations: usize,
 }
 
 impl Default for Config {
@@ -58,6 +62,7 @@ impl Default for Config {
             max_frames: 10_000,
             max_patches: 2_000_000,
             data_dir: None,
+            max_iterations: SolveParams::default().max_iterations,
         }
     }
 }
@@ -154,7 +159,7 @@ pub async fn serve(
 }
 
 /// The query parameters of `POST /v1/timelines`.
-const CREATE_PARAMETERS: [&str; 9] = [
+const CREATE_PARAMETERS: [&str; 10] = [
     "fps",
     "lines",
     "preset",
@@ -164,6 +169,7 @@ const CREATE_PARAMETERS: [&str; 9] = [
     "sky",
     "start",
     "end",
+    "max_reflectance",
 ];
 
 fn number(query: &HashMap<String, String>, name: &str) -> Result<Option<f64>, ApiError> {
@@ -252,6 +258,7 @@ fn parse_create(
         patch_size,
         max_frames: config.max_frames,
         max_patches: config.max_patches,
+        max_reflectance: number(query, "max_reflectance")?.unwrap_or(loader::MAX_REFLECTANCE),
         ..LoadOptions::default()
     };
     Ok((
@@ -351,6 +358,7 @@ async fn create_timeline(
         _ => ApiError::Parameter(format!("the body could not be read: {e}")),
     })?;
     let started = Instant::now();
+    let max_reflectance = options.max_reflectance;
     let scene = tokio::task::spawn_blocking(move || loader::load(&body, &options))
         .await
         .map_err(|e| ApiError::Internal(format!("loader task: {e}")))??;
@@ -366,11 +374,17 @@ async fn create_timeline(
     }
     let id = new_id();
     let table = patch_table(&scene);
+    let solve = SolveParams {
+        sky,
+        max_iterations: config.max_iterations,
+        ..SolveParams::default()
+    };
     let job = Arc::new(Job::new(
         id.clone(),
         scene,
         lines,
-        sky,
+        solve,
+        max_reflectance,
         table,
         state.0.store.clone(),
     ));
@@ -444,6 +458,7 @@ fn status_json(job: &Job) -> serde_json::Value {
         "patches": job.patches,
         "timings": timings,
         "memory": memory.map(|(hits, bytes)| json!({"hits": hits, "bytes": bytes})),
+        "warnings": job.warnings,
     });
     if let Some(error) = error {
         doc["error"] = json!(error);
@@ -757,7 +772,7 @@ struct MaterialChange {
     material: serde_json::Value,
     /// New emission, RGB, in the scene's emission units.
     emission: Option<[f64; 3]>,
-    /// New diffuse reflectance, RGB in [0, 1].
+    /// New diffuse reflectance, RGB in [0, 1], at most the timeline's `max_reflectance`.
     reflectance: Option<[f64; 3]>,
 }
 
@@ -859,6 +874,18 @@ async fn relight_timeline(
                     )));
                 }
                 materials[index].reflectance = r;
+                // Refused, not lowered as a file's would be: a request is done as sent or not.
+                if materials[index].reflects_above(job.max_reflectance) {
+                    return Err(ApiError::Parameter(format!(
+                        "material {} ({}): reflectance {r:?} is above the timeline's \
+                         max_reflectance {}; a closed scene that reflects everything has no \
+                         steady state (post the scene with a higher max_reflectance, at most 1, \
+                         to allow it)",
+                        index,
+                        names[index].as_deref().unwrap_or("unnamed"),
+                        job.max_reflectance
+                    )));
+                }
             }
         }
         let mut lights = job
