@@ -57,9 +57,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .iter()
         .filter(|(_, c)| {
             let centre = xz((c[0] + c[1] + c[2]) / 3.0);
-            on_floor(c)
-                && normal(c).y > 0.5
-                && bottoms.iter().any(|(_, b)| inside(centre, b))
+            on_floor(c) && normal(c).y > 0.5 && bottoms.iter().any(|(_, b)| inside(centre, b))
         })
         .collect();
     let mean = |chosen: &[u32]| {

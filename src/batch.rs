@@ -16,7 +16,8 @@
 //! A scene's outputs are written into a hidden staging directory that replaces the old one
 //! only when complete: an interrupted bake leaves the previous outputs (or none), never a mix.
 //! A scene whose content and parameters are unchanged since its last bake is skipped unless
-//! forced; a scene that fails does not stop the others.
+//! forced; a scene that fails does not stop the others. A frame whose solve does not converge
+//! fails its scene before anything is written.
 
 use std::hash::Hasher;
 use std::path::{Path, PathBuf};
@@ -45,6 +46,9 @@ pub struct BatchParams {
     pub outputs: Outputs,
     /// Bake even if the outputs are up to date.
     pub force: bool,
+    /// Iteration cap of each frame's solve ([`SolveParams::max_iterations`]): a frame that
+    /// reaches it fails the scene.
+    pub max_iterations: usize,
 }
 
 /// Which baked glTF files and previews to write besides `radiance.bin` and `summary.json`.
@@ -385,11 +389,19 @@ pub fn bake_one(
     let started = Instant::now();
     let solve = SolveParams {
         sky: params.sky,
+        max_iterations: params.max_iterations,
         ..SolveParams::default()
     };
     let frames = bake.solve_all_with(&bake.scene.materials, &solve, control);
     if control.is_cancelled() {
         return Outcome::Cancelled;
+    }
+    if let Some(e) = frames
+        .iter()
+        .enumerate()
+        .find_map(|(f, s)| s.ensure_converged(f, &solve).err())
+    {
+        return Outcome::Failed(e.to_string());
     }
     let solve_seconds = started.elapsed().as_secs_f64();
     let scene = &bake.scene;
@@ -435,6 +447,12 @@ pub fn bake_one(
         }
     };
     let count = frames.len();
+    let mut warnings = scene.warnings.clone();
+    warnings.extend_from_slice(bake.warnings());
+    warnings.extend(crate::bake::unsampled_warning(scene, &frames));
+    for w in &warnings[scene.warnings.len()..] {
+        log(&format!("{name}: warning: {w}"));
+    }
     let summary = Summary {
         scene: &name,
         content_hash: hash,
@@ -457,7 +475,7 @@ pub fn bake_one(
         glb_frames: params.outputs.glb_frames.frames(count),
         preview_frames: params.outputs.preview_frames.frames(count),
         gif_frames: gif,
-        warnings: &scene.warnings,
+        warnings: &warnings,
     };
     let timings = serde_json::json!({
         "load": load_seconds,

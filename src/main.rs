@@ -31,6 +31,9 @@ struct SceneArgs {
     /// Subdivide triangles until every edge is at most this long (scene units).
     #[arg(long)]
     patch_size: Option<f64>,
+    /// Largest diffuse reflectance, in (0, 1]: higher ones are lowered to it, with a warning.
+    #[arg(long, default_value_t = loader::MAX_REFLECTANCE)]
+    max_reflectance: f64,
 }
 
 impl TryFrom<SceneArgs> for LoadOptions {
@@ -44,6 +47,7 @@ impl TryFrom<SceneArgs> for LoadOptions {
             start: a.start,
             end: a.end,
             patch_size: a.patch_size,
+            max_reflectance: a.max_reflectance,
             ..Self::default()
         };
         radiosity::params::validate_load(&options).map_err(|e| e.to_string())?;
@@ -220,6 +224,7 @@ fn run(cli: Cli) -> Result<(), String> {
                     gif: !no_gif,
                 },
                 force,
+                max_iterations: radiosity::solve::SolveParams::default().max_iterations,
             };
             bake(&inputs, &out, &params)
         }

@@ -372,3 +372,70 @@ fn the_sky_is_r_g_b_as_in_the_service() {
     }
     let _ = std::fs::remove_dir_all(&out);
 }
+
+#[test]
+fn reflectance_1_is_capped_in_the_summary_and_without_the_cap_the_bake_fails() {
+    let dir = scratch("white");
+    let out = dir.join("out");
+    // The furnace reflecting everything (baseColorFactor 1, metallic 0), as glTF allows.
+    let mut json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(sample("furnace.gltf")).unwrap()).unwrap();
+    json["materials"][0]["pbrMetallicRoughness"]["baseColorFactor"] =
+        serde_json::json!([1.0, 1.0, 1.0, 1.0]);
+    let input = dir.join("white.gltf");
+    std::fs::write(&input, serde_json::to_vec(&json).unwrap()).unwrap();
+    let bake = |extra: &[&str]| {
+        radiosity()
+            .arg("bake")
+            .arg(&input)
+            .arg("--out")
+            .arg(&out)
+            .args([
+                "--lines",
+                "5000",
+                "--glb-frames",
+                "none",
+                "--preview-frames",
+                "none",
+            ])
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    let capped = bake(&[]);
+    assert!(
+        capped.status.success(),
+        "{}",
+        String::from_utf8_lossy(&capped.stderr)
+    );
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("white/summary.json")).unwrap()).unwrap();
+    let warnings = summary["warnings"].to_string();
+    assert!(
+        warnings.contains("max_reflectance 0.999") && warnings.contains("furnace"),
+        "{warnings}"
+    );
+    let before = std::fs::read(out.join("white/radiance.bin")).unwrap();
+    // The first patch's radiance: Le / (1 − 0.999), to f32 rounding.
+    let first = f32::from_le_bytes(before[24..28].try_into().unwrap());
+    assert!((f64::from(first) / 1000.0 - 1.0).abs() < 1e-6, "{first}");
+    // Without the cap: no steady state, the scene fails and its previous outputs stay.
+    let uncapped = bake(&["--max-reflectance", "1", "--force"]);
+    let log = String::from_utf8_lossy(&uncapped.stderr);
+    assert!(!uncapped.status.success(), "{log}");
+    assert!(
+        log.contains("1 of 1 scenes failed") && log.contains("frame 0 did not converge"),
+        "{log}"
+    );
+    assert_eq!(
+        std::fs::read(out.join("white/radiance.bin")).unwrap(),
+        before
+    );
+    let refused = bake(&["--max-reflectance", "0", "--force"]);
+    let log = String::from_utf8_lossy(&refused.stderr);
+    assert!(
+        !refused.status.success() && log.contains("max_reflectance must be in (0, 1]"),
+        "{log}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -196,8 +196,17 @@ fn materials_give_reflectance_emission_and_sides() {
     assert_eq!(m.name.as_deref(), Some("lamp"));
     assert_eq!(m.reflectance, [0.25, 0.125, 0.5]);
     assert_eq!(m.emission, [4.0, 2.0, 0.0]);
-    // The default material: white, not metallic, one-sided.
-    assert_eq!(scene.materials[1].reflectance, [1.0; 3]);
+    // The default material: white, not metallic, one-sided; its reflectance 1 is lowered to the
+    // cap, with a warning.
+    assert_eq!(scene.materials[1].reflectance, [0.999; 3]);
+    assert!(
+        scene
+            .warnings
+            .iter()
+            .any(|w| w.contains("glTF default material")),
+        "{:?}",
+        scene.warnings
+    );
     assert_eq!(scene.materials[1].emission, [0.0; 3]);
     // Two double-sided triangles (front and back) and two one-sided ones.
     assert_eq!(scene.patches.len(), 6);

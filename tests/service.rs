@@ -183,6 +183,9 @@ async fn identical_requests_give_identical_numbers_and_hostile_ones_get_4xx() {
         ("sky=1,2,-3", gltf, good.clone(), 400),
         ("animation=nope", gltf, good.clone(), 400),
         ("start=2&end=1", gltf, good.clone(), 400),
+        ("max_reflectance=0", gltf, good.clone(), 400),
+        ("max_reflectance=1.5", gltf, good.clone(), 400),
+        ("max_reflectance=high", gltf, good.clone(), 400),
         ("", gltf, Vec::new(), 400),
         ("", gltf, b"not json at all".to_vec(), 400),
         ("", gltf, truncated, 400),
@@ -918,4 +921,114 @@ async fn parameters_are_strict_and_their_refusals_name_them() {
         "done",
         "the refused DELETE deleted nothing"
     );
+}
+
+/// `furnace.gltf` reflecting everything: baseColorFactor 1, metallic 0, as glTF allows.
+fn white_furnace() -> Vec<u8> {
+    let mut json: Value = serde_json::from_slice(&scene("furnace.gltf")).unwrap();
+    json["materials"][0]["pbrMetallicRoughness"]["baseColorFactor"] =
+        serde_json::json!([1.0, 1.0, 1.0, 1.0]);
+    serde_json::to_vec(&json).unwrap()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn reflectance_1_is_capped_with_a_warning_and_relit_only_up_to_the_cap() {
+    let base = start(Config::default()).await;
+    let client = reqwest::Client::new();
+    let gltf = "model/gltf+json";
+    let response = post(&client, &base, "lines=5000", gltf, white_furnace()).await;
+    assert_eq!(response.status(), 202);
+    let created: Value = response.json().await.unwrap();
+    let id = created["id"].as_str().unwrap().to_string();
+    let warnings = created["warnings"].to_string();
+    assert!(
+        warnings.contains("max_reflectance 0.999") && warnings.contains("furnace"),
+        "{warnings}"
+    );
+    let done = wait(&client, &base, &id, Duration::from_secs(60)).await;
+    assert_eq!(done["status"], "done", "{done}");
+    assert_eq!(done["warnings"], created["warnings"]);
+    // The white furnace at the cap: Le / (1 − 0.999) on every sampled patch (exact: closed and
+    // watertight; the JSON carries f64).
+    let frame = get_json(&client, format!("{base}/v1/timelines/{id}/frames/0")).await;
+    let samples = frame["samples"].as_array().unwrap();
+    for (l, n) in radiance(frame.clone()).iter().zip(samples) {
+        if n.as_u64().unwrap() > 0 {
+            assert!((l / 1000.0 - 1.0).abs() < 1e-6, "{l}");
+        }
+    }
+    // Relighting above the cap is refused, naming the material; at or below it, accepted.
+    let above = serde_json::json!({"materials": [{"material": 0, "reflectance": [1.0, 0.5, 0.5]}]});
+    let response = relight(&client, &base, &id, &above).await;
+    assert_eq!(response.status(), 400);
+    let detail = response.json::<Value>().await.unwrap()["detail"].to_string();
+    assert!(
+        detail.contains("material 0 (furnace)") && detail.contains("max_reflectance"),
+        "{detail}"
+    );
+    let half =
+        serde_json::json!({"materials": [{"material": "furnace", "reflectance": [0.5, 0.5, 0.5]}]});
+    assert_eq!(relight(&client, &base, &id, &half).await.status(), 202);
+    let done = wait(&client, &base, &id, Duration::from_secs(60)).await;
+    assert_eq!(done["status"], "done", "{done}");
+    let frame = get_json(&client, format!("{base}/v1/timelines/{id}/frames/0")).await;
+    assert!((radiance(frame)[0] - 2.0).abs() < 1e-9);
+    // Without the cap there is no steady state: the job fails, saying why.
+    let response = post(
+        &client,
+        &base,
+        "lines=5000&max_reflectance=1",
+        gltf,
+        white_furnace(),
+    )
+    .await;
+    assert_eq!(response.status(), 202);
+    let created: Value = response.json().await.unwrap();
+    assert_eq!(created["warnings"], serde_json::json!([]));
+    let id = created["id"].as_str().unwrap();
+    let failed = wait(&client, &base, id, Duration::from_secs(60)).await;
+    assert_eq!(failed["status"], "failed", "{failed}");
+    let error = failed["error"].as_str().unwrap();
+    assert!(error.contains("frame 0 did not converge"), "{error}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_solve_that_does_not_converge_fails_the_job_with_its_reason() {
+    let base = start(Config {
+        max_iterations: 1,
+        ..Config::default()
+    })
+    .await;
+    let client = reqwest::Client::new();
+    let (id, _) = create(&client, &base, "lines=5000&fps=4", "cornell_moving.gltf").await;
+    let failed = wait(&client, &base, &id, Duration::from_secs(60)).await;
+    assert_eq!(failed["status"], "failed", "{failed}");
+    let error = failed["error"].as_str().unwrap();
+    assert!(
+        error.contains("frame 0 did not converge")
+            && error.contains("residual")
+            && error.contains("after 1 iterations"),
+        "{error}"
+    );
+    // No frame is served as if it were an answer, and the stream ends.
+    assert_eq!(failed["progress"]["frames_solved"], 0);
+    let response = client
+        .get(format!("{base}/v1/timelines/{id}/frames/0"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(response.status(), 409);
+    let stream = tokio::time::timeout(
+        Duration::from_secs(10),
+        client
+            .get(format!("{base}/v1/timelines/{id}/frames"))
+            .send()
+            .await
+            .unwrap()
+            .text(),
+    )
+    .await
+    .expect("the stream of a failed job ends")
+    .unwrap();
+    assert!(stream.is_empty(), "{stream}");
 }

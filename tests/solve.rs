@@ -545,7 +545,12 @@ fn slivers_and_tiny_triangles_survive_rho_0_999() {
         }
     }
     let scene = mesh_scene(&positions, &indices);
-    assert!(scene.warnings.is_empty(), "{:?}", scene.warnings);
+    // No triangle dropped (the one warning is the default material's reflectance cap).
+    assert!(
+        !scene.warnings.iter().any(|w| w.contains("dropped")),
+        "{:?}",
+        scene.warnings
+    );
     let bake = Bake::trace(scene, &lines(20_000, 11)).unwrap();
     let rho = 0.999;
     let materials = vec![Material {
@@ -611,15 +616,22 @@ fn room_with_boxes(boxes: &[(f32, f32, f32)]) -> Scene {
     };
     cube([0.0; 3], 4.0, true);
     for (k, &(x, y, size)) in boxes.iter().enumerate() {
-        // Cell k of a 3 × 3 grid in the room's middle layer, the box inside its cell.
+        // Cell k of a 3 × 3 grid of unit cells in the room's middle layer, the box inside its
+        // cell, so that no two boxes interpenetrate (where they do, a line between them runs
+        // inside one box and outside the other, and absorbed segments are right).
         let (cx, cz) = ((k % 3) as f32 - 1.0, (k / 3) as f32 - 1.0);
-        cube([cx + x * 0.3, y, cz], size, false);
+        cube([cx + x * (0.49 - size / 2.0), y, cz], size, false);
     }
     mesh_scene(&positions, &indices)
 }
 
 proptest::proptest! {
-    #![proptest_config(proptest::prelude::ProptestConfig { cases: 12, ..Default::default() })]
+    // A fixed seed: the cases are the same in every run (a failure is not left to chance).
+    #![proptest_config(proptest::prelude::ProptestConfig {
+        cases: 12,
+        rng_seed: proptest::test_runner::RngSeed::Fixed(11),
+        ..Default::default()
+    })]
     /// Reciprocity (`S_ij = S_ji`, i.e. `A_i F_ij = A_j F_ji`) and closure (`Σ_j F_ij = 1`: no
     /// segment leaves a closed scene or is absorbed) for any arrangement of closed boxes.
     #[test]

@@ -93,6 +93,36 @@ fn convert_one(
     })
 }
 
+/// Lowers every reflectance above `max` to it ([`Material::reflects_above`]): at reflectance 1 a
+/// closed scene has no steady state (METHOD.md §4). `default` is the index of the glTF default
+/// material, if the scene uses it. Returns a warning naming the materials changed, if any.
+pub fn cap_reflectance(
+    materials: &mut [Material],
+    max: f64,
+    default: Option<usize>,
+) -> Option<String> {
+    let mut changed = Vec::new();
+    for (index, material) in materials.iter_mut().enumerate() {
+        if !material.reflects_above(max) {
+            continue;
+        }
+        let what = match (&material.name, Some(index) == default) {
+            (_, true) => "the glTF default material (primitives without one)".to_string(),
+            (Some(name), false) => format!("material {index} ({name:?})"),
+            (None, false) => format!("material {index}"),
+        };
+        changed.push(format!("{what}: {:?}", material.reflectance));
+        material.reflectance = material.reflectance.map(|r| r.min(max));
+    }
+    (!changed.is_empty()).then(|| {
+        format!(
+            "reflectance lowered to max_reflectance {max} (a closed scene that reflects \
+             everything has no steady state) for {}",
+            changed.join(", ")
+        )
+    })
+}
+
 /// Mean linear RGB of each (image, colour space) pair, decoded once however many materials use
 /// it.
 #[derive(Default)]

@@ -86,6 +86,13 @@ impl Material {
     pub fn is_emitter(&self) -> bool {
         self.emission.iter().any(|&e| e > 0.0)
     }
+
+    /// Whether a channel's reflectance is above `max` by more than `f32` rounding: glTF's factors
+    /// are `f32`, so a file's 0.999 (0.99900001… once read) is not above a cap of 0.999.
+    #[must_use]
+    pub fn reflects_above(&self, max: f64) -> bool {
+        self.reflectance.iter().any(|&r| r as f32 > max as f32)
+    }
 }
 
 /// The patches on the two faces of a traced triangle. A line hitting the front face of the

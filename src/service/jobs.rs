@@ -11,7 +11,7 @@ use tokio::sync::{Semaphore, watch};
 use super::store::{Record, Store};
 use crate::bake::Bake;
 use crate::scene::{Material, Scene};
-use crate::solve::{FrameSolution, SolveParams};
+use crate::solve::{FrameSolution, NotConverged, SolveParams};
 use crate::timeline::{Control, LineParams, TraceError};
 
 /// Where a job is in its life.
@@ -64,6 +64,9 @@ pub struct JobState {
     pub memory: Option<(usize, usize)>,
     /// When the current stage started, for the ETA.
     pub stage_started: Instant,
+    /// What the bake found that the user should know (coplanar overlaps, patches no line
+    /// crossed), after the loader's warnings; renewed by every run.
+    pub found: Vec<String>,
 }
 
 /// A solved frame and the result version it belongs to.
@@ -85,8 +88,10 @@ pub struct Job {
     pub patch_table: serde_json::Value,
     /// Lines and seed.
     pub lines: LineParams,
-    /// Radiance of the sky.
-    pub sky: [f64; 3],
+    /// How frames are solved: the sky's radiance, the tolerance and the iteration cap.
+    pub solve: SolveParams,
+    /// Largest reflectance the scene was loaded with; relighting may not go above it.
+    pub max_reflectance: f64,
     /// Status, error, timings.
     pub state: Mutex<JobState>,
     /// Progress and cancellation of the tracing.
@@ -131,13 +136,14 @@ impl LightSetting {
 }
 
 impl Job {
-    /// A queued job for `scene`.
+    /// A queued job for `scene`, loaded with `max_reflectance`.
     #[must_use]
     pub fn new(
         id: String,
         scene: Scene,
         lines: LineParams,
-        sky: [f64; 3],
+        solve: SolveParams,
+        max_reflectance: f64,
         patch_table: serde_json::Value,
         store: Option<Store>,
     ) -> Self {
@@ -167,13 +173,15 @@ impl Job {
             frame_times,
             patch_table,
             lines,
-            sky,
+            solve,
+            max_reflectance,
             state: Mutex::new(JobState {
                 status: Status::Queued,
                 error: None,
                 timings: Timings::default(),
                 memory: None,
                 stage_started: Instant::now(),
+                found: Vec::new(),
             }),
             control: Control::default(),
             frames_solved: AtomicUsize::new(0),
@@ -219,7 +227,12 @@ impl Job {
                 bundles: None,
                 seed: record.seed,
             },
-            sky: record.sky,
+            solve: SolveParams {
+                sky: record.sky,
+                ..SolveParams::default()
+            },
+            // Not used: a restored job keeps no lines, so it is never relit.
+            max_reflectance: crate::loader::MAX_REFLECTANCE,
             state: Mutex::new(JobState {
                 status,
                 error,
@@ -230,6 +243,7 @@ impl Job {
                 },
                 memory: record.memory,
                 stage_started: Instant::now(),
+                found: Vec::new(),
             }),
             control: Control::default(),
             frames_solved: AtomicUsize::new(solved),
@@ -259,10 +273,10 @@ impl Job {
             version: self.version.load(Ordering::Acquire),
             frame_times: self.frame_times.clone(),
             patches: self.patches,
-            warnings: self.warnings.clone(),
+            warnings: self.warnings(),
             lines: self.lines.lines,
             seed: self.lines.seed,
-            sky: self.sky,
+            sky: self.solve.sky,
             timings: [timings.load, timings.trace, timings.solve],
             memory,
             patch_table: self.patch_table.clone(),
@@ -311,6 +325,7 @@ impl Job {
             s.error = Some(error);
         }
         self.persist();
+        self.solved.send_modify(|_| {});
     }
 
     /// Asks a running job to stop; it ends `cancelled`.
@@ -328,6 +343,17 @@ impl Job {
     #[must_use]
     pub fn frame(&self, frame: usize) -> Option<Versioned> {
         self.results.read().ok()?.get(frame)?.clone()
+    }
+
+    /// The loader's warnings, then what the last run found.
+    #[must_use]
+    pub fn warnings(&self) -> Vec<String> {
+        let found = self
+            .state
+            .lock()
+            .map(|s| s.found.clone())
+            .unwrap_or_default();
+        self.warnings.iter().cloned().chain(found).collect()
     }
 
     /// Does `work` to its end on the calling (blocking) thread.
@@ -369,7 +395,19 @@ impl Job {
                 None => return self.fail("the job has no traced scene to relight".into()),
             },
         };
-        self.solve_frames(&bake);
+        if let Err(e) = self.solve_frames(&bake) {
+            return self.fail(e.to_string());
+        }
+        let frames: Vec<Arc<FrameSolution>> = self
+            .results
+            .read()
+            .map(|r| r.iter().flatten().map(|(_, s)| s.clone()).collect())
+            .unwrap_or_default();
+        let mut found = bake.warnings().to_vec();
+        found.extend(crate::bake::unsampled_warning(&bake.scene, &frames));
+        if let Ok(mut s) = self.state.lock() {
+            s.found = found;
+        }
         if let Ok(mut slot) = self.bake.lock() {
             *slot = Some(bake);
         }
@@ -391,16 +429,14 @@ impl Job {
     }
 
     /// Solves every frame for the current version, in order, a couple per core at a time, so
-    /// that streams see them in order.
-    fn solve_frames(&self, bake: &Bake) {
+    /// that streams see them in order. A frame that does not converge stops the work: the
+    /// frames before it are kept, it and those after are not.
+    fn solve_frames(&self, bake: &Bake) -> Result<(), NotConverged> {
         self.set_status(Status::Solving);
         let started = Instant::now();
         let version = self.version.load(Ordering::Acquire);
         self.frames_solved.store(0, Ordering::Release);
-        let params = SolveParams {
-            sky: self.sky,
-            ..SolveParams::default()
-        };
+        let params = self.solve;
         let representatives = bake.representatives();
         let materials = self.materials.lock().map(|m| m.clone()).unwrap_or_default();
         let power: Vec<[f64; 3]> = self
@@ -413,7 +449,7 @@ impl Job {
         let mut frame = 0;
         while frame < frames {
             if self.control.is_cancelled() {
-                return;
+                return Ok(());
             }
             let end = (frame + chunk).min(frames);
             let solved: Vec<Arc<FrameSolution>> = {
@@ -433,18 +469,27 @@ impl Job {
                     })
                     .collect()
             };
+            let failed = solved
+                .iter()
+                .enumerate()
+                .find_map(|(k, s)| s.ensure_converged(frame + k, &params).err());
+            let good = failed.as_ref().map_or(solved.len(), |e| e.frame - frame);
             if let Ok(mut results) = self.results.write() {
-                for (k, s) in solved.into_iter().enumerate() {
+                for (k, s) in solved.into_iter().take(good).enumerate() {
                     results[frame + k] = Some((version, s));
                 }
             }
-            frame = end;
+            frame += good;
             self.frames_solved.store(frame, Ordering::Release);
             self.solved.send_replace(frame);
+            if let Some(e) = failed {
+                return Err(e);
+            }
         }
         if let Ok(mut s) = self.state.lock() {
             s.timings.solve += started.elapsed().as_secs_f64();
         }
+        Ok(())
     }
 
     /// Makes the job run again (refinement or relighting) after `change`: a new version.
@@ -538,7 +583,6 @@ impl Jobs {
             let runner = job.clone();
             if let Err(e) = tokio::task::spawn_blocking(move || runner.run(work)).await {
                 job.fail(format!("the job stopped unexpectedly: {e}"));
-                job.solved.send_modify(|_| {});
             }
         });
     }

@@ -30,6 +30,7 @@ use query::{CreateQuery, NoParameters, PreviewQuery, RefineQuery, StatsQuery, St
 
 use crate::loader;
 use crate::scene::Scene;
+use crate::solve::SolveParams;
 
 /// Server settings.
 #[derive(Clone, Debug)]
@@ -48,6 +49,9 @@ pub struct Config {
     pub max_patches: usize,
     /// Where finished results are kept across restarts; `None` keeps them in memory only.
     pub data_dir: Option<std::path::PathBuf>,
+    /// Iteration cap of each frame's solve (`SolveParams::max_iterations`): a frame that
+    /// reaches it fails its job.
+    pub max_iterations: usize,
 }
 
 impl Default for Config {
@@ -60,6 +64,7 @@ impl Default for Config {
             max_frames: 10_000,
             max_patches: 2_000_000,
             data_dir: None,
+            max_iterations: SolveParams::default().max_iterations,
         }
     }
 }
@@ -246,6 +251,7 @@ async fn create_timeline(
         _ => ApiError::Parameter(format!("the body could not be read: {e}")),
     })?;
     let started = Instant::now();
+    let max_reflectance = options.max_reflectance;
     let scene = tokio::task::spawn_blocking(move || loader::load(&body, &options))
         .await
         .map_err(|e| ApiError::Internal(format!("loader task: {e}")))??;
@@ -261,11 +267,17 @@ async fn create_timeline(
     }
     let id = new_id();
     let table = patch_table(&scene);
+    let solve = SolveParams {
+        sky,
+        max_iterations: config.max_iterations,
+        ..SolveParams::default()
+    };
     let job = Arc::new(Job::new(
         id.clone(),
         scene,
         lines,
-        sky,
+        solve,
+        max_reflectance,
         table,
         state.0.store.clone(),
     ));
@@ -277,7 +289,7 @@ async fn create_timeline(
         "status": job.status(),
         "frames": job.frame_times.len(),
         "patches": job.patches,
-        "warnings": job.warnings,
+        "warnings": job.warnings(),
     });
     state.0.jobs.start(job);
     let location = format!("/v1/timelines/{id}");
@@ -339,6 +351,7 @@ fn status_json(job: &Job) -> serde_json::Value {
         "patches": job.patches,
         "timings": timings,
         "memory": memory.map(|(hits, bytes)| json!({"hits": hits, "bytes": bytes})),
+        "warnings": job.warnings(),
     });
     if let Some(error) = error {
         doc["error"] = json!(error);
@@ -622,7 +635,7 @@ struct MaterialChange {
     material: serde_json::Value,
     /// New emission, RGB, in the scene's emission units.
     emission: Option<[f64; 3]>,
-    /// New diffuse reflectance, RGB in [0, 1].
+    /// New diffuse reflectance, RGB in [0, 1], at most the timeline's `max_reflectance`.
     reflectance: Option<[f64; 3]>,
 }
 
@@ -725,6 +738,18 @@ async fn relight_timeline(
                     )));
                 }
                 materials[index].reflectance = r;
+                // Refused, not lowered as a file's would be: a request is done as sent or not.
+                if materials[index].reflects_above(job.max_reflectance) {
+                    return Err(ApiError::Parameter(format!(
+                        "material {} ({}): reflectance {r:?} is above the timeline's \
+                         max_reflectance {}; a closed scene that reflects everything has no \
+                         steady state (post the scene with a higher max_reflectance, at most 1, \
+                         to allow it)",
+                        index,
+                        names[index].as_deref().unwrap_or("unnamed"),
+                        job.max_reflectance
+                    )));
+                }
             }
         }
         let mut lights = job

@@ -130,6 +130,9 @@ pub(super) struct CreateQuery {
     /// Time of the last frame, seconds.
     #[serde(default, deserialize_with = "number")]
     end: Option<f64>,
+    /// Highest diffuse reflectance, in (0, 1]; [`crate::loader::MAX_REFLECTANCE`] by default.
+    #[serde(default, deserialize_with = "number")]
+    max_reflectance: Option<f64>,
 }
 
 impl CreateQuery {
@@ -169,6 +172,9 @@ impl CreateQuery {
             patch_size: self.patch_size,
             max_frames: config.max_frames,
             max_patches: config.max_patches,
+            max_reflectance: self
+                .max_reflectance
+                .unwrap_or(crate::loader::MAX_REFLECTANCE),
             ..LoadOptions::default()
         };
         params::validate_load(&options)?;

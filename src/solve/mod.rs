@@ -13,6 +13,13 @@
 //! over √16 is the error of the pooled one. It carries every bounce and the correlations
 //! between patches; it is never taken below the spread of the patch's own first bounce between
 //! the replicas, which low sample counts can hide from the solutions' spread.
+//!
+//! A solve that stops at its iteration cap is no answer: [`FrameSolution::converged`] says so and
+//! [`FrameSolution::ensure_converged`] turns it into an error, which fails the bake or the job.
+//! The replica solves only measure the spread: when the pooled solve did not converge they are
+//! skipped, and a replica that stops at the cap (at its looser tolerance) is left out of the
+//! spread, so the error bar is the others' spread over the square root of their number: wider
+//! in expectation, never narrowed by a replica that did not move, and the pooled answer stands.
 
 pub mod analytic;
 pub mod tally;
@@ -29,7 +36,8 @@ pub struct SolveParams {
     pub sky: [f64; 3],
     /// Stop when the preconditioned residual has fallen by this factor.
     pub tolerance: f64,
-    /// Give up (and say so) after this many iterations per channel.
+    /// Give up after this many iterations per channel: the frame is then not converged, and
+    /// the bake and the service fail it rather than answer with it.
     pub max_iterations: usize,
 }
 
@@ -62,6 +70,20 @@ pub struct FrameSolution {
 }
 
 impl FrameSolution {
+    /// `Ok` if every channel reached the tolerance; otherwise why frame `frame`, solved with
+    /// `params`, is no answer.
+    pub fn ensure_converged(&self, frame: usize, params: &SolveParams) -> Result<(), NotConverged> {
+        if self.converged {
+            return Ok(());
+        }
+        Err(NotConverged {
+            frame,
+            residual: self.residual,
+            iterations: self.iterations,
+            tolerance: params.tolerance,
+        })
+    }
+
     /// Appends the frame's arrays, little-endian: P×3 f32 radiance, P×3 f32 standard error
     /// (−1 where the patch was not sampled), P u32 sample counts. The layout of the service's
     /// binary frames and of `radiance.bin`.
@@ -79,6 +101,24 @@ impl FrameSolution {
             out.extend_from_slice(&(n.min(u64::from(u32::MAX)) as u32).to_le_bytes());
         }
     }
+}
+
+/// Why a frame's radiance is no answer: its solve stopped before reaching the tolerance.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+#[error(
+    "frame {frame} did not converge: relative residual {residual:.3e} after {iterations} \
+     iterations (tolerance {tolerance:e}); a closed scene whose reflectance is near 1 has no \
+     steady state (see max_reflectance)"
+)]
+pub struct NotConverged {
+    /// The frame.
+    pub frame: usize,
+    /// Relative residual reached, worst over the channels (infinite if the light overflowed).
+    pub residual: f64,
+    /// Iterations done, most over the channels.
+    pub iterations: usize,
+    /// The tolerance it did not reach.
+    pub tolerance: f64,
 }
 
 /// Solves one frame: `materials[patch_material[i]]` gives each patch's reflectance and
@@ -131,7 +171,12 @@ pub fn solve_lit(
         iterations = iterations.max(light.iterations);
         residual = residual.max(light.residual);
         converged &= light.converged;
-        let error = replica_errors(tally, &rho, &emission, params.sky[c], &light.values, params);
+        // Replicas of a solve that is no answer would measure nothing: skip them.
+        let error = if light.converged {
+            replica_errors(tally, &rho, &emission, params.sky[c], &light.values, params)
+        } else {
+            vec![None; patches]
+        };
         for i in 0..patches {
             radiance[i][c] = light.values[i];
             if let Some(e) = &mut stderr[i] {
@@ -160,7 +205,10 @@ pub fn solve_lit(
 /// Standard errors from the independent replicas of the lines (METHOD.md §6): each replica's
 /// tallies alone give a full solution (warm-started from the pooled one), and the spread of
 /// those solutions, divided by √K, is the error of their pooled mean. It carries every bounce
-/// and every correlation between patches. `None` for a patch fewer than 4 replicas crossed.
+/// and every correlation between patches. `None` for a patch fewer than 4 replicas crossed. A
+/// replica that stops at the iteration cap is left out (its values, still near the pooled ones
+/// it started from, would narrow the spread): the others' spread over √(their number) is wider
+/// in expectation.
 fn replica_errors(
     tally: &FrameTally,
     rho: &[f64],
@@ -182,6 +230,9 @@ fn replica_errors(
         let replica = tally.replica(g as u8);
         let system = System::new(&replica, rho);
         let solved = system.solve_from(emission, sky, Some(pooled), &loose);
+        if !solved.converged {
+            continue;
+        }
         for i in 0..patches {
             if system.unknown[i] {
                 let v = solved.values[i];
@@ -291,7 +342,7 @@ impl<'a> System<'a> {
             return Solved {
                 values,
                 iterations: 0,
-                residual: 0.0,
+                residual: if scale == 0.0 { 0.0 } else { f64::INFINITY },
                 converged: scale == 0.0,
             };
         }
