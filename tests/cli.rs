@@ -439,3 +439,54 @@ fn reflectance_1_is_capped_in_the_summary_and_without_the_cap_the_bake_fails() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Issue 11: a duplicated face was baked black without a word. The summary names the nodes
+/// whose faces overlap.
+#[test]
+fn overlapping_faces_are_named_in_the_summary() {
+    let dir = scratch("overlap");
+    let mut doc: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(sample("parallel_squares.gltf")).unwrap()).unwrap();
+    // A second receiver on the same mesh: node 2, coplanar with node 1 and overlapping it.
+    doc["nodes"]
+        .as_array_mut()
+        .unwrap()
+        .push(serde_json::json!({"mesh": 1, "name": "receiver copy"}));
+    doc["scenes"][0]["nodes"] = serde_json::json!([0, 1, 2]);
+    let input = dir.join("doubled.gltf");
+    std::fs::write(&input, serde_json::to_vec(&doc).unwrap()).unwrap();
+    let out = dir.join("out");
+    let output = radiosity()
+        .args([
+            "bake",
+            input.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ])
+        .args([
+            "--lines",
+            "20000",
+            "--glb-frames",
+            "none",
+            "--preview-frames",
+            "none",
+        ])
+        .arg("--no-gif")
+        .output()
+        .unwrap();
+    let log = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{log}");
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("doubled/summary.json")).unwrap()).unwrap();
+    let warnings = summary["warnings"].as_array().unwrap();
+    assert!(
+        warnings.iter().any(|w| w
+            .as_str()
+            .unwrap()
+            .starts_with("nodes 1 and 2 have faces that overlap")),
+        "{warnings:?}"
+    );
+    assert_eq!(summary["unsampled_patches"], 0, "{summary}");
+    assert!(log.contains("warning: nodes 1 and 2"), "{log}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

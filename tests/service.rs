@@ -1032,3 +1032,34 @@ async fn a_solve_that_does_not_converge_fails_the_job_with_its_reason() {
     .unwrap();
     assert!(stream.is_empty(), "{stream}");
 }
+
+/// Issue 11: what the lines find (faces overlapping in one plane) is in the status document.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn overlapping_faces_are_named_in_the_status_document() {
+    let base = start(Config::default()).await;
+    let client = reqwest::Client::new();
+    let mut doc: Value = serde_json::from_slice(&scene("parallel_squares.gltf")).unwrap();
+    // A second receiver on the same mesh: node 2, coplanar with node 1 and overlapping it.
+    doc["nodes"]
+        .as_array_mut()
+        .unwrap()
+        .push(serde_json::json!({"mesh": 1, "name": "receiver copy"}));
+    doc["scenes"][0]["nodes"] = serde_json::json!([0, 1, 2]);
+    let body = serde_json::to_vec(&doc).unwrap();
+    let response = post(&client, &base, "lines=20000", "model/gltf+json", body).await;
+    assert_eq!(response.status(), 202);
+    let id = response.json::<Value>().await.unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let done = wait(&client, &base, &id, Duration::from_secs(60)).await;
+    assert_eq!(done["status"], "done", "{done}");
+    let warnings = done["warnings"].as_array().unwrap();
+    assert!(
+        warnings.iter().any(|w| w
+            .as_str()
+            .unwrap()
+            .starts_with("nodes 1 and 2 have faces that overlap")),
+        "{warnings:?}"
+    );
+}
