@@ -308,6 +308,30 @@ fn emission_from_1e_minus_30_to_1e30_scales_the_answer_through_to_the_files() {
     let _ = std::fs::remove_dir_all(&out);
 }
 
+/// Emission whose radiance could overflow the `f32` outputs is refused by the loader, naming the
+/// material, instead of being written as infinity.
+#[test]
+fn emission_the_outputs_cannot_hold_is_refused() {
+    // 9e33 / (1 − 0.999) = 9e36, under the 1e37 the outputs take; 1e35 gives 1e38.
+    assert!(
+        load(
+            &furnace_doc(0.999, 9e33, 1.0).gltf(),
+            &LoadOptions::default()
+        )
+        .is_ok()
+    );
+    let error = load(
+        &furnace_doc(0.999, 1e35, 1.0).gltf(),
+        &LoadOptions::default(),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        error.contains("material 0 (\"wall\") emits") && error.contains("f32 outputs"),
+        "{error}"
+    );
+}
+
 #[test]
 fn scenes_from_1e_minus_4_to_1e6_in_size_give_the_same_answer() {
     for scale in [1e-4, 1.0, 1e6] {

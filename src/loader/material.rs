@@ -123,6 +123,43 @@ pub fn cap_reflectance(
     })
 }
 
+/// Largest radiance the outputs can hold: `radiance.bin`, the baked glTF and the service's
+/// binary frames store `f32` (at most 3.4e38), with a margin for the sky and the lamps.
+pub const MAX_RADIANCE: f64 = 1e37;
+
+/// Refuses emission so strong that the radiance it builds up could overflow the `f32` outputs:
+/// in a closed scene a patch can reach `Le / (1 − ρ)` for the largest emission and reflectance.
+/// (Up to 1e30 with reflectance at the 0.999 cap passes; `KHR_materials_emissive_strength`
+/// allows more.) A scene that reflects everything is left to the solve, which fails it.
+///
+/// # Errors
+/// [`LoadError::Limit`] naming the strongest material.
+pub fn check_emission(materials: &[Material]) -> Result<(), LoadError> {
+    let rho = materials
+        .iter()
+        .flat_map(|m| m.reflectance)
+        .fold(0.0, f64::max);
+    let Some((index, material)) = materials.iter().enumerate().max_by(|a, b| {
+        let peak = |m: &Material| m.emission.iter().copied().fold(0.0, f64::max);
+        peak(a.1).total_cmp(&peak(b.1))
+    }) else {
+        return Ok(());
+    };
+    let peak = material.emission.iter().copied().fold(0.0, f64::max);
+    if rho < 1.0 && peak / (1.0 - rho) > MAX_RADIANCE {
+        let name = material
+            .name
+            .as_ref()
+            .map_or(String::new(), |n| format!(" ({n:?})"));
+        return Err(LoadError::Limit(format!(
+            "material {index}{name} emits {peak:e}: with reflectance up to {rho} the radiance \
+             could reach {:e}, beyond the {MAX_RADIANCE:e} that the f32 outputs hold",
+            peak / (1.0 - rho)
+        )));
+    }
+    Ok(())
+}
+
 /// Mean linear RGB of each (image, colour space) pair, decoded once however many materials use
 /// it.
 #[derive(Default)]

@@ -262,6 +262,7 @@ pub fn load(bytes: &[u8], options: &LoadOptions) -> Result<Scene, LoadError> {
         options.max_reflectance,
         default_used.then_some(default_material as usize),
     ));
+    material::check_emission(&materials)?;
     let dropped: usize = instances
         .iter()
         .map(|i| i.kept.iter().filter(|k| !**k).count())
