@@ -1,6 +1,9 @@
 //! Measures light at contacts: the Cornell box's two blocks stand on its floor. Reports the
 //! radiance of the blocks' bottom faces and of the floor patches whose centre lies under a
 //! block, against the mean radiance of the lit, non-emitting patches. Physically both are 0.
+//! Then the moving Cornell box (its short block slides on the floor) with every material
+//! double-sided: the most light on any face no light can reach (inside the blocks, outside the
+//! room) over its 25 frames. Physically 0.
 //!
 //!     cargo run --release --example contacts [LINES] [PATCH_SIZE]
 
@@ -92,6 +95,54 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         under.len(),
         mean(&ids(&under)),
         100.0 * mean(&ids(&under)) / reference
+    );
+    hidden_faces(lines)
+}
+
+/// The moving Cornell box, double-sided: the largest radiance on a back face (inside a block,
+/// outside the room) over every frame.
+fn hidden_faces(lines: u64) -> Result<(), Box<dyn std::error::Error>> {
+    let mut doc: serde_json::Value =
+        serde_json::from_slice(&std::fs::read("scenes/cornell_moving.gltf")?)?;
+    for m in doc["materials"].as_array_mut().ok_or("no materials")? {
+        m["doubleSided"] = serde_json::json!(true);
+    }
+    let options = LoadOptions {
+        fps: 12.0,
+        ..LoadOptions::default()
+    };
+    let scene = load(&serde_json::to_vec(&doc)?, &options)?;
+    let bake = Bake::trace(
+        scene,
+        &LineParams {
+            lines,
+            bundles: None,
+            seed: 1,
+        },
+    )?;
+    let scene = &bake.scene;
+    let solved = bake.solve_all(&scene.materials, &SolveParams::default());
+    // Back faces, but for the lamp's, which emits (a double-sided emitter emits both ways).
+    let hidden: Vec<usize> = (0..scene.patches.len())
+        .filter(|&p| {
+            let patch = &scene.patches[p];
+            patch.side == radiosity::scene::Side::Back
+                && !scene.materials[patch.material as usize].is_emitter()
+        })
+        .collect();
+    let (mut worst, mut lit) = (0.0f64, 0);
+    for s in &solved {
+        for &p in &hidden {
+            worst = worst.max(s.radiance[p].iter().copied().fold(0.0, f64::max));
+            lit += usize::from(s.radiance[p].iter().any(|&l| l > 0.0));
+        }
+    }
+    println!(
+        "cornell_moving double-sided, {lines} lines, {} frames: {} faces no light reaches; the \
+         brightest gets {worst:.3e}, {lit} of {} (face, frame) pairs get any",
+        solved.len(),
+        hidden.len(),
+        hidden.len() * solved.len()
     );
     Ok(())
 }

@@ -238,7 +238,8 @@ const OVERLAP_SHARE: f64 = 0.01;
 fn overlap_warnings(tracer: &SceneTracer, list: &IntersectionList) -> Vec<String> {
     use std::collections::BTreeMap;
     let nodes = tracer.nodes();
-    let spaces = tracer.surfaces().spaces;
+    let surfaces = tracer.surfaces();
+    let spaces = surfaces.spaces;
     let node_count = nodes.iter().map(|&n| n as usize + 1).max().unwrap_or(0);
     type Counts = (Vec<u64>, BTreeMap<(u32, u32), u64>);
     let empty = || -> Counts { (vec![0; node_count], BTreeMap::new()) };
@@ -255,14 +256,14 @@ fn overlap_warnings(tracer: &SceneTracer, list: &IntersectionList) -> Vec<String
                 statics
                     .iter()
                     .for_each(|h| crossings[nodes[h.surface() as usize] as usize] += 1);
-                crate::trace::coincident::overlaps(statics, &mut pair);
+                crate::trace::coincident::overlaps(statics, &surfaces, &mut pair);
                 let moving = list.moving_hits(l);
                 moving
                     .iter()
                     .for_each(|h| crossings[nodes[h.hit.surface() as usize] as usize] += 1);
                 for frame in moving.chunk_by(|a, b| a.frame == b.frame) {
                     list.frame_hits(l, frame[0].frame as usize, &mut merged);
-                    crate::trace::coincident::overlaps(&merged, |a, b| {
+                    crate::trace::coincident::overlaps(&merged, &surfaces, |a, b| {
                         // Static pairs were counted above.
                         if spaces[a as usize] != 0 || spaces[b as usize] != 0 {
                             pair(a, b);

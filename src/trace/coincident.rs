@@ -90,7 +90,8 @@ pub fn resolve(hits: &[Hit], surfaces: &Surfaces<'_>) -> Option<Vec<Hit>> {
             out.push(run[0]);
             continue;
         }
-        match (share(run, false), share(run, true)) {
+        let (backs, fronts) = settle(run, surfaces);
+        match (share(&backs, run[0].t), share(&fronts, run[0].t)) {
             (Some(b), Some(f)) if surfaces.contact(b, f) => out.extend([b, f]),
             (Some(_), Some(_)) => {}
             (b, f) => out.extend(b.or(f)),
@@ -102,17 +103,13 @@ pub fn resolve(hits: &[Hit], surfaces: &Surfaces<'_>) -> Option<Vec<Hit>> {
 /// Calls `shared(a, b)` for every two triangles that the line (crossings sorted along it)
 /// crosses at one place from the same side: coplanar overlaps, whose crossing [`resolve`]
 /// shares between them. Each run's triangles are paired with its first (by index).
-pub fn overlaps(hits: &[Hit], mut shared: impl FnMut(u32, u32)) {
+pub fn overlaps(hits: &[Hit], surfaces: &Surfaces<'_>, mut shared: impl FnMut(u32, u32)) {
     for run in runs(hits).filter(|run| run.len() > 1) {
-        for front in [false, true] {
-            let mut members: Vec<u32> = run
-                .iter()
-                .filter(|h| h.front() == front)
-                .map(|h| h.surface())
-                .collect();
-            members.sort_unstable();
-            if let Some((&first, rest)) = members.split_first() {
-                rest.iter().for_each(|&other| shared(first, other));
+        let (backs, fronts) = settle(run, surfaces);
+        for members in [backs, fronts] {
+            if let Some((first, rest)) = members.split_first() {
+                rest.iter()
+                    .for_each(|other| shared(first.surface(), other.surface()));
             }
         }
     }
@@ -124,18 +121,33 @@ fn runs(hits: &[Hit]) -> impl Iterator<Item = &[Hit]> {
     hits.chunk_by(|a, b| b.t - a.t <= COINCIDENT)
 }
 
-/// The crossing that stands for the run's arrivals at front faces (`front`) or at back faces:
-/// one of them with equal probability, from a hash of the run's position and triangles, so the
-/// choice does not depend on the order rounding gave them.
-fn share(run: &[Hit], front: bool) -> Option<Hit> {
-    let mut members: Vec<Hit> = run.iter().filter(|h| h.front() == front).copied().collect();
+/// A run's arrivals at back faces and at front faces, each sorted by triangle, once its grazes
+/// are taken out: an arrival at a back and one at a front of two triangles of one space meeting
+/// at an angle (the line touching an edge in passing). Taking them out first matters where a
+/// graze and a contact meet: a line along the bottom edge of a box standing on a floor crosses
+/// the box's side, its bottom and the floor at one place, and only the floor is really crossed.
+fn settle(run: &[Hit], surfaces: &Surfaces<'_>) -> (Vec<Hit>, Vec<Hit>) {
+    let mut backs: Vec<Hit> = run.iter().filter(|h| !h.front()).copied().collect();
+    let mut fronts: Vec<Hit> = run.iter().filter(|h| h.front()).copied().collect();
+    backs.sort_unstable_by_key(|h| h.surface());
+    fronts.sort_unstable_by_key(|h| h.surface());
+    backs.retain(|&b| {
+        let graze = fronts.iter().position(|&f| !surfaces.contact(b, f));
+        graze.map(|k| fronts.remove(k)).is_none()
+    });
+    (backs, fronts)
+}
+
+/// The crossing that stands for `members`, arrivals at one side of coplanar overlapping
+/// triangles (sorted by triangle) at `t`: one of them with equal probability, from a hash of
+/// the place and the triangles, so the choice does not depend on the order rounding gave them.
+fn share(members: &[Hit], t: f32) -> Option<Hit> {
     match members.len() {
         0 => None,
         1 => Some(members[0]),
         n => {
-            members.sort_unstable_by_key(|h| h.surface());
-            let mut key = u64::from(run[0].t.to_bits());
-            for h in &members {
+            let mut key = u64::from(t.to_bits());
+            for h in members {
                 key = mix(key ^ u64::from(h.surface()));
             }
             Some(members[(key % n as u64) as usize])
@@ -218,6 +230,35 @@ mod tests {
             (firsts as f64 - n as f64 / 2.0).abs() < 5.0 * sigma,
             "{firsts}"
         );
+    }
+
+    /// Regression: a line along the bottom edge of a moving box on a floor crossed the box's
+    /// side, its bottom and the floor at one place; sharing the side's crossing with the floor's
+    /// let the room see the box's inside.
+    #[test]
+    fn a_graze_at_the_edge_of_a_contact_leaves_the_floor() {
+        let faces = vec![
+            Faces {
+                front: 0,
+                back: None
+            };
+            3
+        ];
+        // The box's side and bottom (object 1), the floor (static).
+        let normals = [Vec3::X, Vec3::NEG_Y, Vec3::Y];
+        let s = Surfaces {
+            faces: &faces,
+            spaces: &[1, 1, 0],
+            normals: &normals,
+        };
+        for t in [0.5f32, 0.75, 1.0, 1.25] {
+            let run = [
+                Hit::new(t, 0, true),
+                Hit::new(t, 1, false),
+                Hit::new(t, 2, true),
+            ];
+            assert_eq!(resolve(&run, &s), Some(vec![run[2]]));
+        }
     }
 
     #[test]
