@@ -21,15 +21,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         patch_size: Some(patch_size),
         ..LoadOptions::default()
     };
-    let scene = load(&std::fs::read("scenes/cornell_box.gltf")?, &options)?;
-    let bake = Bake::trace(
-        scene,
-        &LineParams {
-            lines,
-            bundles: None,
-            seed: 1,
-        },
-    )?;
+    let bake = trace(&std::fs::read("scenes/cornell_box.gltf")?, &options, lines)?;
     let scene = &bake.scene;
     let s = bake.solve_frame(0, &scene.materials, &SolveParams::default());
     let n = &scene.normalisation;
@@ -99,6 +91,20 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     hidden_faces(lines)
 }
 
+/// Loads a glTF file's bytes and traces `lines` lines (seed 1) through it.
+fn trace(
+    gltf: &[u8],
+    options: &LoadOptions,
+    lines: u64,
+) -> Result<Bake, Box<dyn std::error::Error>> {
+    let params = LineParams {
+        lines,
+        bundles: None,
+        seed: 1,
+    };
+    Ok(Bake::trace(load(gltf, options)?, &params)?)
+}
+
 /// The moving Cornell box, double-sided: the largest radiance on a back face (inside a block,
 /// outside the room) over every frame.
 fn hidden_faces(lines: u64) -> Result<(), Box<dyn std::error::Error>> {
@@ -111,15 +117,7 @@ fn hidden_faces(lines: u64) -> Result<(), Box<dyn std::error::Error>> {
         fps: 12.0,
         ..LoadOptions::default()
     };
-    let scene = load(&serde_json::to_vec(&doc)?, &options)?;
-    let bake = Bake::trace(
-        scene,
-        &LineParams {
-            lines,
-            bundles: None,
-            seed: 1,
-        },
-    )?;
+    let bake = trace(&serde_json::to_vec(&doc)?, &options, lines)?;
     let scene = &bake.scene;
     let solved = bake.solve_all(&scene.materials, &SolveParams::default());
     // Back faces, but for the lamp's, which emits (a double-sided emitter emits both ways).
