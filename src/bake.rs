@@ -47,7 +47,7 @@ impl Bake {
         let mut tallies = Tallies::default();
         tallies.update(&list, &tracer.surfaces());
         let direct = DirectLight::compute(&scene, &tracer, control)?;
-        let warnings = overlap_warnings(&tracer, &list);
+        let warnings = overlap_warnings(&scene, &tracer, &list);
         Ok(Self {
             scene,
             tracer,
@@ -70,7 +70,7 @@ impl Bake {
         self.list
             .add_lines(&self.scene, &self.tracer, &params, control)?;
         self.tallies.update(&self.list, &self.tracer.surfaces());
-        self.warnings = overlap_warnings(&self.tracer, &self.list);
+        self.warnings = overlap_warnings(&self.scene, &self.tracer, &self.list);
         Ok(())
     }
 
@@ -235,7 +235,7 @@ const OVERLAP_SHARE: f64 = 0.01;
 /// Warnings naming the nodes whose faces overlap coplanar: pairs of nodes (or a node with
 /// itself) where more than [`OVERLAP_SHARE`] of the crossings of either land on both. Static
 /// crossings count once; crossings with moving objects once per frame.
-fn overlap_warnings(tracer: &SceneTracer, list: &IntersectionList) -> Vec<String> {
+fn overlap_warnings(scene: &Scene, tracer: &SceneTracer, list: &IntersectionList) -> Vec<String> {
     use std::collections::BTreeMap;
     let nodes = tracer.nodes();
     let surfaces = tracer.surfaces();
@@ -291,15 +291,20 @@ fn overlap_warnings(tracer: &SceneTracer, list: &IntersectionList) -> Vec<String
             let share = n as f64 / most.max(1) as f64;
             (n >= 4 && share >= OVERLAP_SHARE).then(|| {
                 let which = if a == b {
-                    format!("node {a} has faces")
+                    format!("{} has faces", scene.node_label(a))
                 } else {
-                    format!("nodes {a} and {b} have faces")
+                    format!(
+                        "{} and {} have faces",
+                        scene.node_label(a),
+                        scene.node_label(b)
+                    )
                 };
                 format!(
                     "{which} that overlap in one plane (duplicated faces or decals): {:.0}% of \
-                     node {fewer}'s crossings land on two faces at once, and each gets a share \
+                     {}'s crossings land on two faces at once, and each gets a share \
                      of them, as if they were drawn in turn",
-                    100.0 * share.min(1.0)
+                    100.0 * share.min(1.0),
+                    scene.node_label(fewer)
                 )
             })
         })
@@ -347,13 +352,13 @@ pub fn unsampled_warning(scene: &Scene, frames: &[Arc<FrameSolution>]) -> Option
         .collect();
     nodes.sort_unstable();
     nodes.dedup();
-    let list = |v: &[u32]| {
-        let shown: Vec<String> = v.iter().take(8).map(u32::to_string).collect();
+    let list = |v: &[u32], name: &dyn Fn(u32) -> String| {
+        let shown: Vec<String> = v.iter().take(8).map(|&k| name(k)).collect();
         let more = if v.len() > 8 { ", …" } else { "" };
         format!("{}{more}", shown.join(", "))
     };
     Some(format!(
-        "{} {} ({:.2}% of the scene's area, in nodes {}) crossed by no line in frame(s) {}, \
+        "{} {} ({:.2}% of the scene's area, in {}) crossed by no line in frame(s) {}, \
          though their area should have drawn at least 10 crossings each: they bake black \
          (samples 0)",
         patches.len(),
@@ -363,7 +368,7 @@ pub fn unsampled_warning(scene: &Scene, frames: &[Arc<FrameSolution>]) -> Option
             "patches were"
         },
         100.0 * area / total_area,
-        list(&nodes),
-        list(&in_frames)
+        list(&nodes, &|n| scene.node_label(n)),
+        list(&in_frames, &|f| f.to_string())
     ))
 }

@@ -480,13 +480,15 @@ fn overlapping_faces_are_named_in_the_summary() {
         serde_json::from_slice(&std::fs::read(out.join("doubled/summary.json")).unwrap()).unwrap();
     let warnings = summary["warnings"].as_array().unwrap();
     assert!(
-        warnings.iter().any(|w| w
-            .as_str()
-            .unwrap()
-            .starts_with("nodes 1 and 2 have faces that overlap")),
+        warnings.iter().any(|w| w.as_str().unwrap().starts_with(
+            r#"node 1 ("receiver") and node 2 ("receiver copy") have faces that overlap"#
+        )),
         "{warnings:?}"
     );
     assert_eq!(summary["unsampled_patches"], 0, "{summary}");
-    assert!(log.contains("warning: nodes 1 and 2"), "{log}");
+    assert!(
+        log.contains(r#"warning: node 1 ("receiver") and node 2"#),
+        "{log}"
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -568,9 +568,9 @@ fn coplanar_overlapping_cards_share_their_crossings() {
         };
         let (two, two_s) = bake(doubled.scene(), lines, seed + 1);
         let expected = if in_one_mesh {
-            "node 4 has faces"
+            r#"node 4 ("card 0") has faces"#
         } else {
-            "nodes 4 and 5 have faces"
+            r#"node 4 ("card 0") and node 5 ("card 1") have faces"#
         };
         assert!(
             two.warnings().len() == 1 && two.warnings()[0].starts_with(expected),
@@ -636,7 +636,7 @@ fn a_large_patch_no_line_crossed_gets_a_warning() {
             .expect("a warning");
     assert!(warning.starts_with("1 patch was"), "{warning}");
     assert!(
-        warning.contains("in nodes 1)") && warning.contains("frame(s) 1, 2"),
+        warning.contains(r#"in node 1 ("walls"))"#) && warning.contains("frame(s) 1, 2"),
         "{warning}"
     );
     let mut sparse = vec![1; patches];

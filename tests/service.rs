@@ -1056,10 +1056,9 @@ async fn overlapping_faces_are_named_in_the_status_document() {
     assert_eq!(done["status"], "done", "{done}");
     let warnings = done["warnings"].as_array().unwrap();
     assert!(
-        warnings.iter().any(|w| w
-            .as_str()
-            .unwrap()
-            .starts_with("nodes 1 and 2 have faces that overlap")),
+        warnings.iter().any(|w| w.as_str().unwrap().starts_with(
+            r#"node 1 ("receiver") and node 2 ("receiver copy") have faces that overlap"#
+        )),
         "{warnings:?}"
     );
 }

@@ -283,6 +283,10 @@ pub fn load(bytes: &[u8], options: &LoadOptions) -> Result<Scene, LoadError> {
     if let Some(camera) = camera {
         scene.camera = Some(camera.normalised(&scene.normalisation));
     }
+    scene.node_names = document
+        .nodes()
+        .map(|n| n.name().map(str::to_owned))
+        .collect();
     let to_norm = scene.normalisation.to_normalised();
     for &(n, index) in &light_nodes {
         let mut light = read_light(&document, n, index, &poses)?;
@@ -942,6 +946,7 @@ fn build(
         },
         source_triangles,
         warnings,
+        node_names: Vec::new(),
         camera: None,
         lights: Vec::new(),
     })

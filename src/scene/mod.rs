@@ -492,6 +492,8 @@ pub struct Scene {
     pub source_triangles: usize,
     /// Things the loader ignored or repaired, one line each.
     pub warnings: Vec<String>,
+    /// The source file's node names, by node index (for messages).
+    pub node_names: Vec<Option<String>>,
     /// The scene's camera, if it has one (used only for previews).
     pub camera: Option<SceneCamera>,
     /// Punctual lights: the direct light they give starts the interreflection solve.
@@ -540,6 +542,15 @@ pub struct Summary {
 }
 
 impl Scene {
+    /// A node as messages name it: `node 4 ("Door")`, or `node 4` without a name.
+    #[must_use]
+    pub fn node_label(&self, node: u32) -> String {
+        match self.node_names.get(node as usize).and_then(Option::as_ref) {
+            Some(name) => format!("node {node} ({name:?})"),
+            None => format!("node {node}"),
+        }
+    }
+
     /// The summary of this scene.
     #[must_use]
     pub fn summary(&self) -> Summary {
