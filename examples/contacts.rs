@@ -3,7 +3,8 @@
 //! block, against the mean radiance of the lit, non-emitting patches. Physically both are 0.
 //! Then the moving Cornell box (its short block slides on the floor) with every material
 //! double-sided: the most light on any face no light can reach (inside the blocks, outside the
-//! room) over its 25 frames. Physically 0.
+//! room) over its 25 frames; and the static one, double-sided under a sky of 1 (which lights
+//! the room's outside): the most light inside its blocks. Physically 0.
 //!
 //!     cargo run --release --example contacts [LINES] [PATCH_SIZE]
 
@@ -88,7 +89,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         mean(&ids(&under)),
         100.0 * mean(&ids(&under)) / reference
     );
-    hidden_faces(lines)
+    hidden_faces("cornell_moving", lines, 0.0)?;
+    hidden_faces("cornell_box", lines, 1.0)
 }
 
 /// Loads a glTF file's bytes and traces `lines` lines (seed 1) through it.
@@ -105,11 +107,12 @@ fn trace(
     Ok(Bake::trace(load(gltf, options)?, &params)?)
 }
 
-/// The moving Cornell box, double-sided: the largest radiance on a back face (inside a block,
-/// outside the room) over every frame.
-fn hidden_faces(lines: u64) -> Result<(), Box<dyn std::error::Error>> {
+/// A Cornell box made double-sided, under a sky of radiance `sky`: the largest radiance on a
+/// face no light can reach over every frame (inside a block; and outside the room if the sky
+/// is black).
+fn hidden_faces(name: &str, lines: u64, sky: f64) -> Result<(), Box<dyn std::error::Error>> {
     let mut doc: serde_json::Value =
-        serde_json::from_slice(&std::fs::read("scenes/cornell_moving.gltf")?)?;
+        serde_json::from_slice(&std::fs::read(format!("scenes/{name}.gltf"))?)?;
     for m in doc["materials"].as_array_mut().ok_or("no materials")? {
         m["doubleSided"] = serde_json::json!(true);
     }
@@ -119,13 +122,20 @@ fn hidden_faces(lines: u64) -> Result<(), Box<dyn std::error::Error>> {
     };
     let bake = trace(&serde_json::to_vec(&doc)?, &options, lines)?;
     let scene = &bake.scene;
-    let solved = bake.solve_all(&scene.materials, &SolveParams::default());
-    // Back faces, but for the lamp's, which emits (a double-sided emitter emits both ways).
+    let params = SolveParams {
+        sky: [sky; 3],
+        ..SolveParams::default()
+    };
+    let solved = bake.solve_all(&scene.materials, &params);
+    // Back faces, but for the lamp's, which emits (a double-sided emitter emits both ways), and
+    // the room's (outside it) when the sky lights them.
+    let room = scene.patches[0].source.node;
     let hidden: Vec<usize> = (0..scene.patches.len())
         .filter(|&p| {
             let patch = &scene.patches[p];
             patch.side == radiosity::scene::Side::Back
                 && !scene.materials[patch.material as usize].is_emitter()
+                && (sky == 0.0 || patch.source.node != room)
         })
         .collect();
     let (mut worst, mut lit) = (0.0f64, 0);
@@ -136,8 +146,8 @@ fn hidden_faces(lines: u64) -> Result<(), Box<dyn std::error::Error>> {
         }
     }
     println!(
-        "cornell_moving double-sided, {lines} lines, {} frames: {} faces no light reaches; the \
-         brightest gets {worst:.3e}, {lit} of {} (face, frame) pairs get any",
+        "{name} double-sided, sky {sky}, {lines} lines, {} frames: {} faces no light reaches; \
+         the brightest gets {worst:.3e}, {lit} of {} (face, frame) pairs get any",
         solved.len(),
         hidden.len(),
         hidden.len() * solved.len()

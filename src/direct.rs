@@ -257,13 +257,11 @@ impl Frame<'_> {
         self.tracer
             .trace_frame(&line, self.frame, self.deformed, hits);
         let (start, end) = (behind as f32, (behind + length) as f32 - SHADOW_EPSILON);
-        // The line leaves the lit face, so it arrives at `own` from its other side.
-        let me = Hit::new(start, own, back);
         let surfaces = self.tracer.surfaces();
         hits.iter().any(|&h| {
             h.surface() != own
                 && ((h.t > start + SHADOW_EPSILON && h.t < end)
-                    || ((h.t - start).abs() <= COINCIDENT && surfaces.contact(me, h)))
+                    || ((h.t - start).abs() <= COINCIDENT && surfaces.touching(own, back, h)))
         })
     }
 }

@@ -421,6 +421,7 @@ mod tests {
             faces: &faces,
             spaces: &[0, 0],
             normals: &[glam::Vec3::Z; 2],
+            corners: &[[0, 1, 2], [3, 4, 5]],
         };
         walk(&hits, &surfaces, |a, b| seen.push((a, b)));
         seen.sort_unstable();
@@ -447,6 +448,7 @@ mod tests {
             faces: &faces,
             spaces: &[0, 1],
             normals: &[glam::Vec3::Z; 2],
+            corners: &[[0, 1, 2], [3, 4, 5]],
         };
         walk(&hits, &surfaces, |a, b| raw.push((key(a, b, 0), 1)));
         let entries = aggregate(raw);

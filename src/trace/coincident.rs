@@ -53,19 +53,65 @@ pub struct Surfaces<'a> {
     pub spaces: &'a [u32],
     /// Unit normal of each triangle's front face in its space (zero if degenerate there).
     pub normals: &'a [Vec3],
+    /// Each triangle's corners in its space, as hashes of their positions' bits: two triangles
+    /// share an edge when they share two (their vertices' indices may differ, as a flat-shaded
+    /// export repeats a vertex per face).
+    pub corners: &'a [[u32; 3]],
 }
 
 impl Surfaces<'_> {
     /// Whether the crossings `a` and `b`, one place on a line, are a contact: the line arrives
     /// at the back of one and the front of the other, and the triangles are not two faces of
-    /// one surface meeting at an angle (a graze).
+    /// one surface folded along an edge (a graze: in one space, they share an edge and are not
+    /// back to back; a line crossing such a fold passes one of them only, by the watertight
+    /// test's tie rule, so both are reported only where it touches the fold in passing). A
+    /// triangle ending on another's face (a box's side standing on a floor) shares no edge with
+    /// it: a line through that seam really crosses both.
     #[must_use]
     pub fn contact(&self, a: Hit, b: Hit) -> bool {
         if a.front() == b.front() {
             return false;
         }
         let (i, j) = (a.surface() as usize, b.surface() as usize);
+        let shared = self.corners[i]
+            .iter()
+            .filter(|c| self.corners[j].contains(c))
+            .count();
+        self.spaces[i] != self.spaces[j] || shared < 2 || self.back_to_back(a, b)
+    }
+
+    /// Whether two triangles crossed at one place lie back to back in one plane (normals
+    /// opposite), or may (they are in two spaces): their order along the line is rounding's.
+    #[must_use]
+    pub fn back_to_back(&self, a: Hit, b: Hit) -> bool {
+        let (i, j) = (a.surface() as usize, b.surface() as usize);
         self.spaces[i] != self.spaces[j] || self.normals[i].dot(self.normals[j]) <= BACK_TO_BACK
+    }
+
+    /// Whether two triangles crossed at one place lie in one plane facing one way: in one
+    /// space, normals parallel (overlapping faces, which share the crossing). Triangles in two
+    /// spaces are never taken for an overlap.
+    #[must_use]
+    pub fn coplanar(&self, a: Hit, b: Hit) -> bool {
+        let (i, j) = (a.surface() as usize, b.surface() as usize);
+        self.spaces[i] == self.spaces[j] && self.normals[i].dot(self.normals[j]) >= -BACK_TO_BACK
+    }
+
+    /// Whether crossing `h`, at the start of a shadow ray leaving face `back` (or the front) of
+    /// triangle `own`, is a surface touching that face: the ray arrives at its front, which
+    /// lies against the lit face (back to back with it, or in another space).
+    #[must_use]
+    pub fn touching(&self, own: u32, back: bool, h: Hit) -> bool {
+        let (i, j) = (own as usize, h.surface() as usize);
+        if !h.front() || i == j {
+            return false;
+        }
+        let lit = if back {
+            -self.normals[i]
+        } else {
+            self.normals[i]
+        };
+        self.spaces[i] != self.spaces[j] || self.normals[j].dot(lit) <= BACK_TO_BACK
     }
 }
 
@@ -90,23 +136,38 @@ pub fn resolve(hits: &[Hit], surfaces: &Surfaces<'_>) -> Option<Vec<Hit>> {
             out.push(run[0]);
             continue;
         }
-        let (backs, fronts) = settle(run, surfaces);
-        match (share(&backs, run[0].t), share(&fronts, run[0].t)) {
-            (Some(b), Some(f)) if surfaces.contact(b, f) => out.extend([b, f]),
-            (Some(_), Some(_)) => {}
-            (b, f) => out.extend(b.or(f)),
+        // One crossing per overlap, in the order of their distances (a line through the seam
+        // where a wall meets a floor crosses the one it reaches first first: their distances
+        // differ by more than rounding), but a contact back before front whatever rounding
+        // says; then all at one distance, so that every segment between them is a contact
+        // ([`is_contact`]) however long the run they stand for.
+        let mut kept: Vec<Hit> = settle(run, surfaces)
+            .iter()
+            .filter_map(|members| share(members, run[0].t))
+            .collect();
+        kept.sort_unstable_by(|a, b| {
+            (a.t.total_cmp(&b.t))
+                .then(a.front().cmp(&b.front()))
+                .then(a.surface().cmp(&b.surface()))
+        });
+        for k in 1..kept.len() {
+            let (a, b) = (kept[k - 1], kept[k]);
+            if a.front() && !b.front() && surfaces.back_to_back(a, b) {
+                kept.swap(k - 1, k);
+            }
         }
+        let t = run[0].t;
+        out.extend(kept.iter().map(|h| Hit::new(t, h.surface(), h.front())));
     }
     Some(out)
 }
 
 /// Calls `shared(a, b)` for every two triangles that the line (crossings sorted along it)
-/// crosses at one place from the same side: coplanar overlaps, whose crossing [`resolve`]
-/// shares between them. Each run's triangles are paired with its first (by index).
+/// crosses at one place from the same side, in one plane: coplanar overlaps, whose crossing
+/// [`resolve`] shares between them. Each overlap's triangles are paired with its first.
 pub fn overlaps(hits: &[Hit], surfaces: &Surfaces<'_>, mut shared: impl FnMut(u32, u32)) {
     for run in runs(hits).filter(|run| run.len() > 1) {
-        let (backs, fronts) = settle(run, surfaces);
-        for members in [backs, fronts] {
+        for members in settle(run, surfaces) {
             if let Some((first, rest)) = members.split_first() {
                 rest.iter()
                     .for_each(|other| shared(first.surface(), other.surface()));
@@ -121,12 +182,16 @@ fn runs(hits: &[Hit]) -> impl Iterator<Item = &[Hit]> {
     hits.chunk_by(|a, b| b.t - a.t <= COINCIDENT)
 }
 
-/// A run's arrivals at back faces and at front faces, each sorted by triangle, once its grazes
-/// are taken out: an arrival at a back and one at a front of two triangles of one space meeting
-/// at an angle (the line touching an edge in passing). Taking them out first matters where a
-/// graze and a contact meet: a line along the bottom edge of a box standing on a floor crosses
-/// the box's side, its bottom and the floor at one place, and only the floor is really crossed.
-fn settle(run: &[Hit], surfaces: &Surfaces<'_>) -> (Vec<Hit>, Vec<Hit>) {
+/// What a run really crosses: its arrivals at back faces, then at front faces, in groups of
+/// coplanar overlapping triangles (each group sorted by triangle, to be shared).
+///
+/// Grazes are taken out first: an arrival at a back and one at a front of two triangles that
+/// meet at an angle (the line touching an edge in passing). That matters where a graze and a
+/// contact meet: a line along the bottom edge of a box standing on a floor crosses the box's
+/// side, its bottom and the floor at one place, and only the floor is really crossed. Arrivals
+/// on one side that are not coplanar (a line through the seam where a wall stands on a floor)
+/// are all kept: the line crosses each.
+fn settle(run: &[Hit], surfaces: &Surfaces<'_>) -> Vec<Vec<Hit>> {
     let mut backs: Vec<Hit> = run.iter().filter(|h| !h.front()).copied().collect();
     let mut fronts: Vec<Hit> = run.iter().filter(|h| h.front()).copied().collect();
     backs.sort_unstable_by_key(|h| h.surface());
@@ -135,7 +200,20 @@ fn settle(run: &[Hit], surfaces: &Surfaces<'_>) -> (Vec<Hit>, Vec<Hit>) {
         let graze = fronts.iter().position(|&f| !surfaces.contact(b, f));
         graze.map(|k| fronts.remove(k)).is_none()
     });
-    (backs, fronts)
+    let mut groups: Vec<Vec<Hit>> = Vec::new();
+    for side in [backs, fronts] {
+        let first = groups.len();
+        for h in side {
+            match groups[first..]
+                .iter_mut()
+                .find(|g| surfaces.coplanar(g[0], h))
+            {
+                Some(group) => group.push(h),
+                None => groups.push(vec![h]),
+            }
+        }
+    }
+    groups
 }
 
 /// The crossing that stands for `members`, arrivals at one side of coplanar overlapping
@@ -156,7 +234,7 @@ fn share(members: &[Hit], t: f32) -> Option<Hit> {
 }
 
 /// SplitMix64's finaliser: a well-mixed 64-bit hash of `x`.
-fn mix(mut x: u64) -> u64 {
+pub(crate) fn mix(mut x: u64) -> u64 {
     x = x.wrapping_add(0x9e37_79b9_7f4a_7c15);
     x = (x ^ (x >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
     x = (x ^ (x >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
@@ -167,17 +245,46 @@ fn mix(mut x: u64) -> u64 {
 mod tests {
     use super::*;
 
-    /// Triangles 0 and 1: two faces of one static box meeting at a right angle (top, side);
-    /// triangle 2: a floor back to back with 0's plane; triangle 3: a duplicate of the floor.
-    fn surfaces() -> (Vec<Faces>, Vec<u32>, Vec<Vec3>) {
-        let faces = (0..4)
-            .map(|k| Faces {
-                front: k,
-                back: None,
-            })
-            .collect();
-        let normals = vec![Vec3::NEG_Y, Vec3::X, Vec3::Y, Vec3::Y];
-        (faces, vec![0; 4], normals)
+    /// Triangles 0 and 1: two faces of one static box meeting at a right angle along an edge
+    /// (bottom, side); triangle 2: a floor back to back with 0's plane; triangle 3: a duplicate
+    /// of the floor; triangle 4: a wall standing on the floor, with a corner on one of the
+    /// floor's (a shared vertex, not an edge).
+    struct Scene {
+        faces: Vec<Faces>,
+        spaces: Vec<u32>,
+        normals: Vec<Vec3>,
+        corners: Vec<[u32; 3]>,
+    }
+
+    impl Scene {
+        fn new() -> Self {
+            Self {
+                faces: (0..5)
+                    .map(|k| Faces {
+                        front: k,
+                        back: None,
+                    })
+                    .collect(),
+                spaces: vec![0; 5],
+                normals: vec![Vec3::NEG_Y, Vec3::X, Vec3::Y, Vec3::Y, Vec3::NEG_X],
+                corners: vec![
+                    [1, 2, 3],
+                    [2, 3, 4],
+                    [10, 11, 12],
+                    [10, 11, 12],
+                    [12, 21, 22],
+                ],
+            }
+        }
+
+        fn surfaces(&self) -> Surfaces<'_> {
+            Surfaces {
+                faces: &self.faces,
+                spaces: &self.spaces,
+                normals: &self.normals,
+                corners: &self.corners,
+            }
+        }
     }
 
     /// Regression: 10 million lines through the furnace found two segments reaching the sky:
@@ -185,18 +292,23 @@ mod tests {
     /// order by rounding.
     #[test]
     fn grazes_are_dropped_contacts_ordered_overlaps_shared() {
-        let (faces, spaces, normals) = surfaces();
-        let s = Surfaces {
-            faces: &faces,
-            spaces: &spaces,
-            normals: &normals,
-        };
+        let scene = Scene::new();
+        let s = scene.surfaces();
         let graze = [Hit::new(1.0, 1, true), Hit::new(1.0 + 1e-7, 0, false)];
         assert_eq!(resolve(&graze, &s), Some(vec![]));
         // A box's bottom (0) on the floor (2) at one place: leave, then enter.
         let contact = [Hit::new(2.0, 0, true), Hit::new(2.0, 2, false)];
         assert_eq!(resolve(&contact, &s), Some(vec![contact[1], contact[0]]));
         assert!(is_contact(&contact[1], &contact[0]));
+        // Regression: a line through the seam where a floor (2) meets a wall standing on it (4)
+        // crosses both; at an angle in one space, but not a graze (they share no corner).
+        let seam = [Hit::new(2.5, 2, false), Hit::new(2.5, 4, true)];
+        assert_eq!(resolve(&seam, &s), Some(seam.to_vec()));
+        // Entering the wall and the floor at their seam from one side: both are crossed (not an
+        // overlap), in the order of their distances, then at one distance.
+        let seam = [Hit::new(2.5, 4, true), Hit::new(2.5 + 1e-6, 2, true)];
+        let both = vec![Hit::new(2.5, 4, true), Hit::new(2.5, 2, true)];
+        assert_eq!(resolve(&seam, &s), Some(both));
         // The floor and its duplicate: one of them, the same whatever their order.
         let overlap = [Hit::new(3.0, 2, true), Hit::new(3.0, 3, true)];
         let shared = resolve(&overlap, &s).unwrap();
@@ -210,12 +322,8 @@ mod tests {
 
     #[test]
     fn an_overlap_is_shared_evenly() {
-        let (faces, spaces, normals) = surfaces();
-        let s = Surfaces {
-            faces: &faces,
-            spaces: &spaces,
-            normals: &normals,
-        };
+        let scene = Scene::new();
+        let s = scene.surfaces();
         let n = 20_000;
         let firsts = (0..n)
             .filter(|&k| {
@@ -250,6 +358,7 @@ mod tests {
             faces: &faces,
             spaces: &[1, 1, 0],
             normals: &normals,
+            corners: &[[1, 2, 3], [2, 3, 4], [10, 11, 12]],
         };
         for t in [0.5f32, 0.75, 1.0, 1.25] {
             let run = [
@@ -263,13 +372,9 @@ mod tests {
 
     #[test]
     fn surfaces_in_different_spaces_touching_are_a_contact() {
-        let (faces, mut spaces, normals) = surfaces();
-        spaces[1] = 1;
-        let s = Surfaces {
-            faces: &faces,
-            spaces: &spaces,
-            normals: &normals,
-        };
+        let mut scene = Scene::new();
+        scene.spaces[1] = 1;
+        let s = scene.surfaces();
         // Triangles 0 and 1 are at an angle, but 1 now belongs to a moving object.
         let run = [Hit::new(1.0, 1, true), Hit::new(1.0, 0, false)];
         assert_eq!(resolve(&run, &s), Some(vec![run[1], run[0]]));

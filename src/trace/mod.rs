@@ -175,6 +175,8 @@ pub struct SceneTracer {
     spaces: Vec<u32>,
     /// Unit normal of every traced triangle in its space.
     normals: Vec<Vec3>,
+    /// Every traced triangle's corners in its space, hashed (see [`Surfaces::corners`]).
+    corners: Vec<[u32; 3]>,
 }
 
 impl SceneTracer {
@@ -187,12 +189,26 @@ impl SceneTracer {
             let [a, b, c] = t.map(|i| positions[i as usize].as_dvec3());
             (b - a).cross(c - a).normalize_or_zero().as_vec3()
         };
+        let corner_keys = |positions: &[Vec3], t: &[u32; 3]| {
+            t.map(|i| {
+                let [x, y, z] = positions[i as usize].to_array().map(f32::to_bits);
+                let h = coincident::mix(
+                    u64::from(x) ^ coincident::mix(u64::from(y) ^ coincident::mix(u64::from(z))),
+                );
+                (h >> 32) as u32
+            })
+        };
         let mut faces = statics.faces.clone();
         let mut spaces = vec![0; faces.len()];
         let mut normals: Vec<Vec3> = statics
             .triangles
             .iter()
             .map(|t| normal(&statics.positions, t))
+            .collect();
+        let mut keys: Vec<[u32; 3]> = statics
+            .triangles
+            .iter()
+            .map(|t| corner_keys(&statics.positions, t))
             .collect();
         let mut first_ids = Vec::with_capacity(scene.objects.len());
         let mut rigid = Vec::with_capacity(scene.objects.len());
@@ -204,6 +220,11 @@ impl SceneTracer {
             // A rigid object's own space; a deforming one's frame-0 pose.
             let mesh = &object.mesh;
             normals.extend(mesh.triangles.iter().map(|t| normal(&mesh.positions, t)));
+            keys.extend(
+                mesh.triangles
+                    .iter()
+                    .map(|t| corner_keys(&mesh.positions, t)),
+            );
             rigid.push(match &object.motion {
                 Motion::Rigid { poses } => TraceMesh::new(
                     object
@@ -232,6 +253,7 @@ impl SceneTracer {
             nodes,
             spaces,
             normals,
+            corners: keys,
             statics: TraceMesh::new(
                 statics
                     .triangles
@@ -258,6 +280,7 @@ impl SceneTracer {
             faces: &self.faces,
             spaces: &self.spaces,
             normals: &self.normals,
+            corners: &self.corners,
         }
     }
 
