@@ -24,6 +24,7 @@
 pub mod analytic;
 pub mod tally;
 
+use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::scene::Material;
@@ -226,16 +227,21 @@ fn replica_errors(
         tolerance: 1e-6,
         ..*params
     };
-    for g in 0..groups {
-        let replica = tally.replica(g as u8);
-        let system = System::new(&replica, rho);
-        let solved = system.solve_from(emission, sky, Some(pooled), &loose);
-        if !solved.converged {
-            continue;
-        }
+    // The replicas are solved in parallel (a frame alone, as a static scene is, then uses every
+    // core), and summed in their order: the result does not depend on the thread count.
+    let solved: Vec<Option<(Vec<bool>, Vec<f64>)>> = (0..groups)
+        .into_par_iter()
+        .map(|g| {
+            let replica = tally.replica(g as u8);
+            let system = System::new(&replica, rho);
+            let solved = system.solve_from(emission, sky, Some(pooled), &loose);
+            solved.converged.then_some((system.unknown, solved.values))
+        })
+        .collect();
+    for (unknown, values) in solved.iter().flatten() {
         for i in 0..patches {
-            if system.unknown[i] {
-                let v = solved.values[i];
+            if unknown[i] {
+                let v = values[i];
                 sum[i] += v;
                 sum_sq[i] += v * v;
                 count[i] += 1;
