@@ -35,7 +35,7 @@ use tally::{ABSORBED, FrameTally, SKY};
 pub struct SolveParams {
     /// Radiance of everything outside the scene, RGB, in emission units.
     pub sky: [f64; 3],
-    /// Stop when the preconditioned residual has fallen by this factor.
+    /// Stop when the residual has fallen to this fraction of the right-hand side (`|r| / |b|`).
     pub tolerance: f64,
     /// Give up after this many iterations per channel: the frame is then not converged, and
     /// the bake and the service fail it rather than answer with it.
