@@ -151,6 +151,11 @@ pub fn solve_lit(
         .map(|i| (tally.crossings[i] > 0).then_some([0.0; 3]))
         .collect();
     let (mut iterations, mut residual, mut converged) = (0, 0.0f64, true);
+    // Each replica's tallies, taken apart once for the three channels.
+    let replicas: Vec<FrameTally> = (0..tally::GROUPS as u8)
+        .into_par_iter()
+        .map(|g| tally.replica(g))
+        .collect();
     for c in 0..3 {
         let rho: Vec<f64> = patch_material
             .iter()
@@ -174,7 +179,14 @@ pub fn solve_lit(
         converged &= light.converged;
         // Replicas of a solve that is no answer would measure nothing: skip them.
         let error = if light.converged {
-            replica_errors(tally, &rho, &emission, params.sky[c], &light.values, params)
+            replica_errors(
+                &replicas,
+                &rho,
+                &emission,
+                params.sky[c],
+                &light.values,
+                params,
+            )
         } else {
             vec![None; patches]
         };
@@ -211,7 +223,7 @@ pub fn solve_lit(
 /// it started from, would narrow the spread): the others' spread over √(their number) is wider
 /// in expectation.
 fn replica_errors(
-    tally: &FrameTally,
+    replicas: &[FrameTally],
     rho: &[f64],
     emission: &[f64],
     sky: f64,
@@ -219,7 +231,6 @@ fn replica_errors(
     params: &SolveParams,
 ) -> Vec<Option<f64>> {
     let patches = rho.len();
-    let groups = tally::GROUPS as usize;
     let mut sum = vec![0.0; patches];
     let mut sum_sq = vec![0.0; patches];
     let mut count = vec![0usize; patches];
@@ -229,11 +240,10 @@ fn replica_errors(
     };
     // The replicas are solved in parallel (a frame alone, as a static scene is, then uses every
     // core), and summed in their order: the result does not depend on the thread count.
-    let solved: Vec<Option<(Vec<bool>, Vec<f64>)>> = (0..groups)
-        .into_par_iter()
-        .map(|g| {
-            let replica = tally.replica(g as u8);
-            let system = System::new(&replica, rho);
+    let solved: Vec<Option<(Vec<bool>, Vec<f64>)>> = replicas
+        .par_iter()
+        .map(|replica| {
+            let system = System::new(replica, rho);
             let solved = system.solve_from(emission, sky, Some(pooled), &loose);
             solved.converged.then_some((system.unknown, solved.values))
         })
