@@ -209,8 +209,9 @@ pub enum PatchClass {
 /// linear), and its relative error is nowhere people look. Counted, such values would swamp
 /// the measure: faces in contact that should receive nothing receive a trace in some bakes and
 /// none in others (the sliding block's bottom in the moving Cornell box: 4e-7 to 1e-6 with 40M
-/// lines, 0 with 3M; the open door's face against the wall in the level: 2e-5 with 40M lines,
-/// 1e-3 with 10M; lit walls are about 0.1 to 0.2), a relative error of 100% or 4000%.
+/// lines, 0 with 3M; the open door's hinge-side edge, pressed against the wall at 90°, in the
+/// level: 2e-5 with 40M lines, 1e-3 with 10M; lit walls are about 0.1 to 0.2), relative errors
+/// of 100% to 4000%.
 pub const DARK: f64 = 1e-3;
 
 /// Per channel, the radiance at or below which a value of `radiance` (one frame) is dark:
