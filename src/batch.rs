@@ -126,9 +126,11 @@ struct Summary<'a> {
     converged: bool,
     /// Patches no line crossed (their radiance is their emission only).
     unsampled_patches: usize,
-    /// Mean relative standard error of the radiance (area-weighted, over sampled patches,
-    /// channels and frames).
-    mean_relative_error: f64,
+    /// The bake's own estimate of its per-patch error: the area-weighted RMS of σ / L over lit,
+    /// non-emitting patches (channels that reflect, L > 0, sampled by the lines) and frames
+    /// (`bench::estimated_error`), what the README's preset table measures against a
+    /// reference. `null` when no patch qualifies (a scene where everything emits).
+    mean_relative_error: Option<f64>,
     /// The tone map's exposure: `COLOR_0` and previews show `exposure · radiance` through
     /// Reinhard's curve.
     exposure: f64,
@@ -408,20 +410,6 @@ pub fn bake_one(
     let times: Vec<f64> = (0..scene.frames.count)
         .map(|f| scene.frames.time(f))
         .collect();
-    let (mut num, mut den) = (0.0, 0.0);
-    for s in &frames {
-        for (i, p) in scene.patches.iter().enumerate() {
-            if let Some(e) = s.stderr[i] {
-                for (error, radiance) in e.iter().zip(&s.radiance[i]) {
-                    if *radiance > 0.0 {
-                        num += p.area * error / radiance;
-                        den += p.area;
-                    }
-                }
-            }
-        }
-    }
-
     log(&format!("{name}: writing outputs"));
     let started = Instant::now();
     let staging = hidden(&dir, "partial");
@@ -470,7 +458,7 @@ pub fn bake_one(
         unsampled_patches: frames
             .first()
             .map_or(0, |f| f.samples.iter().filter(|&&n| n == 0).count()),
-        mean_relative_error: if den > 0.0 { num / den } else { 0.0 },
+        mean_relative_error: crate::bench::estimated_error(scene, &frames),
         exposure: tone.exposure,
         glb_frames: params.outputs.glb_frames.frames(count),
         preview_frames: params.outputs.preview_frames.frames(count),

@@ -308,9 +308,19 @@ fn run(cli: Cli) -> Result<(), String> {
                 set.push((name.to_string(), load_scene(name, options)?));
             }
             let points = radiosity::bench::accuracy(&set, &budgets, reference_factor, |p| {
+                let show = |x: Option<f64>, digits: usize| {
+                    x.map_or_else(|| "-".to_string(), |x| format!("{x:.digits$}"))
+                };
+                let e = &p.error;
                 eprintln!(
-                    "{:<22} {:>9} lines {:>8.3} s  error {:.4}  coverage {:.3}  median |z| {:.2}",
-                    p.scene, p.lines, p.seconds, p.rms_error, p.coverage, p.median_z
+                    "{:<22} {:>9} lines {:>8.3} s  lit error {}  coverage {}  median |z| {}  emitters {}",
+                    p.scene,
+                    p.lines,
+                    p.seconds,
+                    show(e.lit_error, 4),
+                    show(e.coverage, 3),
+                    show(e.median_z, 2),
+                    show(e.emitter_error, 4)
                 );
             })
             .map_err(|e| e.to_string())?;
