@@ -136,28 +136,35 @@ pub fn resolve(hits: &[Hit], surfaces: &Surfaces<'_>) -> Option<Vec<Hit>> {
             out.push(run[0]);
             continue;
         }
-        // One crossing per overlap, in the order of their distances (a line through the seam
-        // where a wall meets a floor crosses the one it reaches first first: their distances
-        // differ by more than rounding), but a contact back before front whatever rounding
-        // says; then all at one distance, so that every segment between them is a contact
+        // What the run crosses, in the order of the distances (a line through the seam where a
+        // wall stands on a floor crosses the one it reaches first first: their distances
+        // differ by more than rounding). Next to a contact, whose faces lie in one plane with
+        // the others', rounding decides the distances: the line then enters what it enters
+        // (front arrivals), passes the contacts, and leaves what it leaves (back arrivals).
+        // All end at one distance, so that every segment between them is a contact
         // ([`is_contact`]) however long the run they stand for.
-        let mut kept: Vec<Hit> = settle(run, surfaces)
-            .iter()
-            .filter_map(|members| share(members, run[0].t))
-            .collect();
-        kept.sort_unstable_by(|a, b| {
-            (a.t.total_cmp(&b.t))
-                .then(a.front().cmp(&b.front()))
-                .then(a.surface().cmp(&b.surface()))
+        let mut units = settle(run, surfaces);
+        let contacts = units.iter().any(|u| matches!(u, Unit::Contact(..)));
+        let rank = |u: &Unit| match u {
+            _ if !contacts => 0,
+            Unit::Single(h) if h.front() => 0,
+            Unit::Contact(..) => 1,
+            Unit::Single(_) => 2,
+        };
+        units.sort_unstable_by(|a, b| {
+            let (fa, fb) = (a.crossings()[0], b.crossings()[0]);
+            (rank(a).cmp(&rank(b)))
+                .then(a.t().total_cmp(&b.t()))
+                .then((fa.front(), fa.surface()).cmp(&(fb.front(), fb.surface())))
         });
-        for k in 1..kept.len() {
-            let (a, b) = (kept[k - 1], kept[k]);
-            if a.front() && !b.front() && surfaces.back_to_back(a, b) {
-                kept.swap(k - 1, k);
-            }
-        }
         let t = run[0].t;
-        out.extend(kept.iter().map(|h| Hit::new(t, h.surface(), h.front())));
+        for unit in &units {
+            out.extend(
+                unit.crossings()
+                    .iter()
+                    .map(|h| Hit::new(t, h.surface(), h.front())),
+            );
+        }
     }
     Some(out)
 }
@@ -167,7 +174,7 @@ pub fn resolve(hits: &[Hit], surfaces: &Surfaces<'_>) -> Option<Vec<Hit>> {
 /// [`resolve`] shares between them. Each overlap's triangles are paired with its first.
 pub fn overlaps(hits: &[Hit], surfaces: &Surfaces<'_>, mut shared: impl FnMut(u32, u32)) {
     for run in runs(hits).filter(|run| run.len() > 1) {
-        for members in settle(run, surfaces) {
+        for members in overlap_groups(run, surfaces) {
             if let Some((first, rest)) = members.split_first() {
                 rest.iter()
                     .for_each(|other| shared(first.surface(), other.surface()));
@@ -182,26 +189,39 @@ fn runs(hits: &[Hit]) -> impl Iterator<Item = &[Hit]> {
     hits.chunk_by(|a, b| b.t - a.t <= COINCIDENT)
 }
 
-/// What a run really crosses: its arrivals at back faces, then at front faces, in groups of
-/// coplanar overlapping triangles (each group sorted by triangle, to be shared).
-///
-/// Grazes are taken out first: an arrival at a back and one at a front of two triangles that
-/// meet at an angle (the line touching an edge in passing). That matters where a graze and a
-/// contact meet: a line along the bottom edge of a box standing on a floor crosses the box's
-/// side, its bottom and the floor at one place, and only the floor is really crossed. Arrivals
-/// on one side that are not coplanar (a line through the seam where a wall stands on a floor)
-/// are all kept: the line crosses each.
-fn settle(run: &[Hit], surfaces: &Surfaces<'_>) -> Vec<Vec<Hit>> {
-    let mut backs: Vec<Hit> = run.iter().filter(|h| !h.front()).copied().collect();
-    let mut fronts: Vec<Hit> = run.iter().filter(|h| h.front()).copied().collect();
-    backs.sort_unstable_by_key(|h| h.surface());
-    fronts.sort_unstable_by_key(|h| h.surface());
-    backs.retain(|&b| {
-        let graze = fronts.iter().position(|&f| !surfaces.contact(b, f));
-        graze.map(|k| fronts.remove(k)).is_none()
-    });
+/// One thing a run of coincident crossings really crosses.
+enum Unit {
+    /// A back arrival and a front arrival back to back: two faces touching.
+    Contact(Hit, Hit),
+    /// One crossing (standing for an overlap's copies, see [`share`]).
+    Single(Hit),
+}
+
+impl Unit {
+    /// Its crossings in the order the line meets them.
+    fn crossings(&self) -> Vec<Hit> {
+        match *self {
+            Unit::Contact(b, f) => vec![b, f],
+            Unit::Single(h) => vec![h],
+        }
+    }
+
+    /// Where along the line it is, as computed (the nearest of its crossings).
+    fn t(&self) -> f32 {
+        match *self {
+            Unit::Contact(b, f) => b.t.min(f.t),
+            Unit::Single(h) => h.t,
+        }
+    }
+}
+
+/// The arrivals of a run at each side, in groups of coplanar overlapping triangles (each
+/// sorted by triangle; most groups are one crossing): back arrivals first.
+fn overlap_groups(run: &[Hit], surfaces: &Surfaces<'_>) -> Vec<Vec<Hit>> {
     let mut groups: Vec<Vec<Hit>> = Vec::new();
-    for side in [backs, fronts] {
+    for front in [false, true] {
+        let mut side: Vec<Hit> = run.iter().filter(|h| h.front() == front).copied().collect();
+        side.sort_unstable_by_key(|h| h.surface());
         let first = groups.len();
         for h in side {
             match groups[first..]
@@ -214,6 +234,42 @@ fn settle(run: &[Hit], surfaces: &Surfaces<'_>) -> Vec<Vec<Hit>> {
         }
     }
     groups
+}
+
+/// What a run really crosses, in no particular order:
+/// 1. each overlap's copies stand for one crossing, shared between them ([`share`]);
+/// 2. back-to-back pairs of a back arrival and a front arrival are contacts;
+/// 3. of the rest, a back and a front arrival of two triangles folded along an edge are a graze
+///    (the line touching the fold in passing): both are dropped;
+/// 4. what is left is crossed, each (a line through the seam where a wall stands on a floor
+///    crosses both).
+///
+/// Contacts come before grazes: where a door stands open against a wall at the doorway's edge,
+/// a line through that corner touches the doorway's fold and meets the door's edge against the
+/// wall; the door's edge is in contact, whatever the fold does. Grazes come before seams: a
+/// line along the bottom edge of a box standing on a floor crosses the box's side, its bottom
+/// and the floor at one place; the bottom is in contact with the floor, and the side's crossing
+/// stays a crossing of the box.
+fn settle(run: &[Hit], surfaces: &Surfaces<'_>) -> Vec<Unit> {
+    let crossings: Vec<Hit> = overlap_groups(run, surfaces)
+        .iter()
+        .filter_map(|members| share(members, run[0].t))
+        .collect();
+    let (mut backs, mut fronts): (Vec<Hit>, Vec<Hit>) =
+        crossings.into_iter().partition(|h| !h.front());
+    let mut units = Vec::new();
+    backs.retain(|&b| {
+        let touching = fronts.iter().position(|&f| surfaces.back_to_back(b, f));
+        touching
+            .map(|k| units.push(Unit::Contact(b, fronts.remove(k))))
+            .is_none()
+    });
+    backs.retain(|&b| {
+        let graze = fronts.iter().position(|&f| !surfaces.contact(b, f));
+        graze.map(|k| fronts.remove(k)).is_none()
+    });
+    units.extend(backs.into_iter().chain(fronts).map(Unit::Single));
+    units
 }
 
 /// The crossing that stands for `members`, arrivals at one side of coplanar overlapping
@@ -342,9 +398,10 @@ mod tests {
 
     /// Regression: a line along the bottom edge of a moving box on a floor crossed the box's
     /// side, its bottom and the floor at one place; sharing the side's crossing with the floor's
-    /// let the room see the box's inside.
+    /// let the room see the box's inside. The line enters the box, passes the contact, and
+    /// enters the floor.
     #[test]
-    fn a_graze_at_the_edge_of_a_contact_leaves_the_floor() {
+    fn a_line_along_a_box_edge_on_a_floor_enters_the_box_then_passes_the_contact() {
         let faces = vec![
             Faces {
                 front: 0,
@@ -361,13 +418,46 @@ mod tests {
             corners: &[[1, 2, 3], [2, 3, 4], [10, 11, 12]],
         };
         for t in [0.5f32, 0.75, 1.0, 1.25] {
-            let run = [
-                Hit::new(t, 0, true),
-                Hit::new(t, 1, false),
-                Hit::new(t, 2, true),
-            ];
-            assert_eq!(resolve(&run, &s), Some(vec![run[2]]));
+            let side = Hit::new(t, 0, true);
+            let bottom = Hit::new(t + 1e-6, 1, false);
+            let floor = Hit::new(t - 1e-6, 2, true);
+            let resolved = resolve(&[floor, side, bottom], &s).unwrap();
+            let at = |h: Hit| Hit::new(t - 1e-6, h.surface(), h.front());
+            assert_eq!(resolved, vec![at(side), at(bottom), at(floor)]);
+            assert!(is_contact(&resolved[1], &resolved[2]));
         }
+    }
+
+    /// Regression: a door open against a wall at the doorway's edge; a line through that corner
+    /// touched the fold between the wall and the doorway's jamb (a graze, which took the wall)
+    /// and met the door's edge alone, which saw the room's lamp through the wall.
+    #[test]
+    fn a_contact_is_found_before_a_graze() {
+        let faces = vec![
+            Faces {
+                front: 0,
+                back: None
+            };
+            3
+        ];
+        // The jamb and the wall share the doorway's edge (static); the door is object 1.
+        let normals = [Vec3::Z, Vec3::X, Vec3::NEG_Z];
+        let s = Surfaces {
+            faces: &faces,
+            spaces: &[0, 0, 1],
+            normals: &normals,
+            corners: &[[1, 2, 3], [2, 3, 4], [10, 11, 12]],
+        };
+        let (jamb, wall, door) = (
+            Hit::new(1.0, 0, true),
+            Hit::new(1.0 + 2e-6, 1, false),
+            Hit::new(1.0 + 1e-6, 2, true),
+        );
+        let at = |h: Hit| Hit::new(1.0, h.surface(), h.front());
+        assert_eq!(
+            resolve(&[jamb, door, wall], &s),
+            Some(vec![at(jamb), at(wall), at(door)])
+        );
     }
 
     #[test]
