@@ -1,32 +1,34 @@
-//! Crossings that coincide along a line: contacts, coplanar overlaps and grazes (METHOD.md §10).
+//! Crossings that coincide along a line: contacts, coplanar overlaps, grazes and seams
+//! (METHOD.md §10).
 //!
 //! Two crossings of one line closer than [`COINCIDENT`] are one place, and their order along the
-//! line is decided by rounding, not by the geometry. What they mean depends on how the two
+//! line may be decided by rounding, not by the geometry. What they mean depends on how the
 //! triangles face:
 //!
-//! - **A contact**: two surfaces touching face to face (a box standing on a floor, a pillar
-//!   against a ceiling, a door closed in its frame). The line arrives at the back of one and at
-//!   the front of the other. Physically no light passes between the touching faces, in either
-//!   direction; each of the other two faces sees what lies on its own side. The run is ordered
-//!   back before front (the line leaves one region before it enters the next), and the
-//!   zero-length segment between them is dark ([`is_contact`]): it still counts in the touching
-//!   patches' crossings `N_i`, so a face wholly in contact has radiance 0 and a patch partly in
-//!   contact gets the area average of its lit and dark parts.
 //! - **A coplanar overlap**: duplicated faces, decals, z-fighting geometry. The line arrives at
 //!   every overlapping triangle from the same side; physically it crosses one surface once. The
 //!   crossing is shared: one of the overlapping triangles gets it, chosen with equal
 //!   probability (a hash of the crossing), so each is sampled at its share of the lines and none
 //!   is left unsampled or made transparent. The choice is a function of the crossing alone, so
 //!   the static and per-frame tallies of the multiframe method stay consistent.
-//! - **A graze**: a line touching an edge or a fold of one surface in passing (in and out at one
-//!   point). The two triangles meet at an angle; the line does not really pass, so both
+//! - **A contact**: two surfaces touching face to face (a box standing on a floor, a pillar
+//!   against a ceiling, a door against a wall). The line arrives at the back of one and at the
+//!   front of the other, back to back. Physically no light passes between the touching faces,
+//!   in either direction; each of the other two faces sees what lies on its own side. The pair
+//!   is ordered back before front (the line leaves one region before it enters the next), and
+//!   the zero-length segment between them is dark ([`is_contact`]): it still counts in the
+//!   touching patches' crossings `N_i`, so a face wholly in contact has radiance 0 and a patch
+//!   partly in contact gets the area average of its lit and dark parts.
+//! - **A graze**: a line touching the fold between two faces of one surface in passing (in and
+//!   out at one point): they share an edge, at an angle. The line does not really pass, so both
 //!   crossings are dropped (in the wrong order the touched faces would see the sky through a
 //!   closed surface: a leak that ρ = 0.999 multiplies by 1000).
+//! - **A seam**: a surface standing on another (a box's side on a floor) shares no edge with
+//!   it; a line through the seam crosses both, in the order of their distances.
 //!
-//! Contacts and grazes both arrive at one back and one front; they differ in the geometry: a
-//! contact is two triangles back to back in one plane, a graze two triangles at an angle. Their
-//! normals are compared when both are in one space (static geometry, or one moving object);
-//! otherwise the pair is a contact.
+//! They are found in that order ([`resolve`]). Normals are compared when both triangles are in
+//! one space (static geometry, or one moving object); otherwise a back-and-front pair is a
+//! contact.
 
 use glam::Vec3;
 
