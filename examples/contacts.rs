@@ -3,8 +3,9 @@
 //! block, against the mean radiance of the lit, non-emitting patches. Physically both are 0.
 //! Then the moving Cornell box (its short block slides on the floor) with every material
 //! double-sided: the most light on any face no light can reach (inside the blocks, outside the
-//! room) over its 25 frames; and the static one, double-sided under a sky of 1 (which lights
-//! the room's outside): the most light inside its blocks. Physically 0.
+//! room, and the blocks' bottoms) over its 25 frames; and the static one, double-sided under a
+//! sky of 1 (which lights the room's outside): the most light inside its blocks and on their
+//! bottoms. Physically 0.
 //!
 //!     cargo run --release --example contacts [LINES] [PATCH_SIZE]
 
@@ -130,7 +131,7 @@ fn hidden_faces(name: &str, lines: u64, sky: f64) -> Result<(), Box<dyn std::err
     // Back faces, but for the lamp's, which emits (a double-sided emitter emits both ways), and
     // the room's (outside it) when the sky lights them.
     let room = scene.patches[0].source.node;
-    let hidden: Vec<usize> = (0..scene.patches.len())
+    let mut hidden: Vec<usize> = (0..scene.patches.len())
         .filter(|&p| {
             let patch = &scene.patches[p];
             patch.side == radiosity::scene::Side::Back
@@ -138,6 +139,15 @@ fn hidden_faces(name: &str, lines: u64, sky: f64) -> Result<(), Box<dyn std::err
                 && (sky == 0.0 || patch.source.node != room)
         })
         .collect();
+    // And the blocks' bottoms, which stand (or slide) on the floor.
+    let n = &scene.normalisation;
+    for (corners, faces) in scene.triangles_at(0) {
+        let c = corners.map(|p| n.to_scene(p.as_dvec3()));
+        let down = (c[1] - c[0]).cross(c[2] - c[0]).y < 0.0;
+        if down && c.iter().all(|v| v.y.abs() < 1e-6) {
+            hidden.push(faces.front as usize);
+        }
+    }
     let (mut worst, mut lit) = (0.0f64, 0);
     for s in &solved {
         for &p in &hidden {
