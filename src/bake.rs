@@ -252,6 +252,7 @@ fn overlap_warnings(scene: &Scene, tracer: &SceneTracer, list: &IntersectionList
                     let (a, b) = (nodes[a as usize], nodes[b as usize]);
                     *shared.entry((a.min(b), a.max(b))).or_insert(0) += 1;
                 };
+                let surfaces = surfaces.along(list.direction(l));
                 let statics = list.static_hits(l);
                 statics
                     .iter()

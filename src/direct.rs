@@ -477,7 +477,7 @@ fn directional(at: &Frame<'_>, light: &Light) -> Vec<f64> {
                     .trace_frame(&line, at.frame, at.deformed, &mut hits);
                 // The sun reaches the first crossing; coincident ones resolved as the tallies
                 // do (a face in contact is in shadow, an overlap is shared).
-                let resolved = resolve(&hits, &at.tracer.surfaces());
+                let resolved = resolve(&hits, &at.tracer.surfaces().along(bundle.direction));
                 for (k, hit) in resolved.as_deref().unwrap_or(&hits).iter().enumerate() {
                     let faces = at.triangles[hit.surface() as usize].1;
                     let facing = if hit.front() {

@@ -217,11 +217,12 @@ impl Tallies {
         for &l in touched {
             let l = l as usize;
             let g = self.groups[l];
-            walk(list.static_hits(l), surfaces, |a, b| {
+            let surfaces = surfaces.along(list.direction(l));
+            walk(list.static_hits(l), &surfaces, |a, b| {
                 raw.push((key(a, b, g), -1))
             });
             list.frame_hits(l, frame, &mut merged);
-            walk(&merged, surfaces, |a, b| raw.push((key(a, b, g), 1)));
+            walk(&merged, &surfaces, |a, b| raw.push((key(a, b, g), 1)));
         }
         aggregate(raw)
     }
@@ -386,7 +387,8 @@ fn tally_static(
         .map(|chunk| {
             let mut raw = Vec::new();
             for &l in chunk {
-                walk(list.static_hits(l), surfaces, |a, b| {
+                let surfaces = surfaces.along(list.direction(l));
+                walk(list.static_hits(l), &surfaces, |a, b| {
                     raw.push((key(a, b, groups[l]), 1))
                 });
             }
@@ -422,6 +424,7 @@ mod tests {
             spaces: &[0, 0],
             normals: &[glam::Vec3::Z; 2],
             corners: &[[0, 1, 2], [3, 4, 5]],
+            direction: None,
         };
         walk(&hits, &surfaces, |a, b| seen.push((a, b)));
         seen.sort_unstable();
@@ -449,6 +452,7 @@ mod tests {
             spaces: &[0, 1],
             normals: &[glam::Vec3::Z; 2],
             corners: &[[0, 1, 2], [3, 4, 5]],
+            direction: None,
         };
         walk(&hits, &surfaces, |a, b| raw.push((key(a, b, 0), 1)));
         let entries = aggregate(raw);

@@ -160,6 +160,9 @@ struct BatchLines {
 /// The intersection list of a timeline.
 pub struct IntersectionList {
     batches: Vec<BatchLines>,
+    /// The first line of every bundle of every batch, in line order, with the bundle's
+    /// direction: a line's direction by binary search.
+    bundle_starts: Vec<(u32, glam::Vec3)>,
     frames: usize,
     /// `static_hits[static_offsets[l]..static_offsets[l + 1]]` are line l's static crossings,
     /// sorted along the line.
@@ -202,6 +205,7 @@ impl IntersectionList {
     ) -> Result<Self, TraceError> {
         let mut list = Self {
             batches: Vec::new(),
+            bundle_starts: Vec::new(),
             frames: scene.frames.count,
             static_offsets: vec![0],
             static_hits: Vec::new(),
@@ -311,6 +315,13 @@ impl IntersectionList {
                 .truncate(*self.dynamic_offsets.last().unwrap_or(&0) as usize);
             return appended;
         }
+        let mut start = self.lines() as u32;
+        for b in bundles.iter().rev() {
+            start -= b.origins.len() as u32;
+            self.bundle_starts.push((start, b.direction));
+        }
+        let added = self.bundle_starts.len() - bundles.len();
+        self.bundle_starts[added..].reverse();
         self.batches.push(BatchLines {
             batch,
             bundle_lines: bundles.iter().map(|b| b.origins.len() as u32).collect(),
@@ -361,6 +372,15 @@ impl IntersectionList {
     #[must_use]
     pub fn lines(&self) -> usize {
         self.static_offsets.len() - 1
+    }
+
+    /// The direction of `line` (unit).
+    #[must_use]
+    pub fn direction(&self, line: usize) -> glam::Vec3 {
+        let k = self
+            .bundle_starts
+            .partition_point(|&(start, _)| start as usize <= line);
+        self.bundle_starts[k.saturating_sub(1)].1
     }
 
     /// Number of frames of the timeline.

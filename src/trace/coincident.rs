@@ -42,6 +42,10 @@ use crate::scene::Faces;
 /// 1e-5 of the scene's radius still lets light through.
 pub const COINCIDENT: f32 = 4e-6;
 
+/// Crossings of a static surface are one place across it ([`Surfaces::coincide`]) up to this
+/// far apart along the line (normalised units): a line running along a surface within 1° of it.
+pub const ALONG_MAX: f32 = 64.0 * COINCIDENT;
+
 /// Normals of two triangles at least this close to opposite are back to back (about 2.6°).
 const BACK_TO_BACK: f32 = -0.999;
 
@@ -59,9 +63,45 @@ pub struct Surfaces<'a> {
     /// share an edge when they share two (their vertices' indices may differ, as a flat-shaded
     /// export repeats a vertex per face).
     pub corners: &'a [[u32; 3]],
+    /// The direction of the line being resolved, if known ([`Surfaces::along`]).
+    pub direction: Option<Vec3>,
 }
 
 impl Surfaces<'_> {
+    /// The same surfaces for resolving a line of direction `d`: crossings of a static surface
+    /// are then one place when they are closer than [`COINCIDENT`] across it, not only along
+    /// the line ([`ALONG_MAX`]).
+    #[must_use]
+    pub fn along(self, d: Vec3) -> Self {
+        Self {
+            direction: Some(d),
+            ..self
+        }
+    }
+
+    /// Whether crossings `a` and `b` (in this order along the line) are one place: closer than
+    /// [`COINCIDENT`] along the line, or, for a line of known direction, across a static
+    /// surface among them (their distance along the line times the cosine between the line and
+    /// that surface's normal). A position's rounding along a surface's normal becomes a
+    /// distance along a line that meets it at a grazing angle divided by the cosine: two faces
+    /// in contact are crossed further apart than the tolerance by lines within a few degrees of
+    /// grazing them.
+    #[must_use]
+    pub fn coincide(&self, a: Hit, b: Hit) -> bool {
+        let gap = b.t - a.t;
+        if gap <= COINCIDENT {
+            return true;
+        }
+        let Some(d) = self.direction else {
+            return false;
+        };
+        gap <= ALONG_MAX
+            && [a, b]
+                .iter()
+                .filter(|h| self.spaces[h.surface() as usize] == 0)
+                .any(|h| gap * self.normals[h.surface() as usize].dot(d).abs() <= COINCIDENT)
+    }
+
     /// Whether the crossings `a` and `b`, one place on a line, are a contact: the line arrives
     /// at the back of one and the front of the other, and the triangles are not two faces of
     /// one surface folded along an edge (a graze: in one space, they share an edge and are not
@@ -129,11 +169,11 @@ pub fn is_contact(a: &Hit, b: &Hit) -> bool {
 /// contact), one crossing, or nothing (a graze). `None` when nothing changes.
 #[must_use]
 pub fn resolve(hits: &[Hit], surfaces: &Surfaces<'_>) -> Option<Vec<Hit>> {
-    if !hits.windows(2).any(|w| w[1].t - w[0].t <= COINCIDENT) {
+    if !hits.windows(2).any(|w| surfaces.coincide(w[0], w[1])) {
         return None;
     }
     let mut out = Vec::with_capacity(hits.len());
-    for run in runs(hits) {
+    for run in runs(hits, surfaces) {
         if run.len() == 1 {
             out.push(run[0]);
             continue;
@@ -175,7 +215,7 @@ pub fn resolve(hits: &[Hit], surfaces: &Surfaces<'_>) -> Option<Vec<Hit>> {
 /// crosses at one place from the same side, in one plane: coplanar overlaps, whose crossing
 /// [`resolve`] shares between them. Each overlap's triangles are paired with its first.
 pub fn overlaps(hits: &[Hit], surfaces: &Surfaces<'_>, mut shared: impl FnMut(u32, u32)) {
-    for run in runs(hits).filter(|run| run.len() > 1) {
+    for run in runs(hits, surfaces).filter(|run| run.len() > 1) {
         for members in overlap_groups(run, surfaces) {
             if let Some((first, rest)) = members.split_first() {
                 rest.iter()
@@ -186,9 +226,9 @@ pub fn overlaps(hits: &[Hit], surfaces: &Surfaces<'_>, mut shared: impl FnMut(u3
 }
 
 /// The runs of coincident crossings of a line sorted along it: its crossings grouped where
-/// consecutive ones are closer than [`COINCIDENT`] (most runs are a single crossing).
-fn runs(hits: &[Hit]) -> impl Iterator<Item = &[Hit]> {
-    hits.chunk_by(|a, b| b.t - a.t <= COINCIDENT)
+/// consecutive ones are one place ([`Surfaces::coincide`]; most runs are a single crossing).
+fn runs<'h>(hits: &'h [Hit], surfaces: &Surfaces<'_>) -> impl Iterator<Item = &'h [Hit]> {
+    hits.chunk_by(|&a, &b| surfaces.coincide(a, b))
 }
 
 /// One thing a run of coincident crossings really crosses.
@@ -341,6 +381,7 @@ mod tests {
                 spaces: &self.spaces,
                 normals: &self.normals,
                 corners: &self.corners,
+                direction: None,
             }
         }
     }
@@ -418,6 +459,7 @@ mod tests {
             spaces: &[1, 1, 0],
             normals: &normals,
             corners: &[[1, 2, 3], [2, 3, 4], [10, 11, 12]],
+            direction: None,
         };
         for t in [0.5f32, 0.75, 1.0, 1.25] {
             let side = Hit::new(t, 0, true);
@@ -449,6 +491,7 @@ mod tests {
             spaces: &[0, 0, 1],
             normals: &normals,
             corners: &[[1, 2, 3], [2, 3, 4], [10, 11, 12]],
+            direction: None,
         };
         let (jamb, wall, door) = (
             Hit::new(1.0, 0, true),
@@ -460,6 +503,38 @@ mod tests {
             resolve(&[jamb, door, wall], &s),
             Some(vec![at(jamb), at(wall), at(door)])
         );
+    }
+
+    /// Regression: a line within 6° of grazing the floor crossed it and the bottom of a block
+    /// sliding on it 4.5e-6 apart (their positions' rounding divided by the cosine): taken for
+    /// two places, the block's inside saw the floor.
+    #[test]
+    fn a_grazing_line_finds_a_contact_across_the_surfaces() {
+        let faces = vec![
+            Faces {
+                front: 0,
+                back: None
+            };
+            2
+        ];
+        // The floor (static) and the block's bottom (object 1).
+        let s = Surfaces {
+            faces: &faces,
+            spaces: &[0, 1],
+            normals: &[Vec3::Y, Vec3::NEG_Y],
+            corners: &[[1, 2, 3], [10, 11, 12]],
+            direction: None,
+        };
+        let (floor, bottom) = (Hit::new(1.0, 0, true), Hit::new(1.0 + 4.5e-6, 1, false));
+        assert_eq!(resolve(&[floor, bottom], &s), None);
+        // cos θ = 0.1 with the floor: 4.5e-7 apart across it.
+        let d = Vec3::new((1.0f32 - 0.01).sqrt(), -0.1, 0.0);
+        let contact = vec![Hit::new(1.0, 1, false), Hit::new(1.0, 0, true)];
+        assert_eq!(resolve(&[floor, bottom], &s.along(d)), Some(contact));
+        // A line along the floor does not merge crossings further apart than ALONG_MAX.
+        let far = Hit::new(1.0 + 2.0 * ALONG_MAX, 1, false);
+        let flat = Vec3::new(1.0, -1e-6, 0.0).normalize();
+        assert_eq!(resolve(&[floor, far], &s.along(flat)), None);
     }
 
     #[test]

@@ -281,6 +281,7 @@ impl SceneTracer {
             spaces: &self.spaces,
             normals: &self.normals,
             corners: &self.corners,
+            direction: None,
         }
     }
 
