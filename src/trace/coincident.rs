@@ -43,7 +43,8 @@ use crate::scene::Faces;
 pub const COINCIDENT: f32 = 4e-6;
 
 /// Crossings of a static surface are one place across it ([`Surfaces::coincide`]) up to this
-/// far apart along the line (normalised units): a line running along a surface within 1° of it.
+/// far apart along the line (normalised units): for lines meeting the surface at 0.9° (a
+/// cosine of 1/64) or more; a line closer to parallel keeps the tolerance along it.
 pub const ALONG_MAX: f32 = 64.0 * COINCIDENT;
 
 /// Normals of two triangles at least this close to opposite are back to back (about 2.6°).
@@ -158,15 +159,17 @@ impl Surfaces<'_> {
 }
 
 /// Whether the segment between consecutive crossings `a` and `b` of a resolved line (see
-/// [`resolve`]) is a contact, which no light crosses.
+/// [`resolve`]) is dark: it joins two crossings of one place (a contact, or the zero-length
+/// gap between surfaces a line crosses at a seam), which no light crosses.
 #[must_use]
 pub fn is_contact(a: &Hit, b: &Hit) -> bool {
     b.t - a.t <= COINCIDENT
 }
 
 /// Resolves the runs of coincident crossings of a line (sorted along it) as the module
-/// describes: each run becomes at most one back arrival followed by one front arrival (a
-/// contact), one crossing, or nothing (a graze). `None` when nothing changes.
+/// describes: each run becomes what it really crosses (contacts as a back arrival followed by
+/// a front arrival, one crossing per overlap, seams' crossings in order, nothing for a graze),
+/// all at the run's first distance. `None` when nothing changes.
 #[must_use]
 pub fn resolve(hits: &[Hit], surfaces: &Surfaces<'_>) -> Option<Vec<Hit>> {
     if !hits.windows(2).any(|w| surfaces.coincide(w[0], w[1])) {
