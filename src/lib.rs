@@ -10,7 +10,8 @@
 //!   knows nothing of glTF or HTTP.
 //! - [`lines`]: global lines: bundles of parallel lines with uniformly distributed directions.
 //! - [`trace`]: every crossing of a line with the scene (obvhs BVHs, a watertight
-//!   line–triangle test).
+//!   line–triangle test), and what crossings at one place mean: contacts, coplanar overlaps,
+//!   grazes and seams ([`trace::coincident`]).
 //! - [`timeline`]: the timeline's one intersection list (multiframe), frame extraction and the
 //!   scene statistics measured by the lines.
 //! - [`solve`]: tallies of the list per frame (`N_i`, `S_ij`, with per-frame changes only for
