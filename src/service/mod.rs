@@ -844,8 +844,10 @@ async fn timeline_events(
             if ended {
                 return None;
             }
-            let doc = status_json(&job);
+            // The status before the document: a job ending in between sends one more event
+            // (the final document), never a final event with an older document.
             let last = job.status().is_final();
+            let doc = status_json(&job);
             let event = Event::default()
                 .event("status")
                 .json_data(&doc)
