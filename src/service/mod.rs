@@ -561,6 +561,8 @@ async fn timeline_frames(
         (job, solved, 0usize),
         |(job, mut solved, next)| async move {
             loop {
+                // The status before the frames: a job seen ended has stored all it will.
+                let ended = job.status().is_final();
                 let version = job.version.load(Ordering::Acquire);
                 let available = job.frames_solved.load(Ordering::Acquire);
                 if next < available
@@ -575,7 +577,7 @@ async fn timeline_frames(
                         (job, solved, next + 1),
                     ));
                 }
-                if next >= job.frame_times.len() || (job.status().is_final() && next >= available) {
+                if next >= job.frame_times.len() || (ended && next >= available) {
                     return None;
                 }
                 if solved.changed().await.is_err() {
