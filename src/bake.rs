@@ -82,6 +82,16 @@ impl Bake {
         &self.warnings
     }
 
+    /// What the bake found once its frames are solved (`frames`, all of them): the lines'
+    /// [`Bake::warnings`], then the [`unsampled_warning`] if any. The loader's warnings are the
+    /// scene's.
+    #[must_use]
+    pub fn findings(&self, frames: &[Arc<FrameSolution>]) -> Vec<String> {
+        let mut found = self.warnings.clone();
+        found.extend(unsampled_warning(&self.scene, frames));
+        found
+    }
+
     /// The intersection list.
     #[must_use]
     pub fn list(&self) -> &IntersectionList {

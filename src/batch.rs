@@ -435,12 +435,11 @@ pub fn bake_one(
         }
     };
     let count = frames.len();
-    let mut warnings = scene.warnings.clone();
-    warnings.extend_from_slice(bake.warnings());
-    warnings.extend(crate::bake::unsampled_warning(scene, &frames));
-    for w in &warnings[scene.warnings.len()..] {
+    let found = bake.findings(&frames);
+    for w in &found {
         log(&format!("{name}: warning: {w}"));
     }
+    let warnings: Vec<String> = scene.warnings.iter().cloned().chain(found).collect();
     let summary = Summary {
         scene: &name,
         content_hash: hash,

@@ -403,8 +403,7 @@ impl Job {
             .read()
             .map(|r| r.iter().flatten().map(|(_, s)| s.clone()).collect())
             .unwrap_or_default();
-        let mut found = bake.warnings().to_vec();
-        found.extend(crate::bake::unsampled_warning(&bake.scene, &frames));
+        let found = bake.findings(&frames);
         if let Ok(mut s) = self.state.lock() {
             s.found = found;
         }

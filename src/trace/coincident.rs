@@ -197,18 +197,17 @@ pub fn resolve(hits: &[Hit], surfaces: &Surfaces<'_>) -> Option<Vec<Hit>> {
             Unit::Single(_) => 2,
         };
         units.sort_unstable_by(|a, b| {
-            let (fa, fb) = (a.crossings()[0], b.crossings()[0]);
+            let (fa, fb) = (a.first(), b.first());
             (rank(a).cmp(&rank(b)))
                 .then(a.t().total_cmp(&b.t()))
                 .then((fa.front(), fa.surface()).cmp(&(fb.front(), fb.surface())))
         });
-        let t = run[0].t;
+        let at = |h: Hit| Hit::new(run[0].t, h.surface(), h.front());
         for unit in &units {
-            out.extend(
-                unit.crossings()
-                    .iter()
-                    .map(|h| Hit::new(t, h.surface(), h.front())),
-            );
+            match *unit {
+                Unit::Contact(b, f) => out.extend([at(b), at(f)]),
+                Unit::Single(h) => out.push(at(h)),
+            }
         }
     }
     Some(out)
@@ -243,11 +242,11 @@ enum Unit {
 }
 
 impl Unit {
-    /// Its crossings in the order the line meets them.
-    fn crossings(&self) -> Vec<Hit> {
+    /// The first of its crossings the line meets.
+    fn first(&self) -> Hit {
         match *self {
-            Unit::Contact(b, f) => vec![b, f],
-            Unit::Single(h) => vec![h],
+            Unit::Contact(b, _) => b,
+            Unit::Single(h) => h,
         }
     }
 
@@ -346,6 +345,16 @@ pub(crate) fn mix(mut x: u64) -> u64 {
 mod tests {
     use super::*;
 
+    /// `n` one-sided triangles, triangle `k` carrying patch `k`.
+    fn one_sided(n: u32) -> Vec<Faces> {
+        (0..n)
+            .map(|k| Faces {
+                front: k,
+                back: None,
+            })
+            .collect()
+    }
+
     /// Triangles 0 and 1: two faces of one static box meeting at a right angle along an edge
     /// (bottom, side); triangle 2: a floor back to back with 0's plane; triangle 3: a duplicate
     /// of the floor; triangle 4: a wall standing on the floor, with a corner on one of the
@@ -360,12 +369,7 @@ mod tests {
     impl Scene {
         fn new() -> Self {
             Self {
-                faces: (0..5)
-                    .map(|k| Faces {
-                        front: k,
-                        back: None,
-                    })
-                    .collect(),
+                faces: one_sided(5),
                 spaces: vec![0; 5],
                 normals: vec![Vec3::NEG_Y, Vec3::X, Vec3::Y, Vec3::Y, Vec3::NEG_X],
                 corners: vec![
@@ -448,13 +452,7 @@ mod tests {
     /// enters the floor.
     #[test]
     fn a_line_along_a_box_edge_on_a_floor_enters_the_box_then_passes_the_contact() {
-        let faces = vec![
-            Faces {
-                front: 0,
-                back: None
-            };
-            3
-        ];
+        let faces = one_sided(3);
         // The box's side and bottom (object 1), the floor (static).
         let normals = [Vec3::X, Vec3::NEG_Y, Vec3::Y];
         let s = Surfaces {
@@ -480,13 +478,7 @@ mod tests {
     /// and met the door's edge alone, which saw the room's lamp through the wall.
     #[test]
     fn a_contact_is_found_before_a_graze() {
-        let faces = vec![
-            Faces {
-                front: 0,
-                back: None
-            };
-            3
-        ];
+        let faces = one_sided(3);
         // The jamb and the wall share the doorway's edge (static); the door is object 1.
         let normals = [Vec3::Z, Vec3::X, Vec3::NEG_Z];
         let s = Surfaces {
@@ -513,13 +505,7 @@ mod tests {
     /// two places, the block's inside saw the floor.
     #[test]
     fn a_grazing_line_finds_a_contact_across_the_surfaces() {
-        let faces = vec![
-            Faces {
-                front: 0,
-                back: None
-            };
-            2
-        ];
+        let faces = one_sided(2);
         // The floor (static) and the block's bottom (object 1).
         let s = Surfaces {
             faces: &faces,
