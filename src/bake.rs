@@ -8,9 +8,10 @@ use std::sync::Arc;
 use rayon::prelude::*;
 
 use crate::direct::DirectLight;
+use crate::direct::area::AreaLights;
 use crate::scene::{Light, Material, Scene};
 use crate::solve::tally::{FrameTally, Tallies};
-use crate::solve::{FrameSolution, SolveParams, solve_lit};
+use crate::solve::{Direct, FrameSolution, SolveParams, solve_lit};
 use crate::timeline::{Control, IntersectionList, LineParams, TraceError};
 use crate::trace::SceneTracer;
 
@@ -24,6 +25,9 @@ pub struct Bake {
     /// Direct light of the punctual lights per frame (per unit power, so lights can change
     /// without tracing).
     direct: DirectLight,
+    /// Direct light of the emitting surfaces sampled as area lights (per unit radiance of each
+    /// such material, so emitters can change without tracing).
+    area: AreaLights,
     /// Seed of the line set, reused (with the next batch index) by refinement.
     seed: u64,
     /// What the lines found that the user should know (see [`Bake::warnings`]).
@@ -47,6 +51,7 @@ impl Bake {
         let mut tallies = Tallies::default();
         tallies.update(&list, &tracer.surfaces());
         let direct = DirectLight::compute(&scene, &tracer, control)?;
+        let area = AreaLights::compute(&scene, &tracer, params.seed, control)?;
         let warnings = overlap_warnings(&scene, &tracer, &list);
         Ok(Self {
             scene,
@@ -54,6 +59,7 @@ impl Bake {
             list,
             tallies,
             direct,
+            area,
             seed: params.seed,
             warnings,
         })
@@ -128,16 +134,14 @@ impl Bake {
         let by_tally = self
             .tallies
             .representatives(&self.list, &self.tracer.surfaces());
-        if self.direct.is_empty() {
+        if self.direct.is_empty() && self.area.is_empty() {
             return by_tally;
         }
-        let mut first: std::collections::HashMap<(usize, Option<usize>), usize> =
-            Default::default();
+        let mut first: std::collections::HashMap<_, usize> = Default::default();
         (0..by_tally.len())
             .map(|f| {
-                *first
-                    .entry((by_tally[f], self.direct.state(f)))
-                    .or_insert(f)
+                let key = (by_tally[f], self.direct.state(f), self.area.state(f));
+                *first.entry(key).or_insert(f)
             })
             .collect()
     }
@@ -146,6 +150,12 @@ impl Bake {
     #[must_use]
     pub fn direct(&self) -> &DirectLight {
         &self.direct
+    }
+
+    /// The direct light of the emitting surfaces sampled as area lights.
+    #[must_use]
+    pub fn area_lights(&self) -> &AreaLights {
+        &self.area
     }
 
     /// Each light's power (colour × intensity) as the scene gives it.
@@ -181,14 +191,47 @@ impl Bake {
         power: &[[f64; 3]],
         params: &SolveParams,
     ) -> FrameSolution {
-        let direct = self.direct.irradiance(frame, power);
-        solve_lit(
-            &self.frame_tally(frame),
-            &self.patch_materials(),
-            materials,
-            params,
-            direct.as_deref(),
-        )
+        self.solve_tally(&self.frame_tally(frame), frame, materials, power, params)
+    }
+
+    /// [`Bake::solve_frame_lit`] from `tally`, frame `frame`'s tallies however obtained (the
+    /// multiframe list's, or the frame traced alone): the direct light is the frame's.
+    #[must_use]
+    pub fn solve_tally(
+        &self,
+        tally: &FrameTally,
+        frame: usize,
+        materials: &[Material],
+        power: &[[f64; 3]],
+        params: &SolveParams,
+    ) -> FrameSolution {
+        let patch_materials = self.patch_materials();
+        let punctual = self.direct.irradiance(frame, power);
+        let area = self.area.irradiance(frame, materials);
+        let (irradiance, variance) = match (punctual, area) {
+            (None, None) => (Vec::new(), Vec::new()),
+            (Some(e), None) => {
+                let zero = vec![[0.0; 3]; e.len()];
+                (e, zero)
+            }
+            (None, Some(area)) => area,
+            (Some(mut e), Some((a, variance))) => {
+                e.iter_mut().zip(&a).for_each(|(e, a)| {
+                    (0..3).for_each(|c| e[c] += a[c]);
+                });
+                (e, variance)
+            }
+        };
+        let sampled: Vec<bool> = patch_materials
+            .iter()
+            .map(|&m| self.area.samples(m))
+            .collect();
+        let direct = (!irradiance.is_empty()).then_some(Direct {
+            irradiance: &irradiance,
+            variance: &variance,
+            sampled: &sampled,
+        });
+        solve_lit(tally, &patch_materials, materials, params, direct)
     }
 
     /// Solves every frame; frames with identical tallies and direct light share one solution.

@@ -166,10 +166,14 @@ fn reflectance_from_0_to_1_gives_le_over_1_minus_rho_and_1_is_capped_with_a_warn
     }
 }
 
-/// Energy balance of a closed scene of uniform reflectance ρ: `(1 − ρ) Σ N_i L_i = Σ N_i Le_i`
-/// for the estimated system, whatever the lines (sum its rows: `Σ_i S_ij = N_j`). The solver's
-/// residual r (relative to b = N·Le/ρ ≥ 0) moves the balance by `ρ 1·r`, at most
-/// `√P |r| ≤ √P · 1e-10 · Σ b`: a bound that holds for any light, not only a uniform one.
+/// Energy balance of a closed scene of uniform reflectance ρ lit by a lamp face whose direct
+/// light E is sampled explicitly (`crate::direct::area`), the lines carrying `L − Le` from it:
+/// summing the estimated system's rows (`Σ_i S_ij = N_j`) gives
+/// `(1 − ρ) Σ N_i L_i = (1 − ρ) Σ_lamp N_j Le_j + ρ Σ_i N_i E_i / π`, whatever the lines and
+/// the shadow rays. The solver's residual r (relative to b) moves it by at most
+/// `√P |r| ≤ √P · 1e-10 · Σ b`: a bound that holds for any light, not only a uniform one. And
+/// the direct light the lamp sends equals what it emits (`ρ Σ N E/π ≈ ρ Σ_lamp N Le`, up to the
+/// lines' sampling of the areas `N_i ∝ A_i`).
 #[test]
 fn a_room_of_reflectance_1_lit_by_one_face_converges_once_capped() {
     let mut d = Doc::new();
@@ -189,7 +193,13 @@ fn a_room_of_reflectance_1_lit_by_one_face_converges_once_capped() {
     let rho = MAX_REFLECTANCE;
     let lamp_patches: Vec<bool> = scene.patches.iter().map(|p| p.material == 0).collect();
     let count = lamp_patches.len() as f64;
-    let s = solve(scene, 5_000);
+    let bake = Bake::trace(scene, &lines(5_000)).unwrap();
+    assert_eq!(bake.area_lights().materials(), [0], "the lamp is sampled");
+    let s = bake.solve_frame(0, &bake.scene.materials, &SolveParams::default());
+    let (direct, _) = bake
+        .area_lights()
+        .irradiance(0, &bake.scene.materials)
+        .unwrap();
     assert!(
         s.converged,
         "residual {} after {} iterations",
@@ -208,10 +218,21 @@ fn a_room_of_reflectance_1_lit_by_one_face_converges_once_capped() {
     let balance: f64 = (0..s.samples.len())
         .map(|i| (1.0 - rho) * n(i) * s.radiance[i][0])
         .sum();
+    let reflected: f64 = (0..s.samples.len())
+        .map(|i| rho * n(i) * direct[i][0] / std::f64::consts::PI)
+        .sum();
+    let source = (1.0 - rho) * emitted + reflected;
     let bound = count.sqrt() * SolveParams::default().tolerance;
     assert!(
-        (balance / emitted - 1.0).abs() <= bound,
-        "{balance} against {emitted} (bound {bound:e})"
+        (balance / source - 1.0).abs() <= bound,
+        "{balance} against {source} (bound {bound:e})"
+    );
+    // N_i samples A_i with a relative error of about 1/√N over the lamp's crossings.
+    let spread = 3.0 / emitted.sqrt();
+    assert!(
+        (reflected / (rho * emitted) - 1.0).abs() <= spread,
+        "the lamp's direct light {reflected} against its emission {}",
+        rho * emitted
     );
 }
 

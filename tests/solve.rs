@@ -219,18 +219,9 @@ fn frames_from_the_multiframe_list_equal_each_frame_traced_alone() {
         // A closed scene: nothing reaches the sky, every row of F sums to 1.
         assert!(!multiframe.columns.contains(&radiosity::solve::tally::SKY));
         let params = SolveParams::default();
-        let a = radiosity::solve::solve(
-            &alone,
-            &bake
-                .scene
-                .patches
-                .iter()
-                .map(|p| p.material)
-                .collect::<Vec<_>>(),
-            &bake.scene.materials,
-            &params,
-        );
-        assert_eq!(a, bake.solve_frame(frame, &bake.scene.materials, &params));
+        let materials = &bake.scene.materials;
+        let a = bake.solve_tally(&alone, frame, materials, &bake.light_power(), &params);
+        assert_eq!(a, bake.solve_frame(frame, materials, &params));
     }
 }
 

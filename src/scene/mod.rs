@@ -17,7 +17,7 @@ use serde::Serialize;
 
 /// Which face of a surface a patch is. A one-sided material gives only a front patch; a
 /// double-sided one gives a front and a back patch (METHOD.md §3).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Side {
     /// The face the triangle's winding points to (counter-clockwise seen from it).

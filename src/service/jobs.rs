@@ -422,7 +422,10 @@ impl Job {
             s.timings.trace += started.elapsed().as_secs_f64();
             s.memory = Some((
                 memory.static_hits + memory.moving_hits,
-                memory.bytes + bake.tallies().bytes() + bake.direct().memory(),
+                memory.bytes
+                    + bake.tallies().bytes()
+                    + bake.direct().memory()
+                    + bake.area_lights().memory(),
             ));
         }
     }

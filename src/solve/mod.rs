@@ -134,16 +134,30 @@ pub fn solve(
     solve_lit(tally, patch_material, materials, params, None)
 }
 
-/// [`solve`] with the direct irradiance `direct[i]` (RGB) from punctual lights: it leaves
-/// patch i as the radiance ρ_i·E_i/π, added to its emission as the light the interreflection
-/// starts from.
+/// The light that reaches each patch straight from its sources, computed apart from the lines:
+/// punctual lights ([`crate::direct`]) and sampled emitting surfaces ([`crate::direct::area`]).
+#[derive(Clone, Copy, Debug)]
+pub struct Direct<'a> {
+    /// Irradiance of each patch, RGB (it leaves patch i as the radiance ρ_i·E_i/π).
+    pub irradiance: &'a [[f64; 3]],
+    /// The variance of that irradiance from its sampling.
+    pub variance: &'a [[f64; 3]],
+    /// Per patch: whether its emission reaches the others through `irradiance` (a sampled
+    /// emitter) rather than through the lines, which then carry only the light it reflects.
+    pub sampled: &'a [bool],
+}
+
+/// [`solve`] with `direct` light: each patch's ρ_i·E_i/π is added to its emission as the light
+/// the interreflection starts from, and the lines carry `L_j − Le_j` from the sampled emitters
+/// (`L = Le + ρE/π + ρ Σ_j F_ij (L_j − [j sampled] Le_j)`: their emission is never counted
+/// twice). The irradiance's variance is added to each patch's error bar (as `ρ²·var/π²`).
 #[must_use]
 pub fn solve_lit(
     tally: &FrameTally,
     patch_material: &[u32],
     materials: &[Material],
     params: &SolveParams,
-    direct: Option<&[[f64; 3]]>,
+    direct: Option<Direct<'_>>,
 ) -> FrameSolution {
     let patches = patch_material.len();
     let mut radiance = vec![[0.0; 3]; patches];
@@ -166,14 +180,23 @@ pub fn solve_lit(
             .enumerate()
             .map(|(i, &m)| {
                 let material = &materials[m as usize];
-                let reflected = direct.map_or(0.0, |e| {
-                    material.reflectance[c] * e[i][c] * std::f64::consts::FRAC_1_PI
+                let reflected = direct.map_or(0.0, |d| {
+                    material.reflectance[c] * d.irradiance[i][c] * std::f64::consts::FRAC_1_PI
                 });
                 material.emission[c] + reflected
             })
             .collect();
+        // The emission the lines do not carry: the sampled emitters'.
+        let seen: Vec<f64> = patch_material
+            .iter()
+            .enumerate()
+            .map(|(i, &m)| match direct {
+                Some(d) if d.sampled[i] => materials[m as usize].emission[c],
+                _ => 0.0,
+            })
+            .collect();
         let system = System::new(tally, &rho);
-        let light = system.solve(&emission, params.sky[c], params);
+        let light = system.solve(&emission, &seen, params.sky[c], params);
         iterations = iterations.max(light.iterations);
         residual = residual.max(light.residual);
         converged &= light.converged;
@@ -183,6 +206,7 @@ pub fn solve_lit(
                 &replicas,
                 &rho,
                 &emission,
+                &seen,
                 params.sky[c],
                 &light.values,
                 params,
@@ -197,8 +221,14 @@ pub fn solve_lit(
                     // The spread of the replicas' solutions, and never less than the spread of
                     // the patch's own first bounce (which low sample counts can hide from
                     // the former).
-                    let first = rho[i] * system.sample_deviation(i, &light.values, params.sky[c]);
-                    error[i].map_or(first, |e| e.max(first))
+                    let first =
+                        rho[i] * system.sample_deviation(i, &light.values, &seen, params.sky[c]);
+                    let lines = error[i].map_or(first, |e| e.max(first));
+                    // The direct light's own sampling error, independent of the lines'.
+                    let sampled = direct.map_or(0.0, |d| {
+                        d.variance[i][c] * (rho[i] * std::f64::consts::FRAC_1_PI).powi(2)
+                    });
+                    (lines * lines + sampled).sqrt()
                 } else {
                     0.0
                 };
@@ -226,6 +256,7 @@ fn replica_errors(
     replicas: &[FrameTally],
     rho: &[f64],
     emission: &[f64],
+    seen: &[f64],
     sky: f64,
     pooled: &[f64],
     params: &SolveParams,
@@ -244,7 +275,7 @@ fn replica_errors(
         .par_iter()
         .map(|replica| {
             let system = System::new(replica, rho);
-            let solved = system.solve_from(emission, sky, Some(pooled), &loose);
+            let solved = system.solve_from(emission, seen, sky, Some(pooled), &loose);
             solved.converged.then_some((system.unknown, solved.values))
         })
         .collect();
@@ -335,16 +366,17 @@ impl<'a> System<'a> {
         }
     }
 
-    /// Solves `L = Le + ρ F L + ρ F_sky L_sky` for emission `le` (the known patches keep
-    /// `L = Le`).
-    fn solve(&self, le: &[f64], sky: f64, params: &SolveParams) -> Solved {
-        self.solve_from(le, sky, None, params)
+    /// Solves `L = Le + ρ F (L − seen) + ρ F_sky L_sky` for emission `le` (the known patches
+    /// keep `L = Le`); `seen` is the emission the lines do not carry (sampled emitters').
+    fn solve(&self, le: &[f64], seen: &[f64], sky: f64, params: &SolveParams) -> Solved {
+        self.solve_from(le, seen, sky, None, params)
     }
 
     /// [`System::solve`] starting from `start` (a nearby solution) instead of the emission.
     fn solve_from(
         &self,
         le: &[f64],
+        seen: &[f64],
         sky: f64,
         start: Option<&[f64]>,
         params: &SolveParams,
@@ -374,8 +406,8 @@ impl<'a> System<'a> {
                 bi += s * match j {
                     SKY => sky_s,
                     ABSORBED => 0.0,
-                    j if !self.unknown[j as usize] => le_s[j as usize],
-                    _ => 0.0,
+                    j if !self.unknown[j as usize] => (le[j as usize] - seen[j as usize]) / scale,
+                    j => -seen[j as usize] / scale,
                 };
             }
             b[i] = bi;
@@ -459,11 +491,11 @@ impl<'a> System<'a> {
         (x, params.max_iterations, residual, converged)
     }
 
-    /// Standard error of the mean radiance seen at the far ends of the segments leaving unknown
-    /// patch `i` (sky at `sky`, absorbed at 0), from the spread between the line groups: the
+    /// Standard error of the mean radiance the lines carry from the far ends of the segments
+    /// leaving unknown patch `i` (`l − seen`; sky at `sky`, absorbed at 0), from the spread between the line groups: the
     /// ratio estimator `Σ_g Y_g / Σ_g X_g` (Y_g the radiance summed over group g's segments, X_g
     /// their number) has variance `K/(K−1) Σ_g (Y_g − m X_g)² / N²`.
-    fn sample_deviation(&self, i: usize, l: &[f64], sky: f64) -> f64 {
+    fn sample_deviation(&self, i: usize, l: &[f64], seen: &[f64], sky: f64) -> f64 {
         let groups = tally::GROUPS as usize;
         let (mut y, mut x) = (vec![0.0; groups], vec![0.0; groups]);
         let range = self.tally.group_offsets[i]..self.tally.group_offsets[i + 1];
@@ -471,7 +503,7 @@ impl<'a> System<'a> {
             let v = match j {
                 SKY => sky,
                 ABSORBED => 0.0,
-                j => l[j as usize],
+                j => l[j as usize] - seen[j as usize],
             };
             y[g as usize] += f64::from(count) * v;
             x[g as usize] += f64::from(count);

@@ -19,6 +19,8 @@
 //! Each light's result is kept per distinct state (its pose, and the moving geometry's): a
 //! fixed lamp over static geometry is computed once for the whole timeline.
 
+pub mod area;
+
 use std::collections::HashMap;
 use std::hash::{Hash, Hasher};
 
@@ -38,8 +40,11 @@ const LINES_PER_PATCH: f64 = 256.0;
 /// Most lines of one directional light at one frame.
 const MAX_DIRECTIONAL_LINES: f64 = 4.0e6;
 
-/// A shadow ray ignores crossings this close to either end (normalised units): the surface it
-/// starts on, and surfaces touching the light.
+/// A shadow ray ignores crossings this close to its end (normalised units): the surface of an
+/// emitter it ends on, and surfaces touching the light. At its start only the crossings within
+/// [`COINCIDENT`] are examined apart (the surface it starts on, its neighbours across an edge
+/// through the point): a surface crossed just beyond, such as the wall meeting a floor at a
+/// point a hair from their corner, shadows it.
 const SHADOW_EPSILON: f32 = 1e-5;
 
 /// The direct irradiance of every frame, per light and patch, shared between frames where
@@ -214,6 +219,7 @@ fn frame_irradiance(
         deformed: &deformed,
         triangles: &triangles,
         frame,
+        moving: true,
     };
     lights
         .iter()
@@ -236,9 +242,24 @@ struct Frame<'a> {
     /// Every traced triangle at the frame (index = global triangle id) with its faces.
     triangles: &'a [([Vec3; 3], Faces)],
     frame: usize,
+    /// Whether the moving objects occlude; without them, only the static geometry does (what
+    /// every frame shares, see [`area`]).
+    moving: bool,
 }
 
 impl Frame<'_> {
+    /// Every crossing of `line` with the occluders, sorted along it.
+    fn trace(&self, line: &Line, hits: &mut Vec<Hit>) {
+        if self.moving {
+            self.tracer
+                .trace_frame(line, self.frame, self.deformed, hits);
+        } else {
+            hits.clear();
+            self.tracer.trace_static(line, hits);
+            hits.sort_unstable_by(Hit::order);
+        }
+    }
+
     /// Whether anything but triangle `own` crosses the segment from `from`, a point on one of
     /// `own`'s faces (its back if `back`), to `to`. A surface touching that face (a contact,
     /// [`crate::trace::coincident`]) blocks it too: a face pressed against a wall is not lit
@@ -254,13 +275,12 @@ impl Frame<'_> {
             origin: (from - direction * behind).as_vec3(),
             direction: direction.as_vec3(),
         };
-        self.tracer
-            .trace_frame(&line, self.frame, self.deformed, hits);
+        self.trace(&line, hits);
         let (start, end) = (behind as f32, (behind + length) as f32 - SHADOW_EPSILON);
         let surfaces = self.tracer.surfaces();
         hits.iter().any(|&h| {
             h.surface() != own
-                && ((h.t > start + SHADOW_EPSILON && h.t < end)
+                && ((h.t > start + COINCIDENT && h.t < end)
                     || ((h.t - start).abs() <= COINCIDENT && surfaces.touching(own, back, h)))
         })
     }
@@ -473,8 +493,7 @@ fn directional(at: &Frame<'_>, light: &Light) -> Vec<f64> {
                     origin,
                     direction: bundle.direction,
                 };
-                at.tracer
-                    .trace_frame(&line, at.frame, at.deformed, &mut hits);
+                at.trace(&line, &mut hits);
                 // The sun reaches the first crossing; coincident ones resolved as the tallies
                 // do (a face in contact is in shadow, an overlap is shared).
                 let resolved = resolve(&hits, &at.tracer.surfaces().along(bundle.direction));

@@ -1,0 +1,823 @@
+//! Direct light of emitting surfaces: small bright emitters (ceiling panels, screens, lamps
+//! modelled as emissive geometry) sampled explicitly, as area lights, instead of being found by
+//! the few global lines that happen to join them to each patch.
+//!
+//! A patch's direct light from an emitting face is `ρ·Le·F`, with `F` the patch's form factor
+//! to that face. Lines estimate `F` from the fraction of their segments that end on the emitter:
+//! for a ceiling panel seen under a few percent of a wall patch's lines, a few dozen crossings,
+//! the 5–10% noise of a wall lit by such a panel. Here each emitting source triangle is a
+//! *cluster* (its subdivided patches are one flat triangle), and a patch's form factor to it is
+//!
+//! `F = (1/A) ∫_patch F_x(cluster) V(x, y) dx`, estimated as the mean over stratified points
+//! `x_k` of the patch of `F_x(clipped triangle) · V(x_k, y_k)`,
+//!
+//! where `F_x` is the *exact* point-to-polygon form factor (Lambert's formula) of the part of
+//! the triangle above the patch's plane, and `V(x_k, y_k)` one shadow ray to a stratified point
+//! of that part. Where the emitter is wholly visible or wholly hidden from a point, its
+//! estimate is exact: only shadow edges (and the patch's own irradiance gradient, through the
+//! stratified points) leave any noise. Its variance comes from the stratification: the
+//! collapsed-strata estimate over pairs of neighbouring strata (conservative).
+//!
+//! The light is kept per unit radiance of each sampled emitting *material* (so relighting an
+//! emitter stays linear and needs no tracing), and the solve subtracts these materials'
+//! emission from what the lines carry (`L = Le + ρE/π + ρ Σ_j F_ij (L_j − Le_j)`, METHOD.md's
+//! equation with the first bounce taken out): nothing is counted twice.
+//!
+//! **Which emitters.** Sampling costs shadow rays per patch and per cluster; the lines cost
+//! nothing more. A material is sampled when its emitting faces cover at most
+//! [`MAX_AREA_SHARE`] of the scene's area (there the lines' estimate is poor: a patch's
+//! fraction of lines that reach it is small) and the sampled clusters stay within
+//! [`MAX_CLUSTERS`], smallest share first. A room whose every wall glows stays with the lines,
+//! and costs what it did.
+//!
+//! **Frames.** The static geometry's shadows are computed once. At each distinct pose of the
+//! moving geometry, only the pairs (patch, cluster) it can change are traced again: those with
+//! a moving end, and those whose bounding box (patch and cluster together, which holds every
+//! shadow ray between them) meets a moving object's. The rest of the frame reuses the static
+//! result; cost and memory grow with what moves.
+
+use std::collections::HashMap;
+
+use glam::DVec3;
+use rand::rngs::Xoshiro256PlusPlus;
+use rand::{RngExt, SeedableRng};
+use rayon::prelude::*;
+
+use super::{Face, Frame, geometry_key};
+use crate::scene::{Faces, Material, Scene};
+use crate::timeline::{Control, TraceError};
+use crate::trace::coincident::mix;
+use crate::trace::{FrameMeshes, SceneTracer};
+
+/// Emitting materials whose faces cover more than this share of the scene's area are left to
+/// the lines: most lines from most patches reach them, and the lines estimate them well.
+pub const MAX_AREA_SHARE: f64 = 0.25;
+
+/// Most emitting source triangles (each face counted) sampled explicitly: the cost is shadow
+/// rays per patch per cluster.
+pub const MAX_CLUSTERS: usize = 64;
+
+/// A value per colour channel.
+pub type Rgb = [f64; 3];
+
+/// The direct light of the sampled emitting materials, per patch and per frame.
+#[derive(Clone, Debug, Default)]
+pub struct AreaLights {
+    /// The sampled emitting materials (indices into the scene's).
+    materials: Vec<u32>,
+    /// For each of the scene's materials, its position in `materials`.
+    slot: Vec<Option<u16>>,
+    /// Each cluster's position of its material in `materials`.
+    cluster_slot: Vec<u16>,
+    /// Start of each patch's pairs in `pairs` (patches + 1 values).
+    offsets: Vec<u32>,
+    /// Per patch, its non-zero form factors to the static clusters with the static geometry as
+    /// the only occluder (static patches only: a moving patch is computed at every pose).
+    pairs: Vec<Pair>,
+    /// For each frame, its pose of the moving geometry (an index into `states`).
+    frame_state: Vec<u32>,
+    /// Per distinct pose of the moving geometry: the pairs it changes, by patch.
+    states: Vec<Vec<(u32, Pair)>>,
+}
+
+/// A patch's form factor to one cluster.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Pair {
+    cluster: u32,
+    value: f32,
+    variance: f32,
+}
+
+/// One face of an emitting source triangle: the patches of its subdivision are one flat
+/// triangle of one material.
+#[derive(Clone, Debug)]
+struct Cluster {
+    /// Position of its material in [`AreaLights::materials`].
+    slot: usize,
+    /// The traced triangles it is made of (global indices).
+    triangles: Vec<u32>,
+    /// Whether it is their back face that emits.
+    back: bool,
+    /// Whether it belongs to a moving object.
+    moving: bool,
+}
+
+/// A cluster as posed at one frame.
+#[derive(Clone, Copy, Debug)]
+struct Emitter {
+    /// The source triangle's corners.
+    corners: [DVec3; 3],
+    /// Unit normal of the emitting face (zero if degenerate).
+    normal: DVec3,
+    centre: DVec3,
+    /// Longest edge.
+    edge: f64,
+}
+
+impl AreaLights {
+    /// Chooses the emitting materials to sample and computes their direct light at every frame,
+    /// counting one unit of `control`'s stage per pose of the moving geometry. `seed` seeds the
+    /// sampling (the bake's line seed: two bakes with different seeds are independent).
+    ///
+    /// # Errors
+    /// [`TraceError::Cancelled`] if `control` was cancelled.
+    pub fn compute(
+        scene: &Scene,
+        tracer: &SceneTracer,
+        seed: u64,
+        control: &Control,
+    ) -> Result<Self, TraceError> {
+        let materials = choose(scene, tracer);
+        if materials.is_empty() {
+            return Ok(Self::default());
+        }
+        let mut slot = vec![None; scene.materials.len()];
+        for (k, &m) in materials.iter().enumerate() {
+            slot[m as usize] = Some(k as u16);
+        }
+        let clusters = clusters(scene, tracer, &slot);
+        let patches = scene.patches.len();
+        let statics = scene.statics.triangles.len();
+        let frames = scene.frames.count;
+
+        // Poses of the moving geometry: frames with equal ones share their light.
+        let mut first_of: HashMap<u64, u32> = HashMap::new();
+        let mut firsts = Vec::new();
+        let frame_state: Vec<u32> = (0..frames)
+            .map(|f| {
+                let key = if scene.objects.is_empty() {
+                    0
+                } else {
+                    geometry_key(scene, f)
+                };
+                *first_of.entry(key).or_insert_with(|| {
+                    firsts.push(f);
+                    firsts.len() as u32 - 1
+                })
+            })
+            .collect();
+        control.add_work(1 + firsts.len() as u64);
+
+        // The static part: static patches lit by static clusters, static occluders.
+        let triangles = scene.triangles_at(0);
+        let none = FrameMeshes::none();
+        let at = Frame {
+            scene,
+            tracer,
+            deformed: &none,
+            triangles: &triangles,
+            frame: 0,
+            moving: false,
+        };
+        let emitters: Vec<Emitter> = clusters.iter().map(|c| pose(c, &triangles)).collect();
+        let mut rows: Vec<(u32, Pair)> = (0..statics)
+            .into_par_iter()
+            .map_init(Vec::new, |hits, t| {
+                let mut rows = Vec::new();
+                for face in faces(&triangles, t) {
+                    for (c, emitter) in emitters.iter().enumerate() {
+                        if !clusters[c].moving {
+                            let pair = pair(&at, &face, c, emitter, seed, hits);
+                            if pair.value > 0.0 {
+                                rows.push((face.patch, pair));
+                            }
+                        }
+                    }
+                }
+                rows
+            })
+            .flatten()
+            .collect();
+        rows.sort_unstable_by_key(|&(p, pair)| (p, pair.cluster));
+        let mut offsets = vec![0u32; patches + 1];
+        rows.iter().for_each(|&(p, _)| offsets[p as usize + 1] += 1);
+        (0..patches).for_each(|p| offsets[p + 1] += offsets[p]);
+        let pairs: Vec<Pair> = rows.into_iter().map(|(_, pair)| pair).collect();
+        control.advance(1);
+
+        // Each pose of the moving geometry: the pairs it can change, traced again.
+        let mut states = Vec::with_capacity(firsts.len());
+        for &frame in &firsts {
+            if control.is_cancelled() {
+                return Err(TraceError::Cancelled);
+            }
+            states.push(if scene.objects.is_empty() {
+                Vec::new()
+            } else {
+                changed_pairs(scene, tracer, frame, &clusters, seed)
+            });
+            control.advance(1);
+        }
+        Ok(Self {
+            materials,
+            slot,
+            cluster_slot: clusters.iter().map(|c| c.slot as u16).collect(),
+            offsets,
+            pairs,
+            frame_state,
+            states,
+        })
+    }
+
+    /// Whether no emitter is sampled.
+    #[must_use]
+    pub fn is_empty(&self) -> bool {
+        self.materials.is_empty()
+    }
+
+    /// The sampled emitting materials (indices into the scene's materials).
+    #[must_use]
+    pub fn materials(&self) -> &[u32] {
+        &self.materials
+    }
+
+    /// Whether material `material`'s light reaches the patches through this term rather than
+    /// the lines.
+    #[must_use]
+    pub fn samples(&self, material: u32) -> bool {
+        self.slot
+            .get(material as usize)
+            .is_some_and(Option::is_some)
+    }
+
+    /// Which pose of the moving geometry frame `frame` is in: frames with equal poses have
+    /// equal light.
+    #[must_use]
+    pub fn state(&self, frame: usize) -> Option<usize> {
+        if self.is_empty() {
+            return None;
+        }
+        self.frame_state.get(frame).map(|&s| s as usize)
+    }
+
+    /// Form factors of every patch to every sampled material at `frame`, and their variances
+    /// (patch-major, [`AreaLights::materials`] order).
+    #[must_use]
+    pub fn form_factors(&self, frame: usize) -> (Vec<f64>, Vec<f64>) {
+        let slots = self.materials.len();
+        let patches = self.offsets.len().saturating_sub(1);
+        let (mut values, mut variances) = (vec![0.0; patches * slots], vec![0.0; patches * slots]);
+        let Some(state) = self.state(frame) else {
+            return (values, variances);
+        };
+        let row = |p: usize| &self.pairs[self.offsets[p] as usize..self.offsets[p + 1] as usize];
+        let mut changed = self.states[state].iter().peekable();
+        for p in 0..patches {
+            let mut row: Vec<Pair> = row(p).to_vec();
+            while let Some((_, pair)) = changed.next_if(|(q, _)| *q as usize == p) {
+                match row.iter_mut().find(|e| e.cluster == pair.cluster) {
+                    Some(e) => *e = *pair,
+                    None => row.push(*pair),
+                }
+            }
+            for e in row {
+                let k = p * slots + usize::from(self.cluster_slot[e.cluster as usize]);
+                values[k] += f64::from(e.value);
+                variances[k] += f64::from(e.variance);
+            }
+        }
+        (values, variances)
+    }
+
+    /// Irradiance of every patch at `frame` from the sampled emitters with `materials`'
+    /// emission (the scene's, or a relighting's), RGB, in emission units × π, and its
+    /// variance; `None` if no emitter is sampled.
+    #[must_use]
+    pub fn irradiance(
+        &self,
+        frame: usize,
+        materials: &[Material],
+    ) -> Option<(Vec<Rgb>, Vec<Rgb>)> {
+        self.state(frame)?;
+        let (values, variances) = self.form_factors(frame);
+        let slots = self.materials.len();
+        let emission: Vec<[f64; 3]> = self
+            .materials
+            .iter()
+            .map(|&m| materials.get(m as usize).map_or([0.0; 3], |m| m.emission))
+            .collect();
+        let pi = std::f64::consts::PI;
+        let patches = values.len() / slots;
+        let mut e = vec![[0.0; 3]; patches];
+        let mut var = vec![[0.0; 3]; patches];
+        for p in 0..patches {
+            for (s, le) in emission.iter().enumerate() {
+                let (f, v) = (values[p * slots + s], variances[p * slots + s]);
+                for c in 0..3 {
+                    e[p][c] += pi * le[c] * f;
+                    var[p][c] += (pi * le[c]).powi(2) * v;
+                }
+            }
+        }
+        Some((e, var))
+    }
+
+    /// Memory held, bytes.
+    #[must_use]
+    pub fn memory(&self) -> usize {
+        let pair = std::mem::size_of::<Pair>();
+        let changed: usize = self.states.iter().map(|s| s.len() * (4 + pair)).sum();
+        4 * (self.offsets.len() + self.frame_state.len()) + self.pairs.len() * pair + changed
+    }
+}
+
+/// The emitting materials to sample: those whose emitting faces cover at most
+/// [`MAX_AREA_SHARE`] of the scene's area, smallest share first, while their clusters stay
+/// within [`MAX_CLUSTERS`].
+fn choose(scene: &Scene, tracer: &SceneTracer) -> Vec<u32> {
+    let total: f64 = scene.patches.iter().map(|p| p.area).sum();
+    if total <= 0.0 {
+        return Vec::new();
+    }
+    let mut area = vec![0.0; scene.materials.len()];
+    let mut sources: Vec<std::collections::HashSet<_>> =
+        vec![Default::default(); scene.materials.len()];
+    for faces in tracer.faces() {
+        for p in [Some(faces.front), faces.back].into_iter().flatten() {
+            let patch = &scene.patches[p as usize];
+            let m = patch.material as usize;
+            if scene.materials[m].is_emitter() {
+                area[m] += patch.area;
+                sources[m].insert((patch.source, patch.side));
+            }
+        }
+    }
+    let mut candidates: Vec<usize> = (0..scene.materials.len())
+        .filter(|&m| area[m] > 0.0 && area[m] <= MAX_AREA_SHARE * total)
+        .collect();
+    candidates.sort_by(|&a, &b| area[a].total_cmp(&area[b]));
+    let mut chosen = Vec::new();
+    let mut count = 0;
+    for m in candidates {
+        if count + sources[m].len() <= MAX_CLUSTERS {
+            count += sources[m].len();
+            chosen.push(m as u32);
+        }
+    }
+    chosen.sort_unstable();
+    chosen
+}
+
+/// The clusters of the sampled materials: one per emitting source triangle and face.
+fn clusters(scene: &Scene, tracer: &SceneTracer, slot: &[Option<u16>]) -> Vec<Cluster> {
+    let statics = scene.statics.triangles.len() as u32;
+    let mut index = HashMap::new();
+    let mut out: Vec<Cluster> = Vec::new();
+    for (t, faces) in tracer.faces().iter().enumerate() {
+        for (p, back) in [(Some(faces.front), false), (faces.back, true)] {
+            let Some(p) = p else { continue };
+            let patch = &scene.patches[p as usize];
+            let Some(s) = slot[patch.material as usize] else {
+                continue;
+            };
+            let k = *index.entry((patch.source, back)).or_insert_with(|| {
+                out.push(Cluster {
+                    slot: usize::from(s),
+                    triangles: Vec::new(),
+                    back,
+                    moving: t as u32 >= statics,
+                });
+                out.len() - 1
+            });
+            out[k].triangles.push(t as u32);
+        }
+    }
+    out
+}
+
+/// A cluster posed with `triangles` (every traced triangle at one frame): its source triangle
+/// is the hull of its pieces, whose three extreme points are the source's corners.
+fn pose(cluster: &Cluster, triangles: &[([glam::Vec3; 3], Faces)]) -> Emitter {
+    let points: Vec<DVec3> = cluster
+        .triangles
+        .iter()
+        .flat_map(|&t| triangles[t as usize].0.map(|c| c.as_dvec3()))
+        .collect();
+    let centroid = points.iter().sum::<DVec3>() / points.len() as f64;
+    let farthest = |key: &dyn Fn(DVec3) -> f64| {
+        points
+            .iter()
+            .copied()
+            .max_by(|a, b| key(*a).total_cmp(&key(*b)))
+            .unwrap_or(centroid)
+    };
+    let a = farthest(&|p| p.distance_squared(centroid));
+    let b = farthest(&|p| p.distance_squared(a));
+    let ab = (b - a).normalize_or_zero();
+    let c = farthest(&|p| (p - a).reject_from_normalized(ab).length_squared());
+    // The emitting face's normal, from the pieces' winding (all alike).
+    let [p0, p1, p2] = triangles[cluster.triangles[0] as usize]
+        .0
+        .map(|c| c.as_dvec3());
+    let mut normal = (p1 - p0).cross(p2 - p0).normalize_or_zero();
+    if cluster.back {
+        normal = -normal;
+    }
+    let corners = [a, b, c];
+    Emitter {
+        corners,
+        normal,
+        centre: (a + b + c) / 3.0,
+        edge: longest_edge(&corners),
+    }
+}
+
+fn longest_edge(corners: &[DVec3; 3]) -> f64 {
+    (0..3)
+        .map(|k| corners[k].distance(corners[(k + 1) % 3]))
+        .fold(0.0, f64::max)
+}
+
+impl Face {
+    /// Whether some of the face is in front of the emitter and some of the emitter in front of
+    /// the face: otherwise nothing passes between them (both are flat).
+    fn may_see(&self, emitter: &Emitter) -> bool {
+        let (n, e) = (self.n, emitter.normal);
+        n != DVec3::ZERO
+            && e != DVec3::ZERO
+            && self
+                .corners
+                .iter()
+                .any(|&c| e.dot(c - emitter.corners[0]) > 0.0)
+            && emitter
+                .corners
+                .iter()
+                .any(|&c| n.dot(c - self.corners[0]) > 0.0)
+    }
+}
+
+/// A receiving face: a face of a traced triangle, with its patch.
+struct Receiver {
+    patch: u32,
+    face: Face,
+}
+
+impl std::ops::Deref for Receiver {
+    type Target = Face;
+    fn deref(&self) -> &Face {
+        &self.face
+    }
+}
+
+/// The faces of traced triangle `t` (one or two).
+fn faces(triangles: &[([glam::Vec3; 3], Faces)], t: usize) -> impl Iterator<Item = Receiver> {
+    let (corners, faces) = triangles[t];
+    let corners = corners.map(|c| c.as_dvec3());
+    let normal = (corners[1] - corners[0])
+        .cross(corners[2] - corners[0])
+        .normalize_or_zero();
+    [(Some(faces.front), false), (faces.back, true)]
+        .into_iter()
+        .filter_map(move |(patch, back)| {
+            Some(Receiver {
+                patch: patch?,
+                face: Face {
+                    own: t as u32,
+                    back,
+                    corners,
+                    n: if back { -normal } else { normal },
+                },
+            })
+        })
+}
+
+/// The form factor of `receiver` to cluster `c` (posed as `emitter`) with `at`'s occluders.
+fn pair(
+    at: &Frame<'_>,
+    receiver: &Receiver,
+    c: usize,
+    emitter: &Emitter,
+    seed: u64,
+    hits: &mut Vec<crate::trace::Hit>,
+) -> Pair {
+    let seed = mix(seed ^ mix((u64::from(receiver.patch) << 32) ^ c as u64));
+    let (value, variance) = form_factor(at, receiver, emitter, seed, hits);
+    Pair {
+        cluster: c as u32,
+        value: value as f32,
+        variance: variance as f32,
+    }
+}
+
+/// The pairs (patch, cluster) a pose of the moving geometry (`frame`'s) changes, computed at
+/// that pose: every pair with a moving end, and every pair whose hull (the convex hull of the
+/// face and the cluster's triangle, which holds every shadow ray between them) meets a moving
+/// object's box. A pair that the static result holds as non-zero is listed even when it is now
+/// zero.
+fn changed_pairs(
+    scene: &Scene,
+    tracer: &SceneTracer,
+    frame: usize,
+    clusters: &[Cluster],
+    seed: u64,
+) -> Vec<(u32, Pair)> {
+    let triangles = scene.triangles_at(frame);
+    let deformed = tracer.deformed_at(scene, frame);
+    let at = Frame {
+        scene,
+        tracer,
+        deformed: &deformed,
+        triangles: &triangles,
+        frame,
+        moving: true,
+    };
+    let emitters: Vec<Emitter> = clusters.iter().map(|c| pose(c, &triangles)).collect();
+    let statics = scene.statics.triangles.len();
+    // The moving objects' boxes at this frame.
+    let mut boxes = Vec::with_capacity(scene.objects.len());
+    let mut start = statics;
+    for object in &scene.objects {
+        let end = start + object.mesh.triangles.len();
+        boxes.push(bounds(
+            triangles[start..end]
+                .iter()
+                .flat_map(|(c, _)| c.map(|p| p.as_dvec3())),
+        ));
+        start = end;
+    }
+    let mut changed: Vec<(u32, Pair)> = (0..triangles.len())
+        .into_par_iter()
+        .map_init(Vec::new, |hits, t| {
+            let mut out = Vec::new();
+            for receiver in faces(&triangles, t) {
+                for (c, emitter) in emitters.iter().enumerate() {
+                    let moving = t >= statics || clusters[c].moving;
+                    if !moving && !receiver.may_see(emitter) {
+                        continue;
+                    }
+                    let hull: [DVec3; 6] = [
+                        receiver.corners[0],
+                        receiver.corners[1],
+                        receiver.corners[2],
+                        emitter.corners[0],
+                        emitter.corners[1],
+                        emitter.corners[2],
+                    ];
+                    if moving || boxes.iter().any(|b| hull_meets_box(&hull, b)) {
+                        let pair = pair(&at, &receiver, c, emitter, seed, hits);
+                        // A zero at a moving end, or where the static result is zero too,
+                        // changes nothing.
+                        if pair.value > 0.0 || !moving {
+                            out.push((receiver.patch, pair));
+                        }
+                    }
+                }
+            }
+            out
+        })
+        .flatten()
+        .collect();
+    changed.sort_unstable_by_key(|&(p, pair)| (p, pair.cluster));
+    changed
+}
+
+/// Whether the convex hull of `points` meets the box `(lo, hi)`: the separating-axis test with
+/// the box's axes, the normals of every plane through three of the points (the hull's faces
+/// are among them) and the cross products of the box's axes with every segment between two of
+/// them (the hull's edges are among them). Exact for touching or not; degenerate axes never
+/// separate.
+fn hull_meets_box(points: &[DVec3; 6], (lo, hi): &(DVec3, DVec3)) -> bool {
+    let centre = (*lo + *hi) * 0.5;
+    let half = (*hi - *lo) * 0.5;
+    let separates = |axis: DVec3| {
+        if axis.length_squared() <= 1e-30 {
+            return false;
+        }
+        let r = half.dot(axis.abs());
+        let c = axis.dot(centre);
+        let (min, max) = points
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| {
+                let d = axis.dot(*p);
+                (a.min(d), b.max(d))
+            });
+        min > c + r || max < c - r
+    };
+    if [DVec3::X, DVec3::Y, DVec3::Z].into_iter().any(separates) {
+        return false;
+    }
+    for i in 0..6 {
+        for j in i + 1..6 {
+            let edge = points[j] - points[i];
+            if [DVec3::X, DVec3::Y, DVec3::Z]
+                .into_iter()
+                .any(|a| separates(edge.cross(a)))
+            {
+                return false;
+            }
+            for k in j + 1..6 {
+                if separates(edge.cross(points[k] - points[i])) {
+                    return false;
+                }
+            }
+        }
+    }
+    true
+}
+
+/// The bounding box of `points`, padded by a little more than the tracer's tolerances.
+fn bounds(points: impl Iterator<Item = DVec3>) -> (DVec3, DVec3) {
+    let (lo, hi) = points.fold(
+        (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
+        |(lo, hi), p| (lo.min(p), hi.max(p)),
+    );
+    let pad = DVec3::splat(1e-4);
+    (lo - pad, hi + pad)
+}
+
+/// The form factor from `face` to `emitter` with `at`'s occluders, and its variance: the mean
+/// over `g × g` stratified points `x_k` of the face of the exact point-to-polygon form factor
+/// of the emitter's part above the face's plane, times the visibility of one stratified point
+/// of that part (strata paired at random). `g` grows with how large the two look from each
+/// other: 4 while small, 16 when they are about as large as their distance.
+fn form_factor(
+    at: &Frame<'_>,
+    face: &Face,
+    emitter: &Emitter,
+    seed: u64,
+    hits: &mut Vec<crate::trace::Hit>,
+) -> (f64, f64) {
+    if !face.may_see(emitter) {
+        return (0.0, 0.0);
+    }
+    let (n, e) = (face.n, emitter.normal);
+    let origin = emitter.corners[0];
+    let centre = (face.corners[0] + face.corners[1] + face.corners[2]) / 3.0;
+    let distance = centre.distance(emitter.centre).max(f64::MIN_POSITIVE);
+    let ratio = (longest_edge(&face.corners) + emitter.edge) / distance;
+    let g: usize = match ratio {
+        r if r < 0.1 => 4,
+        r if r < 0.5 => 8,
+        _ => 16,
+    };
+    let count = g * g;
+    let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed);
+    let mut strata: Vec<usize> = (0..count).collect();
+    for k in (1..count).rev() {
+        strata.swap(k, rng.random_range(0..=k));
+    }
+    let mut values = vec![0.0; count];
+    for (k, value) in values.iter_mut().enumerate() {
+        let jitter: [f64; 4] = [rng.random(), rng.random(), rng.random(), rng.random()];
+        let cell = |s: usize, a: f64, b: f64| {
+            (
+                ((s / g) as f64 + a) / g as f64,
+                ((s % g) as f64 + b) / g as f64,
+            )
+        };
+        let (u, v) = cell(k, jitter[0], jitter[1]);
+        let x = triangle_point(&face.corners, u, v);
+        if e.dot(x - origin) <= 0.0 {
+            continue;
+        }
+        let mut polygon = [DVec3::ZERO; 4];
+        let sides = clip(&emitter.corners, n, x, &mut polygon);
+        if sides < 3 {
+            continue;
+        }
+        let polygon = &polygon[..sides];
+        let f = point_form_factor(x, n, polygon);
+        if f <= 0.0 {
+            continue;
+        }
+        let (u, v) = cell(strata[k], jitter[2], jitter[3]);
+        let y = polygon_point(polygon, u, v);
+        if !at.blocked(x, y, face.own, face.back, hits) {
+            *value = f;
+        }
+    }
+    let mean = values.iter().sum::<f64>() / count as f64;
+    // Collapsed strata: neighbouring cells (k, k + 1 in a row of the grid) in pairs.
+    let spread: f64 = values.chunks_exact(2).map(|p| (p[0] - p[1]).powi(2)).sum();
+    (mean, spread / (count * count) as f64)
+}
+
+/// The point of triangle `t` at `(u, v)` in the unit square, area-preserving.
+fn triangle_point(t: &[DVec3; 3], u: f64, v: f64) -> DVec3 {
+    let s = u.sqrt();
+    t[0] * (1.0 - s) + t[1] * (s * (1.0 - v)) + t[2] * (s * v)
+}
+
+/// The point of convex `polygon` (3 or 4 corners) at `(u, v)` in the unit square,
+/// area-preserving: `u` picks the fan triangle by area.
+fn polygon_point(polygon: &[DVec3], u: f64, v: f64) -> DVec3 {
+    if polygon.len() == 3 {
+        return triangle_point(&[polygon[0], polygon[1], polygon[2]], u, v);
+    }
+    let area = |a: DVec3, b: DVec3, c: DVec3| (b - a).cross(c - a).length();
+    let first = area(polygon[0], polygon[1], polygon[2]);
+    let second = area(polygon[0], polygon[2], polygon[3]);
+    let split = first / (first + second).max(f64::MIN_POSITIVE);
+    if u < split {
+        triangle_point(&[polygon[0], polygon[1], polygon[2]], u / split, v)
+    } else {
+        let rest = ((u - split) / (1.0 - split)).clamp(0.0, 1.0);
+        triangle_point(&[polygon[0], polygon[2], polygon[3]], rest, v)
+    }
+}
+
+/// Clips triangle `t` to the half-space in front of the plane through `x` with normal `n`;
+/// writes the corners (at most 4) to `out` and returns their number.
+fn clip(t: &[DVec3; 3], n: DVec3, x: DVec3, out: &mut [DVec3; 4]) -> usize {
+    let d = t.map(|c| n.dot(c - x));
+    let mut count = 0;
+    for k in 0..3 {
+        let (a, b) = (k, (k + 1) % 3);
+        if d[a] >= 0.0 {
+            out[count] = t[a];
+            count += 1;
+        }
+        if (d[a] >= 0.0) != (d[b] >= 0.0) && count < 4 {
+            let s = d[a] / (d[a] - d[b]);
+            out[count] = t[a] + (t[b] - t[a]) * s;
+            count += 1;
+        }
+    }
+    count
+}
+
+/// The form factor from a point `x` with unit normal `n` to a polygon wholly in front of it
+/// (Lambert): `(1/2π) Σ_k θ_k n·γ_k`, with θ_k the angle the k-th edge subtends at `x` and γ_k
+/// the unit normal of the plane through `x` and that edge.
+#[must_use]
+pub fn point_form_factor(x: DVec3, n: DVec3, polygon: &[DVec3]) -> f64 {
+    let mut sum = 0.0;
+    for k in 0..polygon.len() {
+        let a = (polygon[k] - x).normalize_or_zero();
+        let b = (polygon[(k + 1) % polygon.len()] - x).normalize_or_zero();
+        let c = a.cross(b);
+        let s = c.length();
+        if s > 0.0 {
+            sum += s.atan2(a.dot(b)) * n.dot(c) / s;
+        }
+    }
+    (sum / std::f64::consts::TAU).abs()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn lamberts_formula_matches_a_disc_like_square_overhead() {
+        // A unit square at height h centred over the point: F = closed form for a square.
+        let h = 0.5f64;
+        let square = [
+            DVec3::new(-0.5, -0.5, h),
+            DVec3::new(0.5, -0.5, h),
+            DVec3::new(0.5, 0.5, h),
+            DVec3::new(-0.5, 0.5, h),
+        ];
+        // Parallel rectangle a×b at distance c, point under a corner:
+        // F = 1/(2π) [A/√(1+A²) atan(B/√(1+A²)) + B/√(1+B²) atan(A/√(1+B²))], A=a/c, B=b/c.
+        let corner = |a: f64, b: f64| {
+            let (a, b) = (a / h, b / h);
+            let (sa, sb) = ((1.0 + a * a).sqrt(), (1.0 + b * b).sqrt());
+            (a / sa * (b / sa).atan() + b / sb * (a / sb).atan()) / std::f64::consts::TAU
+        };
+        let exact = 4.0 * corner(0.5, 0.5);
+        let f = point_form_factor(DVec3::ZERO, DVec3::Z, &square);
+        assert!((f - exact).abs() < 1e-12, "{f} vs {exact}");
+    }
+
+    #[test]
+    fn clipping_keeps_the_part_in_front() {
+        let t = [
+            DVec3::new(-1.0, 0.0, 1.0),
+            DVec3::new(1.0, 0.0, 1.0),
+            DVec3::new(0.0, 0.0, -1.0),
+        ];
+        let mut out = [DVec3::ZERO; 4];
+        let n = clip(&t, DVec3::Z, DVec3::ZERO, &mut out);
+        assert_eq!(n, 4);
+        assert!(out[..n].iter().all(|p| p.z >= -1e-12));
+        let all = clip(&t, DVec3::Z, DVec3::new(0.0, 0.0, -2.0), &mut out);
+        assert_eq!(all, 3);
+        assert_eq!(clip(&t, DVec3::Z, DVec3::new(0.0, 0.0, 2.0), &mut out), 0);
+    }
+
+    #[test]
+    fn polygon_points_cover_a_quad_uniformly() {
+        let quad = [
+            DVec3::new(0.0, 0.0, 0.0),
+            DVec3::new(3.0, 0.0, 0.0),
+            DVec3::new(3.0, 1.0, 0.0),
+            DVec3::new(0.0, 1.0, 0.0),
+        ];
+        // The mean of a grid of (u, v) maps to the centroid.
+        let g = 64;
+        let mut sum = DVec3::ZERO;
+        for i in 0..g {
+            for j in 0..g {
+                let p = polygon_point(
+                    &quad,
+                    (i as f64 + 0.5) / g as f64,
+                    (j as f64 + 0.5) / g as f64,
+                );
+                sum += p;
+            }
+        }
+        let mean = sum / (g * g) as f64;
+        assert!((mean - DVec3::new(1.5, 0.5, 0.0)).length() < 0.01, "{mean}");
+    }
+}
