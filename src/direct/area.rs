@@ -283,11 +283,7 @@ impl AreaLights {
     /// emission (the scene's, or a relighting's), RGB, in emission units × π, and its
     /// variance; `None` if no emitter is sampled.
     #[must_use]
-    pub fn irradiance(
-        &self,
-        frame: usize,
-        materials: &[Material],
-    ) -> Option<(Vec<Rgb>, Vec<Rgb>)> {
+    pub fn irradiance(&self, frame: usize, materials: &[Material]) -> Option<(Vec<Rgb>, Vec<Rgb>)> {
         self.state(frame)?;
         let (values, variances) = self.form_factors(frame);
         let slots = self.materials.len();
@@ -626,10 +622,13 @@ fn bounds(points: impl Iterator<Item = DVec3>) -> (DVec3, DVec3) {
 }
 
 /// The form factor from `face` to `emitter` with `at`'s occluders, and its variance: the mean
-/// over `g × g` stratified points `x_k` of the face of the exact point-to-polygon form factor
-/// of the emitter's part above the face's plane, times the visibility of one stratified point
-/// of that part (strata paired at random). `g` grows with how large the two look from each
-/// other: 4 while small, 16 when they are about as large as their distance.
+/// over `g × g` stratified points `x_k` of the face of `(Ω/π)·cos θ·V`, with Ω the solid angle
+/// of the emitter's part above the face's plane seen from `x_k`, θ the angle from the face's
+/// normal of one stratified direction into that part (uniform in solid angle, Arvo's method)
+/// and V its shadow ray (strata paired at random). Unbiased; exactly 0 where every ray is
+/// blocked, and only the variation of cos θ over the emitter left where none is. `g` grows with
+/// how large the two look from each other: 4 while small, 16 when they are about as large as
+/// their distance.
 fn form_factor(
     at: &Frame<'_>,
     face: &Face,
@@ -675,14 +674,11 @@ fn form_factor(
         if sides < 3 {
             continue;
         }
-        let polygon = &polygon[..sides];
-        let f = point_form_factor(x, n, polygon);
-        if f <= 0.0 {
-            continue;
-        }
         let (u, v) = cell(strata[k], jitter[2], jitter[3]);
-        let y = polygon_point(polygon, u, v);
-        if !at.blocked(x, y, face.own, face.back, hits) {
+        let Some((y, f)) = sample_polygon(x, n, e, &polygon[..sides], u, v) else {
+            continue;
+        };
+        if f > 0.0 && !at.blocked(x, y, face.own, face.back, hits) {
             *value = f;
         }
     }
@@ -690,6 +686,135 @@ fn form_factor(
     // Collapsed strata: neighbouring cells (k, k + 1 in a row of the grid) in pairs.
     let spread: f64 = values.chunks_exact(2).map(|p| (p[0] - p[1]).powi(2)).sum();
     (mean, spread / (count * count) as f64)
+}
+
+/// Below this solid angle (steradians), a fan triangle of the emitter is sampled by area: the
+/// spherical triangle's area `α + β + γ − π` loses its digits, and the emitter is so small from
+/// the point that its weight `cos θ cos θ' / r²` is constant over it to far better than the
+/// sampling.
+const TINY_SOLID_ANGLE: f64 = 1e-9;
+
+/// A point `y` of convex `polygon` (3 or 4 corners, wholly in front of the plane through `x`
+/// with normal `n`; `e` the emitter's normal) at `(u, v)` in the unit square, and the one-sample
+/// estimate `f` of the form factor from `x` to the polygon if `y` is visible: uniform in solid
+/// angle (f = Ω cos θ / π), `u` picking the fan triangle by its solid angle; by area where the
+/// solid angle is tiny (f = A cos θ cos θ' / (π r²)). Both are unbiased.
+fn sample_polygon(
+    x: DVec3,
+    n: DVec3,
+    e: DVec3,
+    polygon: &[DVec3],
+    u: f64,
+    v: f64,
+) -> Option<(DVec3, f64)> {
+    let fans: &[[usize; 3]] = if polygon.len() == 3 {
+        &[[0, 1, 2]]
+    } else {
+        &[[0, 1, 2], [0, 2, 3]]
+    };
+    let triangle = |f: &[usize; 3]| f.map(|i| polygon[i]);
+    let angles: Vec<f64> = fans.iter().map(|f| solid_angle(x, &triangle(f))).collect();
+    let total: f64 = angles.iter().sum();
+    if total >= TINY_SOLID_ANGLE * fans.len() as f64 && angles.iter().all(|a| a.is_finite()) {
+        // Pick the fan triangle by solid angle, then a direction uniform in it.
+        let split = angles[0] / total;
+        let (t, u) = if fans.len() == 1 || u < split {
+            (0, u / split.max(f64::MIN_POSITIVE))
+        } else {
+            (1, (u - split) / (1.0 - split))
+        };
+        let w = sample_spherical_triangle(x, &triangle(&fans[t]), u.clamp(0.0, 1.0), v)?;
+        // Where the direction meets the emitter's plane.
+        let along = e.dot(polygon[0] - x) / e.dot(w);
+        if !(along.is_finite() && along > 0.0) {
+            return None;
+        }
+        let cos = n.dot(w).max(0.0);
+        return Some((x + w * along, total * cos / std::f64::consts::PI));
+    }
+    // By area.
+    let y = polygon_point(polygon, u, v);
+    let area: f64 = fans
+        .iter()
+        .map(|f| {
+            let [a, b, c] = triangle(f);
+            0.5 * (b - a).cross(c - a).length()
+        })
+        .sum();
+    let d = y - x;
+    let r2 = d.length_squared();
+    if r2 <= 0.0 {
+        return None;
+    }
+    let r = r2.sqrt();
+    let cos = n.dot(d) / r;
+    let cos_emitter = -e.dot(d) / r;
+    (cos > 0.0 && cos_emitter > 0.0)
+        .then(|| (y, area * cos * cos_emitter / (std::f64::consts::PI * r2)))
+}
+
+/// The angle between unit vectors, accurate near 0 and π.
+fn angle_between(a: DVec3, b: DVec3) -> f64 {
+    if a.dot(b) < 0.0 {
+        std::f64::consts::PI - 2.0 * ((a + b).length() / 2.0).min(1.0).asin()
+    } else {
+        2.0 * ((b - a).length() / 2.0).min(1.0).asin()
+    }
+}
+
+/// The corners of triangle `t` seen from `x` (unit vectors) and its angles at them; `None` if
+/// degenerate from `x`.
+fn spherical(x: DVec3, t: &[DVec3; 3]) -> Option<([DVec3; 3], [f64; 3])> {
+    let [a, b, c] = t.map(|p| (p - x).normalize_or_zero());
+    let (ab, bc, ca) = (a.cross(b), b.cross(c), c.cross(a));
+    if [a, b, c].contains(&DVec3::ZERO)
+        || [ab, bc, ca]
+            .iter()
+            .any(|v| v.length_squared() <= f64::MIN_POSITIVE)
+    {
+        return None;
+    }
+    let (ab, bc, ca) = (ab.normalize(), bc.normalize(), ca.normalize());
+    Some((
+        [a, b, c],
+        [
+            angle_between(ab, -ca),
+            angle_between(bc, -ab),
+            angle_between(ca, -bc),
+        ],
+    ))
+}
+
+/// The solid angle of triangle `t` seen from `x` (0 if degenerate).
+fn solid_angle(x: DVec3, t: &[DVec3; 3]) -> f64 {
+    spherical(x, t).map_or(0.0, |(_, [a, b, c])| {
+        (a + b + c - std::f64::consts::PI).max(0.0)
+    })
+}
+
+/// A direction from `x` uniform in the solid angle of triangle `t`, at `(u, v)` in the unit
+/// square (Arvo 1995, as in PBRT 4's `SampleSphericalTriangle`).
+fn sample_spherical_triangle(x: DVec3, t: &[DVec3; 3], u: f64, v: f64) -> Option<DVec3> {
+    let ([a, b, c], [alpha, beta, gamma]) = spherical(x, t)?;
+    let pi = std::f64::consts::PI;
+    // The sub-triangle of area u·Ω: its vertex c' on the arc from a to c.
+    let area = pi + u * (alpha + beta + gamma - pi);
+    let (sin_alpha, cos_alpha) = alpha.sin_cos();
+    let (sin_area, cos_area) = area.sin_cos();
+    let sin_phi = sin_area * cos_alpha - cos_area * sin_alpha;
+    let cos_phi = cos_area * cos_alpha + sin_area * sin_alpha;
+    let k1 = cos_phi + cos_alpha;
+    let k2 = sin_phi - sin_alpha * a.dot(b);
+    let cos_bp = ((k2 + (k2 * cos_phi - k1 * sin_phi) * cos_alpha)
+        / ((k2 * sin_phi + k1 * cos_phi) * sin_alpha))
+        .clamp(-1.0, 1.0);
+    let sin_bp = (1.0 - cos_bp * cos_bp).max(0.0).sqrt();
+    let cp = a * cos_bp + (c - a * c.dot(a)).normalize_or_zero() * sin_bp;
+    // Then uniform in area along the arc from b to c'.
+    let cos_theta = 1.0 - v * (1.0 - cp.dot(b));
+    let sin_theta = (1.0 - cos_theta * cos_theta).max(0.0).sqrt();
+    let w = b * cos_theta + (cp - b * cp.dot(b)).normalize_or_zero() * sin_theta;
+    (w.is_finite() && w != DVec3::ZERO).then(|| w.normalize())
 }
 
 /// The point of triangle `t` at `(u, v)` in the unit square, area-preserving.
@@ -736,48 +861,66 @@ fn clip(t: &[DVec3; 3], n: DVec3, x: DVec3, out: &mut [DVec3; 4]) -> usize {
     count
 }
 
-/// The form factor from a point `x` with unit normal `n` to a polygon wholly in front of it
-/// (Lambert): `(1/2π) Σ_k θ_k n·γ_k`, with θ_k the angle the k-th edge subtends at `x` and γ_k
-/// the unit normal of the plane through `x` and that edge.
-#[must_use]
-pub fn point_form_factor(x: DVec3, n: DVec3, polygon: &[DVec3]) -> f64 {
-    let mut sum = 0.0;
-    for k in 0..polygon.len() {
-        let a = (polygon[k] - x).normalize_or_zero();
-        let b = (polygon[(k + 1) % polygon.len()] - x).normalize_or_zero();
-        let c = a.cross(b);
-        let s = c.length();
-        if s > 0.0 {
-            sum += s.atan2(a.dot(b)) * n.dot(c) / s;
-        }
-    }
-    (sum / std::f64::consts::TAU).abs()
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
 
+    /// Howell C-11: a point under the corner of a parallel a × b rectangle at height h.
+    fn corner(a: f64, b: f64, h: f64) -> f64 {
+        let (a, b) = (a / h, b / h);
+        let (sa, sb) = ((1.0 + a * a).sqrt(), (1.0 + b * b).sqrt());
+        (a / sa * (b / sa).atan() + b / sb * (a / sb).atan()) / std::f64::consts::TAU
+    }
+
     #[test]
-    fn lamberts_formula_matches_a_disc_like_square_overhead() {
-        // A unit square at height h centred over the point: F = closed form for a square.
-        let h = 0.5f64;
+    fn an_octant_subtends_an_eighth_of_the_sphere() {
+        let octant = [DVec3::X, DVec3::Y, DVec3::Z];
+        let omega = solid_angle(DVec3::ZERO, &octant);
+        assert!(
+            (omega - std::f64::consts::FRAC_PI_2).abs() < 1e-14,
+            "{omega}"
+        );
+    }
+
+    #[test]
+    fn sampling_in_solid_angle_integrates_the_form_factor_of_a_square() {
+        // An off-centre square: the point under one corner of a 0.5 × 0.5 square at h = 0.5.
+        let h = 0.5;
         let square = [
-            DVec3::new(-0.5, -0.5, h),
-            DVec3::new(0.5, -0.5, h),
+            DVec3::new(0.0, 0.0, h),
+            DVec3::new(0.5, 0.0, h),
             DVec3::new(0.5, 0.5, h),
-            DVec3::new(-0.5, 0.5, h),
+            DVec3::new(0.0, 0.5, h),
         ];
-        // Parallel rectangle a×b at distance c, point under a corner:
-        // F = 1/(2π) [A/√(1+A²) atan(B/√(1+A²)) + B/√(1+B²) atan(A/√(1+B²))], A=a/c, B=b/c.
-        let corner = |a: f64, b: f64| {
-            let (a, b) = (a / h, b / h);
-            let (sa, sb) = ((1.0 + a * a).sqrt(), (1.0 + b * b).sqrt());
-            (a / sa * (b / sa).atan() + b / sb * (a / sb).atan()) / std::f64::consts::TAU
-        };
-        let exact = 4.0 * corner(0.5, 0.5);
-        let f = point_form_factor(DVec3::ZERO, DVec3::Z, &square);
-        assert!((f - exact).abs() < 1e-12, "{f} vs {exact}");
+        let exact = corner(0.5, 0.5, h);
+        let g = 128;
+        let mut sum = 0.0;
+        for i in 0..g {
+            for j in 0..g {
+                let (u, v) = ((i as f64 + 0.5) / g as f64, (j as f64 + 0.5) / g as f64);
+                let (y, f) = sample_polygon(DVec3::ZERO, DVec3::Z, -DVec3::Z, &square, u, v)
+                    .expect("a sample");
+                assert!((y.z - h).abs() < 1e-12 && (0.0..=0.5).contains(&y.x), "{y}");
+                sum += f;
+            }
+        }
+        let f = sum / (g * g) as f64;
+        assert!((f / exact - 1.0).abs() < 1e-3, "{f} vs {exact}");
+    }
+
+    #[test]
+    fn a_tiny_emitter_is_sampled_by_area_and_still_integrates() {
+        // Seen from 1e6 of its size away: below TINY_SOLID_ANGLE, so sampled by area.
+        let (s, h) = (1e-6, 1.0);
+        let square = [
+            DVec3::new(0.0, 0.0, h),
+            DVec3::new(s, 0.0, h),
+            DVec3::new(s, s, h),
+            DVec3::new(0.0, s, h),
+        ];
+        let (_, f) = sample_polygon(DVec3::ZERO, DVec3::Z, -DVec3::Z, &square, 0.3, 0.6).unwrap();
+        let exact = s * s / std::f64::consts::PI;
+        assert!((f / exact - 1.0).abs() < 1e-5, "{f} vs {exact}");
     }
 
     #[test]
