@@ -206,20 +206,22 @@ impl Bake {
         params: &SolveParams,
     ) -> FrameSolution {
         let patch_materials = self.patch_materials();
-        let punctual = self.direct.irradiance(frame, power);
+        let punctual = self
+            .direct
+            .irradiance(frame, power)
+            .zip(self.direct.variance(frame, power));
         let area = self.area.irradiance(frame, materials);
         let (irradiance, variance) = match (punctual, area) {
             (None, None) => (Vec::new(), Vec::new()),
-            (Some(e), None) => {
-                let zero = vec![[0.0; 3]; e.len()];
-                (e, zero)
-            }
-            (None, Some(area)) => area,
-            (Some(mut e), Some((a, variance))) => {
-                e.iter_mut().zip(&a).for_each(|(e, a)| {
-                    (0..3).for_each(|c| e[c] += a[c]);
-                });
-                (e, variance)
+            (Some(one), None) | (None, Some(one)) => one,
+            (Some((mut e, mut v)), Some((a, w))) => {
+                for (i, (a, w)) in a.iter().zip(&w).enumerate() {
+                    for c in 0..3 {
+                        e[i][c] += a[c];
+                        v[i][c] += w[c];
+                    }
+                }
+                (e, v)
             }
         };
         let sampled: Vec<bool> = patch_materials

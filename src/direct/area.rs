@@ -43,7 +43,7 @@ use rand::rngs::Xoshiro256PlusPlus;
 use rand::{RngExt, SeedableRng};
 use rayon::prelude::*;
 
-use super::{Face, Frame, geometry_key};
+use super::{Face, Frame, geometry_key, triangle_point};
 use crate::scene::{Faces, Material, Scene};
 use crate::timeline::{Control, TraceError};
 use crate::trace::coincident::mix;
@@ -682,10 +682,8 @@ fn form_factor(
             *value = f;
         }
     }
-    let mean = values.iter().sum::<f64>() / count as f64;
-    // Collapsed strata: neighbouring cells (k, k + 1 in a row of the grid) in pairs.
-    let spread: f64 = values.chunks_exact(2).map(|p| (p[0] - p[1]).powi(2)).sum();
-    (mean, spread / (count * count) as f64)
+    // Neighbouring cells (k, k + 1 in a row of the grid) make the pairs.
+    super::collapsed_variance(&values)
 }
 
 /// Below this solid angle (steradians), a fan triangle of the emitter is sampled by area: the
@@ -815,12 +813,6 @@ fn sample_spherical_triangle(x: DVec3, t: &[DVec3; 3], u: f64, v: f64) -> Option
     let sin_theta = (1.0 - cos_theta * cos_theta).max(0.0).sqrt();
     let w = b * cos_theta + (cp - b * cp.dot(b)).normalize_or_zero() * sin_theta;
     (w.is_finite() && w != DVec3::ZERO).then(|| w.normalize())
-}
-
-/// The point of triangle `t` at `(u, v)` in the unit square, area-preserving.
-fn triangle_point(t: &[DVec3; 3], u: f64, v: f64) -> DVec3 {
-    let s = u.sqrt();
-    t[0] * (1.0 - s) + t[1] * (s * (1.0 - v)) + t[2] * (s * v)
 }
 
 /// The point of convex `polygon` (3 or 4 corners) at `(u, v)` in the unit square,

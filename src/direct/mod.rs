@@ -25,12 +25,14 @@ use std::collections::HashMap;
 use std::hash::{Hash, Hasher};
 
 use glam::{DVec3, Vec3};
+use rand::rngs::Xoshiro256PlusPlus;
+use rand::{RngExt, SeedableRng};
 use rayon::prelude::*;
 
 use crate::lines::parallel_bundle;
 use crate::scene::{Faces, Light, LightKind, Scene};
 use crate::timeline::{Control, TraceError};
-use crate::trace::coincident::{COINCIDENT, resolve};
+use crate::trace::coincident::{COINCIDENT, mix, resolve};
 use crate::trace::{FrameMeshes, Hit, Line, SceneTracer};
 
 /// Lines of a directional light per patch of median area: they resolve shadow edges to about
@@ -57,6 +59,8 @@ pub struct DirectLight {
     /// Per light, per distinct state: the irradiance of each patch per unit of light power
     /// (f32: far finer than the sampling of the patch).
     terms: Vec<Vec<Vec<f32>>>,
+    /// The variance of each value of `terms`, from its sampling.
+    variances: Vec<Vec<Vec<f32>>>,
     /// For each frame, the index of its combination of every light's state: frames with equal
     /// states have equal direct light.
     frame_state: Vec<u32>,
@@ -109,7 +113,7 @@ impl DirectLight {
             grouped.entry(f).or_default().push(l);
         }
         let by_frame: Vec<(usize, Vec<usize>)> = grouped.into_iter().collect();
-        let computed: Vec<Vec<(usize, Vec<f32>)>> = by_frame
+        let computed: Vec<Vec<(usize, Term)>> = by_frame
             .par_iter()
             .map(|(f, lights)| {
                 if control.is_cancelled() {
@@ -124,8 +128,10 @@ impl DirectLight {
             return Err(TraceError::Cancelled);
         }
         let mut terms: Vec<Vec<Vec<f32>>> = vec![Vec::new(); scene.lights.len()];
-        for (l, term) in computed.into_iter().flatten() {
+        let mut variances = terms.clone();
+        for (l, (term, variance)) in computed.into_iter().flatten() {
             terms[l].push(term);
+            variances[l].push(variance);
         }
         let mut combos: HashMap<Vec<u32>, u32> = HashMap::new();
         let frame_state = (0..frames)
@@ -138,6 +144,7 @@ impl DirectLight {
         Ok(Self {
             frame_term,
             terms,
+            variances,
             frame_state,
         })
     }
@@ -173,10 +180,33 @@ impl DirectLight {
         Some(out)
     }
 
+    /// The variance of [`DirectLight::irradiance`] from its sampling (lux²); `None` without
+    /// lights. The lights are sampled independently: their variances add.
+    #[must_use]
+    pub fn variance(&self, frame: usize, power: &[[f64; 3]]) -> Option<Vec<[f64; 3]>> {
+        self.state(frame)?;
+        let patches = self.variances.first()?.first().map_or(0, Vec::len);
+        let mut out = vec![[0.0; 3]; patches];
+        for ((states, variances), p) in self.frame_term.iter().zip(&self.variances).zip(power) {
+            let unit = &variances[states[frame] as usize];
+            for (e, &u) in out.iter_mut().zip(unit) {
+                for c in 0..3 {
+                    e[c] += p[c] * p[c] * f64::from(u);
+                }
+            }
+        }
+        Some(out)
+    }
+
     /// Memory held, bytes.
     #[must_use]
     pub fn memory(&self) -> usize {
-        let terms: usize = self.terms.iter().flatten().map(|v| v.len() * 4).sum();
+        let terms: usize = 2 * self
+            .terms
+            .iter()
+            .flatten()
+            .map(|v| v.len() * 4)
+            .sum::<usize>();
         terms + 4 * (self.frame_term.iter().map(Vec::len).sum::<usize>() + self.frame_state.len())
     }
 }
@@ -204,13 +234,17 @@ fn geometry_key(scene: &Scene, frame: usize) -> u64 {
     h.finish()
 }
 
-/// Unit irradiance per patch at `frame` of each light in `lights` (indices into the scene's).
+/// A light's unit irradiance per patch, and its variance.
+type Term = (Vec<f32>, Vec<f32>);
+
+/// Unit irradiance per patch at `frame` of each light in `lights` (indices into the scene's),
+/// with its variance.
 fn frame_irradiance(
     scene: &Scene,
     tracer: &SceneTracer,
     frame: usize,
     lights: &[usize],
-) -> Vec<(usize, Vec<f32>)> {
+) -> Vec<(usize, Term)> {
     let deformed = tracer.deformed_at(scene, frame);
     let triangles = scene.triangles_at(frame);
     let at = Frame {
@@ -227,9 +261,10 @@ fn frame_irradiance(
             let light = &scene.lights[l];
             let unit = match light.kind {
                 LightKind::Directional => directional(&at, light),
-                _ => point(&at, light),
+                _ => point(&at, light, l),
             };
-            (l, unit.into_iter().map(|e| e as f32).collect())
+            let values = unit.iter().map(|e| e.0 as f32).collect();
+            (l, (values, unit.iter().map(|e| e.1 as f32).collect()))
         })
         .collect()
 }
@@ -286,30 +321,48 @@ impl Frame<'_> {
     }
 }
 
-/// The points a patch is sampled at: centroids of the 4^level triangles of `level` midpoint
-/// subdivisions.
-fn sample_points(corners: [DVec3; 3], level: u32, out: &mut Vec<DVec3>) {
+/// The points a patch is sampled at: one uniformly random point in each of the 4^level
+/// equal-area triangles of `level` midpoint subdivisions (stratified: unbiased for the patch's
+/// mean). Consecutive pairs are siblings, the strata [`collapsed_variance`] pairs.
+fn sample_points(
+    corners: [DVec3; 3],
+    level: u32,
+    rng: &mut Xoshiro256PlusPlus,
+    out: &mut Vec<DVec3>,
+) {
     if level == 0 {
-        out.push((corners[0] + corners[1] + corners[2]) / 3.0);
+        out.push(triangle_point(&corners, rng.random(), rng.random()));
         return;
     }
     let [a, b, c] = corners;
     let (ab, bc, ca) = ((a + b) * 0.5, (b + c) * 0.5, (c + a) * 0.5);
     for t in [[a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca]] {
-        sample_points(t, level - 1, out);
+        sample_points(t, level - 1, rng, out);
     }
 }
 
-/// Subdivision level for a patch of longest edge `edge` seen from `distance`: one point while
-/// the patch looks small from the light, up to 64 when it fills a wide angle.
+/// The point of triangle `t` at `(u, v)` in the unit square, area-preserving.
+fn triangle_point(t: &[DVec3; 3], u: f64, v: f64) -> DVec3 {
+    let s = u.sqrt();
+    t[0] * (1.0 - s) + t[1] * (s * (1.0 - v)) + t[2] * (s * v)
+}
+
+/// The mean of `values`, one per stratum of equal weight, and its variance by collapsed strata:
+/// each pair of neighbouring strata (0 and 1, 2 and 3, …) as one stratum of two samples,
+/// `Σ (a − b)² / n²`. Conservative: the pair's difference of means adds to it.
+fn collapsed_variance(values: &[f64]) -> (f64, f64) {
+    let n = values.len() as f64;
+    let mean = values.iter().sum::<f64>() / n;
+    let spread: f64 = values.chunks_exact(2).map(|p| (p[0] - p[1]).powi(2)).sum();
+    (mean, spread / (n * n))
+}
+
+/// Subdivision level for a patch of longest edge `edge` seen from `distance`: 16 points while
+/// the patch looks small from the light (8 pairs of strata: a variance from fewer is itself too
+/// noisy to cover the error reliably), 64 when it fills a wide angle.
 fn sample_level(edge: f64, distance: f64) -> u32 {
     let ratio = edge / distance.max(f64::MIN_POSITIVE);
-    match ratio {
-        r if r < 0.05 => 0,
-        r if r < 0.25 => 1,
-        r if r < 1.0 => 2,
-        _ => 3,
-    }
+    if ratio < 1.0 { 2 } else { 3 }
 }
 
 /// A spot's angular attenuation at `cos_angle` from its axis: the extension's recommended
@@ -328,12 +381,13 @@ pub fn range_window(d: f64, range: Option<f64>) -> f64 {
     range.map_or(1.0, |r| (1.0 - (d / r).powi(4)).clamp(0.0, 1.0))
 }
 
-/// Unit irradiance per patch from a point or spot light.
-fn point(at: &Frame<'_>, light: &Light) -> Vec<f64> {
+/// Unit irradiance per patch from a point or spot light (the scene's light `index`), and its
+/// variance.
+fn point(at: &Frame<'_>, light: &Light, index: usize) -> Vec<(f64, f64)> {
     let position = light.position(at.frame);
     let axis = light.direction(at.frame);
     let radius = at.scene.normalisation.radius;
-    let per_triangle: Vec<[Option<(u32, f64)>; 2]> = at
+    let per_triangle: Vec<[Option<(u32, (f64, f64))>; 2]> = at
         .triangles
         .par_iter()
         .enumerate()
@@ -351,12 +405,15 @@ fn point(at: &Frame<'_>, light: &Light) -> Vec<f64> {
                     corners,
                     n: if back { -normal } else { normal },
                 };
-                let value = patch_irradiance(at, light, &face, position, axis, hits);
-                Some((patch, value / (radius * radius)))
+                let seed = mix((u64::from(patch) << 32) ^ index as u64);
+                let (value, variance) =
+                    patch_irradiance(at, light, &face, (position, axis), seed, hits);
+                let r2 = radius * radius;
+                Some((patch, (value / r2, variance / (r2 * r2))))
             })
         })
         .collect();
-    let mut out = vec![0.0; at.scene.patches.len()];
+    let mut out = vec![(0.0, 0.0); at.scene.patches.len()];
     for (patch, value) in per_triangle.into_iter().flatten().flatten() {
         out[patch as usize] = value;
     }
@@ -380,10 +437,10 @@ fn patch_irradiance(
     at: &Frame<'_>,
     light: &Light,
     face: &Face,
-    position: DVec3,
-    axis: DVec3,
+    (position, axis): (DVec3, DVec3),
+    seed: u64,
     hits: &mut Vec<Hit>,
-) -> f64 {
+) -> (f64, f64) {
     let Face {
         own,
         back,
@@ -392,7 +449,7 @@ fn patch_irradiance(
     } = *face;
     // The light behind the face's plane: nothing (exact, the face is flat).
     if n == DVec3::ZERO || (position - corners[0]).dot(n) <= 0.0 {
-        return 0.0;
+        return (0.0, 0.0);
     }
     let centre = (corners[0] + corners[1] + corners[2]) / 3.0;
     let reach = corners
@@ -403,7 +460,7 @@ fn patch_irradiance(
     if let Some(range) = light.range
         && distance - reach >= range
     {
-        return 0.0;
+        return (0.0, 0.0);
     }
     if let LightKind::Spot { outer, .. } = light.kind
         && distance > reach
@@ -414,31 +471,36 @@ fn patch_irradiance(
             .clamp(-1.0, 1.0)
             .acos();
         if angle - (reach / distance).asin() > outer {
-            return 0.0;
+            return (0.0, 0.0);
         }
     }
     let edge = (0..3)
         .map(|k| corners[k].distance(corners[(k + 1) % 3]))
         .fold(0.0, f64::max);
     let mut points = Vec::new();
-    sample_points(corners, sample_level(edge, distance), &mut points);
-    let mut sum = 0.0;
-    for &x in &points {
-        let to_light = position - x;
-        let d = to_light.length();
-        let cos_surface = n.dot(to_light) / d;
-        if cos_surface <= 0.0 {
-            continue;
-        }
-        let mut e = cos_surface / (d * d) * range_window(d, light.range);
-        if let LightKind::Spot { inner, outer } = light.kind {
-            e *= spot_attenuation(axis.dot(-to_light / d), inner, outer);
-        }
-        if e > 0.0 && !at.blocked(x, position, own, back, hits) {
-            sum += e;
-        }
-    }
-    sum / points.len() as f64
+    let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed);
+    sample_points(corners, sample_level(edge, distance), &mut rng, &mut points);
+    let values: Vec<f64> = points
+        .iter()
+        .map(|&x| {
+            let to_light = position - x;
+            let d = to_light.length();
+            let cos_surface = n.dot(to_light) / d;
+            if cos_surface <= 0.0 {
+                return 0.0;
+            }
+            let mut e = cos_surface / (d * d) * range_window(d, light.range);
+            if let LightKind::Spot { inner, outer } = light.kind {
+                e *= spot_attenuation(axis.dot(-to_light / d), inner, outer);
+            }
+            if e > 0.0 && !at.blocked(x, position, own, back, hits) {
+                e
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    collapsed_variance(&values)
 }
 
 /// Unit irradiance per patch from a directional light: one bundle of parallel lines.
@@ -448,11 +510,11 @@ fn patch_irradiance(
 /// crossing it is. An unshadowed patch is therefore exact, and the lines' only error is where
 /// a shadow edge crosses a patch. A patch smaller than the grid, which no line crosses, is
 /// tested with one shadow ray from its centroid.
-fn directional(at: &Frame<'_>, light: &Light) -> Vec<f64> {
+fn directional(at: &Frame<'_>, light: &Light) -> Vec<(f64, f64)> {
     let scene = at.scene;
     let patches = scene.patches.len();
     let w = light.direction(at.frame);
-    let mut out = vec![0.0; patches];
+    let mut out = vec![(0.0, 0.0); patches];
     if w == DVec3::ZERO {
         return out;
     }
@@ -535,17 +597,19 @@ fn directional(at: &Frame<'_>, light: &Light) -> Vec<f64> {
             if cos <= 0.0 {
                 continue;
             }
-            let visible = if crossed[p] > 0 {
-                f64::from(lit[p]) / f64::from(crossed[p])
+            let (visible, variance) = if crossed[p] > 0 {
+                let v = f64::from(lit[p]) / f64::from(crossed[p]);
+                // Binomial: the grid's place against a shadow edge is as good as random (an
+                // overestimate: the grid is stratified).
+                (v, v * (1.0 - v) / f64::from(crossed[p]))
             } else {
                 // Smaller than the grid: one shadow ray from the centroid, out of the scene.
                 let centre = corners.iter().map(|c| c.as_dvec3()).sum::<DVec3>() / 3.0;
                 let away = centre - w * f64::from(crate::lines::LINE_LENGTH);
-                f64::from(u8::from(
-                    !at.blocked(centre, away, t as u32, back, &mut hits),
-                ))
+                let visible = !at.blocked(centre, away, t as u32, back, &mut hits);
+                (f64::from(u8::from(visible)), 0.0)
             };
-            out[p] = cos * visible;
+            out[p] = (cos * visible, cos * cos * variance);
         }
     }
     out
