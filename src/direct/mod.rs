@@ -387,7 +387,8 @@ fn point(at: &Frame<'_>, light: &Light, index: usize) -> Vec<(f64, f64)> {
     let position = light.position(at.frame);
     let axis = light.direction(at.frame);
     let radius = at.scene.normalisation.radius;
-    let per_triangle: Vec<[Option<(u32, (f64, f64))>; 2]> = at
+    type Sample = Option<(u32, (f64, f64))>;
+    let per_triangle: Vec<[Sample; 2]> = at
         .triangles
         .par_iter()
         .enumerate()
