@@ -38,13 +38,13 @@
 
 use std::collections::HashMap;
 
-use glam::DVec3;
+use glam::{DAffine3, DVec3};
 use rand::rngs::Xoshiro256PlusPlus;
 use rand::{RngExt, SeedableRng};
 use rayon::prelude::*;
 
 use super::{Face, Frame, geometry_key, triangle_point};
-use crate::scene::{Faces, Material, Scene};
+use crate::scene::{Faces, Material, Motion, Scene};
 use crate::timeline::{Control, TraceError};
 use crate::trace::coincident::mix;
 use crate::trace::{FrameMeshes, SceneTracer};
@@ -308,6 +308,13 @@ impl AreaLights {
         Some((e, var))
     }
 
+    /// The pairs (patch, cluster) lit with the static geometry alone, and those the poses of
+    /// the moving geometry traced again (summed over the poses).
+    #[must_use]
+    pub fn pair_counts(&self) -> (usize, usize) {
+        (self.pairs.len(), self.states.iter().map(Vec::len).sum())
+    }
+
     /// Memory held, bytes.
     #[must_use]
     pub fn memory(&self) -> usize {
@@ -519,16 +526,26 @@ fn changed_pairs(
     };
     let emitters: Vec<Emitter> = clusters.iter().map(|c| pose(c, &triangles)).collect();
     let statics = scene.statics.triangles.len();
-    // The moving objects' boxes at this frame.
+    // The moving objects' boxes at this frame: a rigid object's own box carried by its pose
+    // (a door stays a thin slab however it turns), a deforming one's box around its triangles.
     let mut boxes = Vec::with_capacity(scene.objects.len());
     let mut start = statics;
     for object in &scene.objects {
         let end = start + object.mesh.triangles.len();
-        boxes.push(bounds(
-            triangles[start..end]
-                .iter()
-                .flat_map(|(c, _)| c.map(|p| p.as_dvec3())),
-        ));
+        boxes.push(match &object.motion {
+            Motion::Rigid { poses } => {
+                let (lo, hi) = bounds(object.mesh.positions.iter().map(|p| p.as_dvec3()));
+                Block::new(&poses[frame], lo, hi)
+            }
+            Motion::Deforming(_) => {
+                let (lo, hi) = bounds(
+                    triangles[start..end]
+                        .iter()
+                        .flat_map(|(c, _)| c.map(|p| p.as_dvec3())),
+                );
+                Block::new(&DAffine3::IDENTITY, lo, hi)
+            }
+        });
         start = end;
     }
     let mut changed: Vec<(u32, Pair)> = (0..triangles.len())
@@ -549,7 +566,7 @@ fn changed_pairs(
                         emitter.corners[1],
                         emitter.corners[2],
                     ];
-                    if moving || boxes.iter().any(|b| hull_meets_box(&hull, b)) {
+                    if moving || boxes.iter().any(|b| b.meets_hull(&hull)) {
                         let pair = pair(&at, &receiver, c, emitter, seed, hits);
                         // A zero at a moving end, or where the static result is zero too,
                         // changes nothing.
@@ -567,58 +584,88 @@ fn changed_pairs(
     changed
 }
 
-/// Whether the convex hull of `points` meets the box `(lo, hi)`: the separating-axis test with
-/// the box's axes, the normals of every plane through three of the points (the hull's faces
-/// are among them) and the cross products of the box's axes with every segment between two of
-/// them (the hull's edges are among them). Exact for touching or not; degenerate axes never
-/// separate.
-fn hull_meets_box(points: &[DVec3; 6], (lo, hi): &(DVec3, DVec3)) -> bool {
-    let centre = (*lo + *hi) * 0.5;
-    let half = (*hi - *lo) * 0.5;
-    let separates = |axis: DVec3| {
-        if axis.length_squared() <= 1e-30 {
-            return false;
+/// A box as posed: a parallelepiped, its centre and three half-edges.
+struct Block {
+    centre: DVec3,
+    half: [DVec3; 3],
+}
+
+impl Block {
+    /// The box `(lo, hi)` of an object's own space carried to normalised space by `pose`,
+    /// padded by [`PAD`] (a flat object gets that thickness).
+    fn new(pose: &DAffine3, lo: DVec3, hi: DVec3) -> Self {
+        let extent = (hi - lo) * 0.5;
+        let mut half = [0, 1, 2].map(|i| pose.matrix3.col(i) * extent[i]);
+        for i in 0..3 {
+            let length = half[i].length();
+            half[i] = if length > 0.0 {
+                half[i] * ((length + PAD) / length)
+            } else {
+                let across = pose.matrix3.col(i);
+                across.normalize_or(DVec3::X) * PAD
+            };
         }
-        let r = half.dot(axis.abs());
-        let c = axis.dot(centre);
-        let (min, max) = points
-            .iter()
-            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| {
-                let d = axis.dot(*p);
-                (a.min(d), b.max(d))
-            });
-        min > c + r || max < c - r
-    };
-    if [DVec3::X, DVec3::Y, DVec3::Z].into_iter().any(separates) {
-        return false;
+        Self {
+            centre: pose.transform_point3((lo + hi) * 0.5),
+            half,
+        }
     }
-    for i in 0..6 {
-        for j in i + 1..6 {
-            let edge = points[j] - points[i];
-            if [DVec3::X, DVec3::Y, DVec3::Z]
-                .into_iter()
-                .any(|a| separates(edge.cross(a)))
-            {
+
+    /// Whether it meets the convex hull of `points`: the separating-axis test with its face
+    /// normals, the normals of every plane through three of the points (the hull's faces are
+    /// among them) and the cross products of its edges with every segment between two of them
+    /// (the hull's edges are among them). Exact for touching or not; degenerate axes never
+    /// separate.
+    fn meets_hull(&self, points: &[DVec3; 6]) -> bool {
+        let [a, b, c] = self.half;
+        let separates = |axis: DVec3| {
+            if axis.length_squared() <= 1e-30 {
                 return false;
             }
-            for k in j + 1..6 {
-                if separates(edge.cross(points[k] - points[i])) {
+            let r = a.dot(axis).abs() + b.dot(axis).abs() + c.dot(axis).abs();
+            let centre = axis.dot(self.centre);
+            let (min, max) =
+                points
+                    .iter()
+                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
+                        let d = axis.dot(*p);
+                        (lo.min(d), hi.max(d))
+                    });
+            min > centre + r || max < centre - r
+        };
+        if [b.cross(c), c.cross(a), a.cross(b)]
+            .into_iter()
+            .any(separates)
+        {
+            return false;
+        }
+        for i in 0..6 {
+            for j in i + 1..6 {
+                let edge = points[j] - points[i];
+                if self.half.iter().any(|h| separates(edge.cross(*h))) {
                     return false;
+                }
+                for k in j + 1..6 {
+                    if separates(edge.cross(points[k] - points[i])) {
+                        return false;
+                    }
                 }
             }
         }
+        true
     }
-    true
 }
 
-/// The bounding box of `points`, padded by a little more than the tracer's tolerances.
+/// Padding of the moving objects' boxes (normalised units): well beyond the tracer's
+/// tolerances.
+const PAD: f64 = 1e-4;
+
+/// The bounding box of `points`.
 fn bounds(points: impl Iterator<Item = DVec3>) -> (DVec3, DVec3) {
-    let (lo, hi) = points.fold(
+    points.fold(
         (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
         |(lo, hi), p| (lo.min(p), hi.max(p)),
-    );
-    let pad = DVec3::splat(1e-4);
-    (lo - pad, hi + pad)
+    )
 }
 
 /// The form factor from `face` to `emitter` with `at`'s occluders, and its variance: the mean
