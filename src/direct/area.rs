@@ -595,16 +595,16 @@ impl Block {
     /// padded by [`PAD`] (a flat object gets that thickness).
     fn new(pose: &DAffine3, lo: DVec3, hi: DVec3) -> Self {
         let extent = (hi - lo) * 0.5;
-        let mut half = [0, 1, 2].map(|i| pose.matrix3.col(i) * extent[i]);
-        for i in 0..3 {
-            let length = half[i].length();
-            half[i] = if length > 0.0 {
-                half[i] * ((length + PAD) / length)
+        let half = [0, 1, 2].map(|i| {
+            let axis = pose.matrix3.col(i);
+            let h = axis * extent[i];
+            let length = h.length();
+            if length > 0.0 {
+                h * ((length + PAD) / length)
             } else {
-                let across = pose.matrix3.col(i);
-                across.normalize_or(DVec3::X) * PAD
-            };
-        }
+                axis.normalize_or(DVec3::X) * PAD
+            }
+        });
         Self {
             centre: pose.transform_point3((lo + hi) * 0.5),
             half,
