@@ -3,12 +3,12 @@
 //! the moving geometry) and of the global lines, with how many pairs (patch, emitter) the
 //! static part holds and how many the poses trace again.
 //!
-//!     cargo run --release --example direct [FPS] [PATCH_SIZE] [LINES] [SCENE...]
+//!     cargo run --release --example direct [FPS] [PATCH_SIZE or -] [LINES] [SCENE...]
 
 use std::time::Instant;
 
 use radiosity::direct::DirectLight;
-use radiosity::direct::area::AreaLights;
+use radiosity::direct::area::{AreaLights, Sampling};
 use radiosity::loader::{LoadOptions, load};
 use radiosity::timeline::{Control, IntersectionList, LineParams};
 use radiosity::trace::SceneTracer;
@@ -16,7 +16,11 @@ use radiosity::trace::SceneTracer;
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut args = std::env::args().skip(1);
     let fps: f64 = args.next().map_or(Ok(12.0), |a| a.parse())?;
-    let patch_size: Option<f64> = args.next().map(|a| a.parse()).transpose()?;
+    let patch_size: Option<f64> = args
+        .next()
+        .filter(|a| a != "-")
+        .map(|a| a.parse())
+        .transpose()?;
     let lines: u64 = args.next().map_or(Ok(1_000_000), |a| a.parse())?;
     let mut scenes: Vec<String> = args.collect();
     if scenes.is_empty() {
@@ -40,7 +44,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         DirectLight::compute(&scene, &tracer, &control)?;
         let punctual = t.elapsed().as_secs_f64();
         let t = Instant::now();
-        let area = AreaLights::compute(&scene, &tracer, 1, &control)?;
+        let area = AreaLights::compute(&scene, &tracer, Sampling::for_lines(lines, 1), &control)?;
         let area_time = t.elapsed().as_secs_f64();
         let (pairs, retraced) = area.pair_counts();
         let t = Instant::now();

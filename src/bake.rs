@@ -8,7 +8,7 @@ use std::sync::Arc;
 use rayon::prelude::*;
 
 use crate::direct::DirectLight;
-use crate::direct::area::AreaLights;
+use crate::direct::area::{AreaLights, Sampling};
 use crate::scene::{Light, Material, Scene};
 use crate::solve::tally::{FrameTally, Tallies};
 use crate::solve::{Direct, FrameSolution, SolveParams, solve_lit};
@@ -51,7 +51,12 @@ impl Bake {
         let mut tallies = Tallies::default();
         tallies.update(&list, &tracer.surfaces());
         let direct = DirectLight::compute(&scene, &tracer, control)?;
-        let area = AreaLights::compute(&scene, &tracer, params.seed, control)?;
+        let area = AreaLights::compute(
+            &scene,
+            &tracer,
+            Sampling::for_lines(list.lines() as u64, params.seed),
+            control,
+        )?;
         let warnings = overlap_warnings(&scene, &tracer, &list);
         Ok(Self {
             scene,

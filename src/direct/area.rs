@@ -43,7 +43,7 @@ use rand::rngs::Xoshiro256PlusPlus;
 use rand::{RngExt, SeedableRng};
 use rayon::prelude::*;
 
-use super::{Face, Frame, geometry_key, triangle_point};
+use super::{Face, Frame, Occluders, geometry_key, triangle_point};
 use crate::scene::{Faces, Material, Motion, Scene};
 use crate::timeline::{Control, TraceError};
 use crate::trace::coincident::mix;
@@ -56,6 +56,29 @@ pub const MAX_AREA_SHARE: f64 = 0.25;
 /// Most emitting source triangles (each face counted) sampled explicitly: the cost is shadow
 /// rays per patch per cluster.
 pub const MAX_CLUSTERS: usize = 64;
+
+/// How densely, and with which random numbers, the emitters are sampled.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Sampling {
+    /// Seeds the sampling: two bakes with different seeds are independent (the bake's line
+    /// seed).
+    pub seed: u64,
+    /// Shadow rays per pair (patch, emitter) relative to the standard 16 to 256 (below 1, the
+    /// standard): a bake with more lines samples its emitters more densely too (the bake's
+    /// lines / 1,000,000), so that neither error hides the other.
+    pub density: f64,
+}
+
+impl Sampling {
+    /// The sampling of a bake with `lines` lines and `seed`.
+    #[must_use]
+    pub fn for_lines(lines: u64, seed: u64) -> Self {
+        Self {
+            seed,
+            density: lines as f64 / 1e6,
+        }
+    }
+}
 
 /// A value per colour channel.
 pub type Rgb = [f64; 3];
@@ -74,6 +97,10 @@ pub struct AreaLights {
     /// Per patch, its non-zero form factors to the static clusters with the static geometry as
     /// the only occluder (static patches only: a moving patch is computed at every pose).
     pairs: Vec<Pair>,
+    /// For each of `pairs`, one bit per shadow ray: whether the static geometry let it through.
+    /// A pose of the moving geometry traces only the moving objects along the rays set here (a
+    /// pair that no ray reaches stays dark whatever moves).
+    visible: Vec<u64>,
     /// For each frame, its pose of the moving geometry (an index into `states`).
     frame_state: Vec<u32>,
     /// Per distinct pose of the moving geometry: the pairs it changes, by patch.
@@ -86,6 +113,8 @@ struct Pair {
     cluster: u32,
     value: f32,
     variance: f32,
+    /// Where its rays' static verdicts start in [`AreaLights::visible`] (static pairs only).
+    visible: u32,
 }
 
 /// One face of an emitting source triangle: the patches of its subdivision are one flat
@@ -115,16 +144,15 @@ struct Emitter {
 }
 
 impl AreaLights {
-    /// Chooses the emitting materials to sample and computes their direct light at every frame,
-    /// counting one unit of `control`'s stage per pose of the moving geometry. `seed` seeds the
-    /// sampling (the bake's line seed: two bakes with different seeds are independent).
+    /// Chooses the emitting materials to sample and computes their direct light at every frame
+    /// with `sampling`, counting one unit of `control`'s stage per pose of the moving geometry.
     ///
     /// # Errors
     /// [`TraceError::Cancelled`] if `control` was cancelled.
     pub fn compute(
         scene: &Scene,
         tracer: &SceneTracer,
-        seed: u64,
+        sampling: Sampling,
         control: &Control,
     ) -> Result<Self, TraceError> {
         let materials = choose(scene, tracer);
@@ -167,19 +195,28 @@ impl AreaLights {
             deformed: &none,
             triangles: &triangles,
             frame: 0,
-            moving: false,
+            occluders: Occluders::Static,
         };
         let emitters: Vec<Emitter> = clusters.iter().map(|c| pose(c, &triangles)).collect();
-        let mut rows: Vec<(u32, Pair)> = (0..statics)
+        let mut rows: Vec<(u32, Pair, Vec<u64>)> = (0..statics)
             .into_par_iter()
             .map_init(Vec::new, |hits, t| {
                 let mut rows = Vec::new();
                 for face in faces(&triangles, t) {
                     for (c, emitter) in emitters.iter().enumerate() {
                         if !clusters[c].moving {
-                            let pair = pair(&at, &face, c, emitter, seed, hits);
+                            let mut bits = Vec::new();
+                            let pair = pair(
+                                &at,
+                                &face,
+                                c,
+                                emitter,
+                                sampling,
+                                Rays::Record(&mut bits),
+                                hits,
+                            );
                             if pair.value > 0.0 {
-                                rows.push((face.patch, pair));
+                                rows.push((face.patch, pair, bits));
                             }
                         }
                     }
@@ -188,35 +225,54 @@ impl AreaLights {
             })
             .flatten()
             .collect();
-        rows.sort_unstable_by_key(|&(p, pair)| (p, pair.cluster));
+        rows.sort_unstable_by_key(|(p, pair, _)| (*p, pair.cluster));
         let mut offsets = vec![0u32; patches + 1];
-        rows.iter().for_each(|&(p, _)| offsets[p as usize + 1] += 1);
+        rows.iter()
+            .for_each(|(p, _, _)| offsets[*p as usize + 1] += 1);
         (0..patches).for_each(|p| offsets[p + 1] += offsets[p]);
-        let pairs: Vec<Pair> = rows.into_iter().map(|(_, pair)| pair).collect();
-        control.advance(1);
-
-        // Each pose of the moving geometry: the pairs it can change, traced again.
-        let mut states = Vec::with_capacity(firsts.len());
-        for &frame in &firsts {
-            if control.is_cancelled() {
-                return Err(TraceError::Cancelled);
-            }
-            states.push(if scene.objects.is_empty() {
-                Vec::new()
-            } else {
-                changed_pairs(scene, tracer, frame, &clusters, seed)
-            });
-            control.advance(1);
-        }
-        Ok(Self {
+        let mut visible = Vec::new();
+        let pairs: Vec<Pair> = rows
+            .into_iter()
+            .map(|(_, mut pair, bits)| {
+                pair.visible = visible.len() as u32;
+                visible.extend(bits);
+                pair
+            })
+            .collect();
+        let mut out = Self {
             materials,
             slot,
             cluster_slot: clusters.iter().map(|c| c.slot as u16).collect(),
             offsets,
             pairs,
+            visible,
             frame_state,
-            states,
-        })
+            states: Vec::new(),
+        };
+        control.advance(1);
+
+        // Each pose of the moving geometry: the pairs it can change, traced again.
+        for &frame in &firsts {
+            if control.is_cancelled() {
+                return Err(TraceError::Cancelled);
+            }
+            let changed = if scene.objects.is_empty() {
+                Vec::new()
+            } else {
+                changed_pairs(&out, scene, tracer, frame, &clusters, sampling)
+            };
+            out.states.push(changed);
+            control.advance(1);
+        }
+        Ok(out)
+    }
+
+    /// The static result of the pair (`patch`, `cluster`), if not dark.
+    fn static_pair(&self, patch: u32, cluster: usize) -> Option<&Pair> {
+        let p = patch as usize;
+        self.pairs[self.offsets[p] as usize..self.offsets[p + 1] as usize]
+            .iter()
+            .find(|e| e.cluster as usize == cluster)
     }
 
     /// Whether no emitter is sampled.
@@ -320,7 +376,10 @@ impl AreaLights {
     pub fn memory(&self) -> usize {
         let pair = std::mem::size_of::<Pair>();
         let changed: usize = self.states.iter().map(|s| s.len() * (4 + pair)).sum();
-        4 * (self.offsets.len() + self.frame_state.len()) + self.pairs.len() * pair + changed
+        4 * (self.offsets.len() + self.frame_state.len())
+            + self.pairs.len() * pair
+            + 8 * self.visible.len()
+            + changed
     }
 }
 
@@ -490,16 +549,31 @@ fn pair(
     receiver: &Receiver,
     c: usize,
     emitter: &Emitter,
-    seed: u64,
+    sampling: Sampling,
+    rays: Rays<'_>,
     hits: &mut Vec<crate::trace::Hit>,
 ) -> Pair {
-    let seed = mix(seed ^ mix((u64::from(receiver.patch) << 32) ^ c as u64));
-    let (value, variance) = form_factor(at, receiver, emitter, seed, hits);
+    let seed = mix(sampling.seed ^ mix((u64::from(receiver.patch) << 32) ^ c as u64));
+    let g = grid(receiver, emitter, sampling.density);
+    let (value, variance) = form_factor(at, receiver, emitter, (seed, g), rays, hits);
     Pair {
         cluster: c as u32,
         value: value as f32,
         variance: variance as f32,
+        visible: u32::MAX,
     }
+}
+
+/// What a pair's shadow rays know of the static geometry.
+enum Rays<'a> {
+    /// Nothing: they are traced through `at`'s occluders.
+    Trace,
+    /// They are traced through `at`'s (static) occluders, and their verdicts recorded here, a
+    /// bit per ray.
+    Record(&'a mut Vec<u64>),
+    /// The static geometry's verdicts, a bit per ray: only the rays it let through are traced,
+    /// through `at`'s (moving) occluders.
+    Known(&'a [u64]),
 }
 
 /// The pairs (patch, cluster) a pose of the moving geometry (`frame`'s) changes, computed at
@@ -508,11 +582,12 @@ fn pair(
 /// object's box. A pair that the static result holds as non-zero is listed even when it is now
 /// zero.
 fn changed_pairs(
+    lights: &AreaLights,
     scene: &Scene,
     tracer: &SceneTracer,
     frame: usize,
     clusters: &[Cluster],
-    seed: u64,
+    sampling: Sampling,
 ) -> Vec<(u32, Pair)> {
     let triangles = scene.triangles_at(frame);
     let deformed = tracer.deformed_at(scene, frame);
@@ -522,7 +597,11 @@ fn changed_pairs(
         deformed: &deformed,
         triangles: &triangles,
         frame,
-        moving: true,
+        occluders: Occluders::All,
+    };
+    let moving_only = Frame {
+        occluders: Occluders::Moving,
+        ..at
     };
     let emitters: Vec<Emitter> = clusters.iter().map(|c| pose(c, &triangles)).collect();
     let statics = scene.statics.triangles.len();
@@ -566,11 +645,20 @@ fn changed_pairs(
                         emitter.corners[1],
                         emitter.corners[2],
                     ];
-                    if moving || boxes.iter().any(|b| b.meets_hull(&hull)) {
-                        let pair = pair(&at, &receiver, c, emitter, seed, hits);
-                        // A zero at a moving end, or where the static result is zero too,
-                        // changes nothing.
-                        if pair.value > 0.0 || !moving {
+                    if moving {
+                        let pair = pair(&at, &receiver, c, emitter, sampling, Rays::Trace, hits);
+                        if pair.value > 0.0 {
+                            out.push((receiver.patch, pair));
+                        }
+                    } else if boxes.iter().any(|b| b.meets_hull(&hull)) {
+                        // Dark with the static geometry alone: dark whatever moves.
+                        let Some(base) = lights.static_pair(receiver.patch, c) else {
+                            continue;
+                        };
+                        let known = &lights.visible[base.visible as usize..];
+                        let rays = Rays::Known(known);
+                        let pair = pair(&moving_only, &receiver, c, emitter, sampling, rays, hits);
+                        if pair.value != base.value {
                             out.push((receiver.patch, pair));
                         }
                     }
@@ -668,19 +756,35 @@ fn bounds(points: impl Iterator<Item = DVec3>) -> (DVec3, DVec3) {
     )
 }
 
+/// The side of the grid of strata for a pair: 4, 8 or 16 as the face and the emitter look small
+/// or as large as their distance from each other (the irradiance varies more over the face,
+/// and a shadow's edge is wider), times the square root of `density` when above 1; at most 64.
+/// Never fewer: a face across a shadow's edge whose few rays all happen to agree would report
+/// a tiny error bar on a large error (with 16 rays, one penumbra patch in a few hundred does).
+fn grid(face: &Face, emitter: &Emitter, density: f64) -> usize {
+    let centre = (face.corners[0] + face.corners[1] + face.corners[2]) / 3.0;
+    let distance = centre.distance(emitter.centre).max(f64::MIN_POSITIVE);
+    let ratio = (longest_edge(&face.corners) + emitter.edge) / distance;
+    let base: f64 = match ratio {
+        r if r < 0.1 => 4.0,
+        r if r < 0.5 => 8.0,
+        _ => 16.0,
+    };
+    (base * density.max(1.0).sqrt()).round().min(64.0) as usize
+}
+
 /// The form factor from `face` to `emitter` with `at`'s occluders, and its variance: the mean
 /// over `g × g` stratified points `x_k` of the face of `(Ω/π)·cos θ·V`, with Ω the solid angle
 /// of the emitter's part above the face's plane seen from `x_k`, θ the angle from the face's
 /// normal of one stratified direction into that part (uniform in solid angle, Arvo's method)
 /// and V its shadow ray (strata paired at random). Unbiased; exactly 0 where every ray is
-/// blocked, and only the variation of cos θ over the emitter left where none is. `g` grows with
-/// how large the two look from each other: 4 while small, 16 when they are about as large as
-/// their distance.
+/// blocked, and only the variation of cos θ over the emitter left where none is.
 fn form_factor(
     at: &Frame<'_>,
     face: &Face,
     emitter: &Emitter,
-    seed: u64,
+    (seed, g): (u64, usize),
+    mut rays: Rays<'_>,
     hits: &mut Vec<crate::trace::Hit>,
 ) -> (f64, f64) {
     if !face.may_see(emitter) {
@@ -688,19 +792,15 @@ fn form_factor(
     }
     let (n, e) = (face.n, emitter.normal);
     let origin = emitter.corners[0];
-    let centre = (face.corners[0] + face.corners[1] + face.corners[2]) / 3.0;
-    let distance = centre.distance(emitter.centre).max(f64::MIN_POSITIVE);
-    let ratio = (longest_edge(&face.corners) + emitter.edge) / distance;
-    let g: usize = match ratio {
-        r if r < 0.1 => 4,
-        r if r < 0.5 => 8,
-        _ => 16,
-    };
     let count = g * g;
     let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed);
     let mut strata: Vec<usize> = (0..count).collect();
     for k in (1..count).rev() {
         strata.swap(k, rng.random_range(0..=k));
+    }
+    if let Rays::Record(bits) = &mut rays {
+        bits.clear();
+        bits.resize(count.div_ceil(64), 0);
     }
     let mut values = vec![0.0; count];
     for (k, value) in values.iter_mut().enumerate() {
@@ -725,8 +825,18 @@ fn form_factor(
         let Some((y, f)) = sample_polygon(x, n, e, &polygon[..sides], u, v) else {
             continue;
         };
-        if f > 0.0 && !at.blocked(x, y, face.own, face.back, hits) {
+        if f <= 0.0 {
+            continue;
+        }
+        let visible = match &mut rays {
+            Rays::Known(bits) if bits[k / 64] >> (k % 64) & 1 == 0 => false,
+            _ => !at.blocked(x, y, face.own, face.back, hits),
+        };
+        if visible {
             *value = f;
+            if let Rays::Record(bits) = &mut rays {
+                bits[k / 64] |= 1 << (k % 64);
+            }
         }
     }
     // Neighbouring cells (k, k + 1 in a row of the grid) make the pairs.

@@ -253,7 +253,7 @@ fn frame_irradiance(
         deformed: &deformed,
         triangles: &triangles,
         frame,
-        moving: true,
+        occluders: Occluders::All,
     };
     lights
         .iter()
@@ -277,21 +277,39 @@ struct Frame<'a> {
     /// Every traced triangle at the frame (index = global triangle id) with its faces.
     triangles: &'a [([Vec3; 3], Faces)],
     frame: usize,
-    /// Whether the moving objects occlude; without them, only the static geometry does (what
-    /// every frame shares, see [`area`]).
-    moving: bool,
+    /// What occludes.
+    occluders: Occluders,
+}
+
+/// What a [`Frame`]'s shadow rays are tested against.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Occluders {
+    /// The whole scene as posed at the frame.
+    All,
+    /// The static geometry only: what every frame shares (see [`area`]).
+    Static,
+    /// The moving objects only (where the static geometry's verdict is known).
+    Moving,
 }
 
 impl Frame<'_> {
     /// Every crossing of `line` with the occluders, sorted along it.
     fn trace(&self, line: &Line, hits: &mut Vec<Hit>) {
-        if self.moving {
-            self.tracer
-                .trace_frame(line, self.frame, self.deformed, hits);
-        } else {
-            hits.clear();
-            self.tracer.trace_static(line, hits);
-            hits.sort_unstable_by(Hit::order);
+        match self.occluders {
+            Occluders::All => self
+                .tracer
+                .trace_frame(line, self.frame, self.deformed, hits),
+            Occluders::Static => {
+                hits.clear();
+                self.tracer.trace_static(line, hits);
+                hits.sort_unstable_by(Hit::order);
+            }
+            Occluders::Moving => {
+                hits.clear();
+                self.tracer
+                    .trace_moving(line, self.frame, self.deformed, hits);
+                hits.sort_unstable_by(Hit::order);
+            }
         }
     }
 
