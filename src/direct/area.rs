@@ -1014,6 +1014,58 @@ fn clip(t: &[DVec3; 3], n: DVec3, x: DVec3, out: &mut [DVec3; 4]) -> usize {
 mod tests {
     use super::*;
 
+    /// The incremental frames (static verdicts kept, only the moving objects traced along the
+    /// rays they let through, only the pairs a moving box can reach) against every pair of the
+    /// frame traced whole through the posed scene with the same rays: equal to the last bit.
+    #[test]
+    fn each_pose_equals_its_frame_traced_whole() {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/scenes/level.gltf");
+        let options = crate::loader::LoadOptions {
+            fps: 1.5,
+            ..Default::default()
+        };
+        let scene = crate::loader::load(&std::fs::read(path).unwrap(), &options).unwrap();
+        let tracer = SceneTracer::new(&scene);
+        let sampling = Sampling::for_lines(1_000_000, 9);
+        let lights = AreaLights::compute(&scene, &tracer, sampling, &Control::default()).unwrap();
+        assert!(!lights.is_empty() && !scene.objects.is_empty());
+        let mut slot = vec![None; scene.materials.len()];
+        for (k, &m) in lights.materials.iter().enumerate() {
+            slot[m as usize] = Some(k as u16);
+        }
+        let clusters = clusters(&scene, &tracer, &slot);
+        let slots = lights.materials.len();
+        let mut retraced = 0;
+        for frame in 0..scene.frames.count {
+            let triangles = scene.triangles_at(frame);
+            let deformed = tracer.deformed_at(&scene, frame);
+            let at = Frame {
+                scene: &scene,
+                tracer: &tracer,
+                deformed: &deformed,
+                triangles: &triangles,
+                frame,
+                occluders: Occluders::All,
+            };
+            let emitters: Vec<Emitter> = clusters.iter().map(|c| pose(c, &triangles)).collect();
+            let mut whole = vec![0.0f64; scene.patches.len() * slots];
+            let mut hits = Vec::new();
+            for t in 0..triangles.len() {
+                for face in faces(&triangles, t) {
+                    for (c, emitter) in emitters.iter().enumerate() {
+                        let p = pair(&at, &face, c, emitter, sampling, Rays::Trace, &mut hits);
+                        whole[face.patch as usize * slots + clusters[c].slot] += f64::from(p.value);
+                    }
+                }
+            }
+            let (values, _) = lights.form_factors(frame);
+            assert_eq!(values, whole, "frame {frame}");
+            retraced += lights.states[lights.frame_state[frame] as usize].len();
+        }
+        // The door moves: some pairs change, most do not.
+        assert!(retraced > 0 && retraced < lights.pairs.len() * scene.frames.count / 2);
+    }
+
     /// Howell C-11: a point under the corner of a parallel a × b rectangle at height h.
     fn corner(a: f64, b: f64, h: f64) -> f64 {
         let (a, b) = (a / h, b / h);
