@@ -11,7 +11,7 @@ use crate::direct::DirectLight;
 use crate::direct::area::{AreaLights, Sampling};
 use crate::scene::{Light, Material, Scene};
 use crate::solve::tally::{FrameTally, Tallies};
-use crate::solve::{Direct, FrameSolution, SolveParams, solve_lit};
+use crate::solve::{Direct, FrameSolution, SolveParams, solve_lit_from};
 use crate::timeline::{Control, IntersectionList, LineParams, TraceError};
 use crate::trace::SceneTracer;
 
@@ -199,6 +199,28 @@ impl Bake {
         self.solve_tally(&self.frame_tally(frame), frame, materials, power, params)
     }
 
+    /// [`Bake::solve_frame_lit`] starting from `start`, the solution of a nearby frame (with the
+    /// same materials and lights): the same answer to within the solve's stopping criterion
+    /// ([`SolveParams::noise`]), in fewer iterations.
+    #[must_use]
+    pub fn solve_frame_from(
+        &self,
+        frame: usize,
+        materials: &[Material],
+        power: &[[f64; 3]],
+        params: &SolveParams,
+        start: Option<&FrameSolution>,
+    ) -> FrameSolution {
+        self.solve_tally_from(
+            &self.frame_tally(frame),
+            frame,
+            materials,
+            power,
+            params,
+            start,
+        )
+    }
+
     /// [`Bake::solve_frame_lit`] from `tally`, frame `frame`'s tallies however obtained (the
     /// multiframe list's, or the frame traced alone): the direct light is the frame's.
     #[must_use]
@@ -209,6 +231,19 @@ impl Bake {
         materials: &[Material],
         power: &[[f64; 3]],
         params: &SolveParams,
+    ) -> FrameSolution {
+        self.solve_tally_from(tally, frame, materials, power, params, None)
+    }
+
+    /// [`Bake::solve_tally`] starting from `start` (see [`Bake::solve_frame_from`]).
+    fn solve_tally_from(
+        &self,
+        tally: &FrameTally,
+        frame: usize,
+        materials: &[Material],
+        power: &[[f64; 3]],
+        params: &SolveParams,
+        start: Option<&FrameSolution>,
     ) -> FrameSolution {
         let patch_materials = self.patch_materials();
         let punctual = self
@@ -238,7 +273,14 @@ impl Bake {
             variance: &variance,
             sampled: &sampled,
         });
-        solve_lit(tally, &patch_materials, materials, params, direct)
+        solve_lit_from(
+            tally,
+            &patch_materials,
+            materials,
+            params,
+            direct,
+            start.map(|s| s.radiance.as_slice()),
+        )
     }
 
     /// Solves every frame; frames with identical tallies and direct light share one solution.
@@ -253,6 +295,11 @@ impl Bake {
 
     /// [`Bake::solve_all`], adding each distinct frame to solve as one unit of work to
     /// `control`'s current stage.
+    ///
+    /// The distinct frames are split into runs of consecutive frames, about [`RUN`] each,
+    /// solved in parallel; within a run each frame starts from the solution of the one before
+    /// it (an animation changes little from frame to frame). The runs depend only on the
+    /// frames, not on the thread count, so neither do the answers.
     #[must_use]
     pub fn solve_all_with(
         &self,
@@ -265,12 +312,23 @@ impl Bake {
             .filter(|&f| representatives[f] == f)
             .collect();
         control.add_work(distinct.len() as u64);
-        let solved: Vec<(usize, Arc<FrameSolution>)> = distinct
-            .par_iter()
-            .map(|&f| {
-                let solution = Arc::new(self.solve_frame(f, materials, params));
-                control.advance(1);
-                (f, solution)
+        let power = self.light_power();
+        let runs = distinct.len().div_ceil(RUN);
+        let solved: Vec<(usize, Arc<FrameSolution>)> = (0..runs)
+            .into_par_iter()
+            .flat_map_iter(|k| {
+                let run = &distinct[k * distinct.len() / runs..(k + 1) * distinct.len() / runs];
+                let mut previous: Option<Arc<FrameSolution>> = None;
+                run.iter()
+                    .map(|&f| {
+                        let start = previous.as_deref();
+                        let solution =
+                            Arc::new(self.solve_frame_from(f, materials, &power, params, start));
+                        control.advance(1);
+                        previous = Some(solution.clone());
+                        (f, solution)
+                    })
+                    .collect::<Vec<_>>()
             })
             .collect();
         let mut by_frame: Vec<Option<Arc<FrameSolution>>> = vec![None; representatives.len()];
@@ -287,6 +345,10 @@ impl Bake {
             .collect()
     }
 }
+
+/// Distinct frames per run of [`Bake::solve_all_with`]: a run's first frame starts cold, the
+/// others from the frame before; runs are solved in parallel.
+pub const RUN: usize = 8;
 
 /// Overlaps below this share of a node's crossings are chance coincidences (lines through the
 /// seam where two surfaces meet), not overlapping faces.

@@ -122,6 +122,9 @@ struct Summary<'a> {
     sky: [f64; 3],
     /// Worst relative residual of the solver over frames and channels.
     worst_residual: f64,
+    /// Conjugate-gradient iterations of each frame's solve, most over the channels (frames
+    /// that share a solution show the same count).
+    iterations: Vec<usize>,
     /// Whether every frame converged.
     converged: bool,
     /// Patches no line crossed (their radiance is their emission only).
@@ -453,6 +456,7 @@ pub fn bake_one(
         animation: params.load.animation.as_deref(),
         sky: params.sky,
         worst_residual: frames.iter().map(|f| f.residual).fold(0.0, f64::max),
+        iterations: frames.iter().map(|f| f.iterations).collect(),
         converged: frames.iter().all(|f| f.converged),
         unsampled_patches: frames
             .first()

@@ -62,6 +62,13 @@ fn a_directory_bakes_skips_when_unchanged_and_survives_a_broken_scene() {
         assert_eq!(&bin[..4], b"RADB");
         assert_eq!(bin.len(), 16 + frames * (8 + patches * 28), "{name}");
         assert!(summary["converged"].as_bool().unwrap());
+        // The solve's iterations, frame by frame.
+        let iterations = summary["iterations"].as_array().unwrap();
+        assert_eq!(iterations.len(), frames, "{name}");
+        assert!(
+            iterations.iter().all(serde_json::Value::is_u64),
+            "{name}: {iterations:?}"
+        );
     }
     assert!(!out.join("broken").exists());
     // Nothing half-written is left behind: no staging directory beside the outputs.

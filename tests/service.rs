@@ -118,6 +118,10 @@ async fn every_sample_scene_bakes_and_serves_every_frame() {
         let status = wait(&client, &base, &id, Duration::from_secs(60)).await;
         assert_eq!(status["status"], "done", "{name}: {status}");
         assert_eq!(status["progress"]["frames_solved"], frames);
+        // Every frame's iterations, now that all are solved.
+        let iterations = status["iterations"].as_array().unwrap();
+        assert_eq!(iterations.len(), frames, "{name}");
+        assert!(iterations.iter().all(Value::is_u64), "{name}: {status}");
         let table: Value = get_json(&client, format!("{base}/v1/timelines/{id}/patches")).await;
         assert_eq!(table["patches"].as_array().unwrap().len(), patches);
         for f in 0..frames {

@@ -431,8 +431,10 @@ impl Job {
     }
 
     /// Solves every frame for the current version, in order, a couple per core at a time, so
-    /// that streams see them in order. A frame that does not converge stops the work: the
-    /// frames before it are kept, it and those after are not.
+    /// that streams see them in order: each core takes a run of consecutive frames, the first
+    /// starting from the last frame solved before them and the next from the one before it
+    /// ([`Bake::solve_frame_from`]). A frame that does not converge stops the work: the frames
+    /// before it are kept, it and those after are not.
     fn solve_frames(&self, bake: &Bake) -> Result<(), NotConverged> {
         self.set_status(Status::Solving);
         let started = Instant::now();
@@ -446,28 +448,44 @@ impl Job {
             .lock()
             .map(|l| l.iter().map(LightSetting::power).collect())
             .unwrap_or_default();
-        let chunk = 2 * rayon::current_num_threads().max(1);
+        const RUN: usize = 2;
+        let threads = rayon::current_num_threads().max(1);
         let frames = self.frame_times.len();
         let mut frame = 0;
+        // The last frame solved for this version, where the next runs start.
+        let mut last: Option<Arc<FrameSolution>> = None;
         while frame < frames {
             if self.control.is_cancelled() {
                 return Ok(());
             }
-            let end = (frame + chunk).min(frames);
+            let end = (frame + RUN * threads).min(frames);
             let solved: Vec<Arc<FrameSolution>> = {
                 use rayon::prelude::*;
-                (frame..end)
-                    .into_par_iter()
-                    .map(|f| {
-                        let r = representatives[f];
-                        let shared = (r < f)
-                            .then(|| self.frame(r))
-                            .flatten()
-                            .filter(|(v, _)| *v == version);
-                        match shared {
-                            Some((_, s)) => s,
-                            None => Arc::new(bake.solve_frame_lit(f, &materials, &power, &params)),
-                        }
+                let runs: Vec<usize> = (frame..end).step_by(RUN).collect();
+                runs.into_par_iter()
+                    .flat_map_iter(|first| {
+                        let mut previous = last.clone();
+                        (first..(first + RUN).min(end))
+                            .map(|f| {
+                                let r = representatives[f];
+                                let shared = (r < f)
+                                    .then(|| self.frame(r))
+                                    .flatten()
+                                    .filter(|(v, _)| *v == version);
+                                let solution = match shared {
+                                    Some((_, s)) => s,
+                                    None => Arc::new(bake.solve_frame_from(
+                                        f,
+                                        &materials,
+                                        &power,
+                                        &params,
+                                        previous.as_deref(),
+                                    )),
+                                };
+                                previous = Some(solution.clone());
+                                solution
+                            })
+                            .collect::<Vec<_>>()
                     })
                     .collect()
             };
@@ -476,6 +494,7 @@ impl Job {
                 .enumerate()
                 .find_map(|(k, s)| s.ensure_converged(frame + k, &params).err());
             let good = failed.as_ref().map_or(solved.len(), |e| e.frame - frame);
+            last = solved.get(good.wrapping_sub(1)).cloned();
             if let Ok(mut results) = self.results.write() {
                 for (k, s) in solved.into_iter().take(good).enumerate() {
                     results[frame + k] = Some((version, s));

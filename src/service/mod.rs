@@ -337,6 +337,21 @@ fn status_json(job: &Job) -> serde_json::Value {
         }
         _ => None,
     };
+    // The solves' iterations per frame, for the frames solved for the current version.
+    let version = job.version.load(Ordering::Acquire);
+    let iterations: Vec<Option<usize>> = job.results.read().map_or_else(
+        |_| vec![None; frames],
+        |results| {
+            results
+                .iter()
+                .map(|r| {
+                    r.as_ref()
+                        .filter(|(v, _)| *v == version)
+                        .map(|(_, s)| s.iterations)
+                })
+                .collect()
+        },
+    );
     let mut doc = json!({
         "id": job.id,
         "status": status,
@@ -349,6 +364,7 @@ fn status_json(job: &Job) -> serde_json::Value {
         },
         "frames": frames,
         "patches": job.patches,
+        "iterations": iterations,
         "timings": timings,
         "memory": memory.map(|(hits, bytes)| json!({"hits": hits, "bytes": bytes})),
         "warnings": job.warnings(),

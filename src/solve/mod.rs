@@ -14,6 +14,22 @@
 //! between patches; it is never taken below the spread of the patch's own first bounce between
 //! the replicas, which low sample counts can hide from the solutions' spread.
 //!
+//! Conjugate gradients stop when the answer can no longer move by a visible share of its own
+//! noise: with `M = D⁻¹S` the transport among the unknowns (row sums `q_i = ρ_i Σ_j S_ij / N_i`
+//! ≤ ρ_i) and `z = D⁻¹r` the preconditioned residual, the error `e` of the iterate solves
+//! `(I − M) e = z`, so `|e_i| ≤ |z_i| + q_i ‖z‖∞ / (1 − max q)` (a rigorous bound, which grows
+//! as 1/(1 − ρ) for reflectance near 1). The solve stops once that bound is below
+//! [`SolveParams::noise`] times every patch's standard error (its first bounce's spread between
+//! the replicas, a lower bound on the σ reported, measured at the iterate and lowered by what
+//! the remaining error can change it), or below [`SolveParams::precision`] times its radiance
+//! (patches without noise, a furnace); reaching the relative residual
+//! [`SolveParams::tolerance`] also stops it, so it never costs more than that.
+//!
+//! The three channels share `S`: they are solved together, one pass over the rows updating
+//! three vectors, the rows split between threads when the system is large (a static scene is
+//! one frame). A solve can start from a nearby solution (the previous frame,
+//! [`solve_lit_from`]); the replicas start from the pooled one.
+//!
 //! A solve that stops at its iteration cap is no answer: [`FrameSolution::converged`] says so and
 //! [`FrameSolution::ensure_converged`] turns it into an error, which fails the bake or the job.
 //! The replica solves only measure the spread: when the pooled solve did not converge they are
@@ -35,8 +51,16 @@ use tally::{ABSORBED, FrameTally, SKY};
 pub struct SolveParams {
     /// Radiance of everything outside the scene, RGB, in emission units.
     pub sky: [f64; 3],
-    /// Stop when the residual has fallen to this fraction of the right-hand side (`|r| / |b|`).
+    /// Stop at the latest when the residual has fallen to this fraction of the right-hand side
+    /// (`|r| / |b|`), whatever the noise.
     pub tolerance: f64,
+    /// Stop as soon as a bound on every patch's remaining error is below this fraction of its
+    /// standard error (module docs): the answer then moves by less than that share of its own
+    /// noise however long the solve goes on.
+    pub noise: f64,
+    /// Or below this fraction of its radiance: the stop for patches whose estimate has no noise
+    /// (every segment from them ends on equal radiance, as in a furnace).
+    pub precision: f64,
     /// Give up after this many iterations per channel: the frame is then not converged, and
     /// the bake and the service fail it rather than answer with it.
     pub max_iterations: usize,
@@ -47,6 +71,8 @@ impl Default for SolveParams {
         Self {
             sky: [0.0; 3],
             tolerance: 1e-10,
+            noise: 0.01,
+            precision: 1e-8,
             max_iterations: 20_000,
         }
     }
@@ -66,12 +92,13 @@ pub struct FrameSolution {
     pub iterations: usize,
     /// Relative residual reached, worst over the channels.
     pub residual: f64,
-    /// Whether every channel reached the tolerance.
+    /// Whether every channel stopped by its criterion (noise, precision or tolerance) rather
+    /// than at the iteration cap or a breakdown.
     pub converged: bool,
 }
 
 impl FrameSolution {
-    /// `Ok` if every channel reached the tolerance; otherwise why frame `frame`, solved with
+    /// `Ok` if every channel converged; otherwise why frame `frame`, solved with
     /// `params`, is no answer.
     pub fn ensure_converged(&self, frame: usize, params: &SolveParams) -> Result<(), NotConverged> {
         if self.converged {
@@ -159,267 +186,404 @@ pub fn solve_lit(
     params: &SolveParams,
     direct: Option<Direct<'_>>,
 ) -> FrameSolution {
+    solve_lit_from(tally, patch_material, materials, params, direct, None)
+}
+
+/// [`solve_lit`] starting from `start`, the radiance of a nearby solution (the frame before, in
+/// an animation) instead of the emission: the same answer to within the stopping criterion, in
+/// fewer iterations.
+#[must_use]
+pub fn solve_lit_from(
+    tally: &FrameTally,
+    patch_material: &[u32],
+    materials: &[Material],
+    params: &SolveParams,
+    direct: Option<Direct<'_>>,
+    start: Option<&[[f64; 3]]>,
+) -> FrameSolution {
     let patches = patch_material.len();
-    let mut radiance = vec![[0.0; 3]; patches];
-    let mut stderr: Vec<Option<[f64; 3]>> = (0..patches)
-        .map(|i| (tally.crossings[i] > 0).then_some([0.0; 3]))
+    let rho: Vec<[f64; 3]> = patch_material
+        .iter()
+        .map(|&m| materials[m as usize].reflectance)
         .collect();
-    let (mut iterations, mut residual, mut converged) = (0, 0.0f64, true);
-    // Each replica's tallies, taken apart once for the three channels.
-    let replicas: Vec<FrameTally> = (0..tally::GROUPS as u8)
-        .into_par_iter()
-        .map(|g| tally.replica(g))
-        .collect();
-    for c in 0..3 {
-        let rho: Vec<f64> = patch_material
-            .iter()
-            .map(|&m| materials[m as usize].reflectance[c])
-            .collect();
-        let emission: Vec<f64> = patch_material
-            .iter()
-            .enumerate()
-            .map(|(i, &m)| {
-                let material = &materials[m as usize];
+    let emission: Vec<[f64; 3]> = patch_material
+        .iter()
+        .enumerate()
+        .map(|(i, &m)| {
+            let material = &materials[m as usize];
+            std::array::from_fn(|c| {
                 let reflected = direct.map_or(0.0, |d| {
                     material.reflectance[c] * d.irradiance[i][c] * std::f64::consts::FRAC_1_PI
                 });
                 material.emission[c] + reflected
             })
-            .collect();
-        // The emission the lines do not carry: the sampled emitters'.
-        let seen: Vec<f64> = patch_material
-            .iter()
-            .enumerate()
-            .map(|(i, &m)| match direct {
-                Some(d) if d.sampled[i] => materials[m as usize].emission[c],
-                _ => 0.0,
-            })
-            .collect();
-        let system = System::new(tally, &rho);
-        let light = system.solve(&emission, &seen, params.sky[c], params);
-        iterations = iterations.max(light.iterations);
-        residual = residual.max(light.residual);
-        converged &= light.converged;
-        // Replicas of a solve that is no answer would measure nothing: skip them.
-        let error = if light.converged {
-            replica_errors(
-                &replicas,
-                &rho,
-                &emission,
-                &seen,
-                params.sky[c],
-                &light.values,
-                params,
-            )
-        } else {
-            vec![None; patches]
-        };
-        for i in 0..patches {
-            radiance[i][c] = light.values[i];
-            if let Some(e) = &mut stderr[i] {
-                e[c] = if system.unknown[i] {
-                    // The spread of the replicas' solutions, and never less than the spread of
-                    // the patch's own first bounce (which low sample counts can hide from
-                    // the former).
-                    let first =
-                        rho[i] * system.sample_deviation(i, &light.values, &seen, params.sky[c]);
-                    let lines = error[i].map_or(first, |e| e.max(first));
+        })
+        .collect();
+    // The emission the lines do not carry: the sampled emitters'.
+    let seen: Vec<[f64; 3]> = patch_material
+        .iter()
+        .enumerate()
+        .map(|(i, &m)| match direct {
+            Some(d) if d.sampled[i] => materials[m as usize].emission,
+            _ => [0.0; 3],
+        })
+        .collect();
+    let system = System::new(tally, &rho);
+    let stop = Stop {
+        tolerance: params.tolerance,
+        max_iterations: params.max_iterations,
+        noise: params.noise,
+        precision: params.precision,
+        target: Target::FirstBounce,
+    };
+    let light = system.solve(&emission, &seen, params.sky, start, &stop);
+    let converged = light.converged.iter().all(|&c| c);
+    // The spread of each patch's own first bounce, which low sample counts can hide from the
+    // replicas' spread.
+    let first = system.first_bounce(&light.values, &seen, params.sky);
+    // Replicas of a solve that is no answer would measure nothing: skip them.
+    let error = if converged {
+        replica_errors(tally, &rho, &emission, &seen, &light.values, &first, params)
+    } else {
+        vec![[None; 3]; patches]
+    };
+    let stderr = (0..patches)
+        .map(|i| {
+            (tally.crossings[i] > 0).then(|| {
+                std::array::from_fn(|c| {
+                    if !system.unknown(i, c) {
+                        return 0.0;
+                    }
+                    // The spread of the replicas' solutions, and never less than the first
+                    // bounce's.
+                    let lines = error[i][c].map_or(first[i][c], |e: f64| e.max(first[i][c]));
                     // The direct light's own sampling error, independent of the lines'.
                     let sampled = direct.map_or(0.0, |d| {
-                        d.variance[i][c] * (rho[i] * std::f64::consts::FRAC_1_PI).powi(2)
+                        d.variance[i][c] * (rho[i][c] * std::f64::consts::FRAC_1_PI).powi(2)
                     });
                     (lines * lines + sampled).sqrt()
-                } else {
-                    0.0
-                };
-            }
-        }
-    }
+                })
+            })
+        })
+        .collect();
     FrameSolution {
-        radiance,
+        radiance: light.values,
         stderr,
         samples: tally.crossings.clone(),
-        iterations,
-        residual,
+        iterations: light.iterations,
+        residual: light.residual.iter().copied().fold(0.0, f64::max),
         converged,
     }
 }
 
+/// The replicas stop at the latest at this relative residual: they measure a spread, not an
+/// answer.
+const REPLICA_TOLERANCE: f64 = 1e-6;
+
 /// Standard errors from the independent replicas of the lines (METHOD.md §6): each replica's
-/// tallies alone give a full solution (warm-started from the pooled one), and the spread of
-/// those solutions, divided by √K, is the error of their pooled mean. It carries every bounce
-/// and every correlation between patches. `None` for a patch fewer than 4 replicas crossed. A
-/// replica that stops at the iteration cap is left out (its values, still near the pooled ones
-/// it started from, would narrow the spread): the others' spread over √(their number) is wider
-/// in expectation.
+/// tallies alone give a full solution (warm-started from the `pooled` one, stopped against the
+/// pooled solution's first-bounce spread `first`, which is below the replicas' own spread by
+/// about √K), and the spread of those solutions, divided by √K, is the error of their pooled
+/// mean. It carries every bounce and every correlation between patches. `None` for a patch
+/// fewer than 4 replicas crossed. A replica channel that stops at the iteration cap is left out
+/// (its values, still near the pooled ones it started from, would narrow the spread): the
+/// others' spread over √(their number) is wider in expectation.
 fn replica_errors(
-    replicas: &[FrameTally],
-    rho: &[f64],
-    emission: &[f64],
-    seen: &[f64],
-    sky: f64,
-    pooled: &[f64],
+    tally: &FrameTally,
+    rho: &[[f64; 3]],
+    emission: &[[f64; 3]],
+    seen: &[[f64; 3]],
+    pooled: &[[f64; 3]],
+    first: &[[f64; 3]],
     params: &SolveParams,
-) -> Vec<Option<f64>> {
+) -> Vec<[Option<f64>; 3]> {
     let patches = rho.len();
-    let mut sum = vec![0.0; patches];
-    let mut sum_sq = vec![0.0; patches];
-    let mut count = vec![0usize; patches];
-    let loose = SolveParams {
-        tolerance: 1e-6,
-        ..*params
+    let stop = Stop {
+        tolerance: REPLICA_TOLERANCE,
+        max_iterations: params.max_iterations,
+        noise: params.noise,
+        precision: params.precision,
+        target: Target::Fixed(first),
     };
     // The replicas are solved in parallel (a frame alone, as a static scene is, then uses every
     // core), and summed in their order: the result does not depend on the thread count.
-    let solved: Vec<Option<(Vec<bool>, Vec<f64>)>> = replicas
+    let solved: Vec<(Vec<[bool; 3]>, Solved)> = tally
+        .replicas()
         .par_iter()
         .map(|replica| {
             let system = System::new(replica, rho);
-            let solved = system.solve_from(emission, seen, sky, Some(pooled), &loose);
-            solved.converged.then_some((system.unknown, solved.values))
+            let solved = system.solve(emission, seen, params.sky, Some(pooled), &stop);
+            let unknown = (0..patches)
+                .map(|i| std::array::from_fn(|c| system.unknown(i, c)))
+                .collect();
+            (unknown, solved)
         })
         .collect();
-    for (unknown, values) in solved.iter().flatten() {
+    let mut sum = vec![[0.0; 3]; patches];
+    let mut sum_sq = vec![[0.0; 3]; patches];
+    let mut count = vec![[0usize; 3]; patches];
+    for (unknown, solved) in &solved {
         for i in 0..patches {
-            if unknown[i] {
-                let v = values[i];
-                sum[i] += v;
-                sum_sq[i] += v * v;
-                count[i] += 1;
+            for c in 0..3 {
+                if unknown[i][c] && solved.converged[c] {
+                    let v = solved.values[i][c];
+                    sum[i][c] += v;
+                    sum_sq[i][c] += v * v;
+                    count[i][c] += 1;
+                }
             }
         }
     }
     (0..patches)
         .map(|i| {
-            let k = count[i] as f64;
-            (count[i] >= 4).then(|| {
-                let mean = sum[i] / k;
-                let variance = ((sum_sq[i] - k * mean * mean) / (k - 1.0)).max(0.0);
-                (variance / k).sqrt()
+            std::array::from_fn(|c| {
+                let k = count[i][c] as f64;
+                (count[i][c] >= 4).then(|| {
+                    let mean = sum[i][c] / k;
+                    let variance = ((sum_sq[i][c] - k * mean * mean) / (k - 1.0)).max(0.0);
+                    (variance / k).sqrt()
+                })
             })
         })
         .collect()
 }
 
-/// The system of one channel.
-struct System<'a> {
-    tally: &'a FrameTally,
-    rho: &'a [f64],
-    /// Patches solved for: crossed by some line and reflecting.
-    unknown: Vec<bool>,
-    /// Diagonal `N_i / ρ_i` of the unknowns.
-    diagonal: Vec<f64>,
+/// When conjugate gradients stop (see the module docs).
+struct Stop<'b> {
+    /// Relative residual that stops a channel whatever the noise.
+    tolerance: f64,
+    /// Iterations after which a channel gives up, not converged.
+    max_iterations: usize,
+    /// [`SolveParams::noise`].
+    noise: f64,
+    /// [`SolveParams::precision`].
+    precision: f64,
+    /// The standard errors the remaining error is weighed against.
+    target: Target<'b>,
 }
 
-/// A channel's solution.
+/// The standard errors a solve's remaining error is weighed against.
+enum Target<'b> {
+    /// Each patch's first-bounce spread, measured at the iterate as it improves.
+    FirstBounce,
+    /// Given, per patch and channel, in radiance units (a replica: the pooled solution's).
+    Fixed(&'b [[f64; 3]]),
+}
+
+/// Rows per unit of parallel work: systems smaller than this are applied on one thread.
+const ROWS: usize = 2048;
+
+/// `out[i] = f(i)` for every row, split between threads when there are many.
+fn for_rows<T: Send>(out: &mut [T], f: impl Fn(usize) -> T + Sync) {
+    if out.len() <= ROWS {
+        out.iter_mut().enumerate().for_each(|(i, o)| *o = f(i));
+    } else {
+        out.par_chunks_mut(ROWS).enumerate().for_each(|(k, chunk)| {
+            for (o, v) in chunk.iter_mut().enumerate() {
+                *v = f(k * ROWS + o);
+            }
+        });
+    }
+}
+
+/// Per channel, `Σ_i a_i·b_i`.
+fn dots(a: &[[f64; 3]], b: &[[f64; 3]]) -> [f64; 3] {
+    a.iter().zip(b).fold([0.0; 3], |mut s, (x, y)| {
+        (0..3).for_each(|c| s[c] += x[c] * y[c]);
+        s
+    })
+}
+
+/// The three channels' systems of one tally: `S` is shared, the diagonal is per channel.
+struct System<'a> {
+    tally: &'a FrameTally,
+    rho: &'a [[f64; 3]],
+    /// Diagonal `N_i / ρ_i` where patch i is solved for in a channel (crossed by some line and
+    /// reflecting in it), 0 elsewhere.
+    diagonal: Vec<[f64; 3]>,
+    /// Row sums `q_i = ρ_i Σ_j S_ij / N_i` of the transport among the unknowns: how far a
+    /// residual spreads into error (module docs).
+    coupling: Vec<[f64; 3]>,
+    /// The largest row sum per channel.
+    max_coupling: [f64; 3],
+}
+
+/// A solve's outcome, per channel.
 struct Solved {
-    values: Vec<f64>,
+    /// Radiance per patch (the emission where a patch is not solved for).
+    values: Vec<[f64; 3]>,
+    /// Iterations, most over the channels.
     iterations: usize,
-    residual: f64,
-    converged: bool,
+    residual: [f64; 3],
+    converged: [bool; 3],
 }
 
 impl<'a> System<'a> {
-    fn new(tally: &'a FrameTally, rho: &'a [f64]) -> Self {
-        let unknown: Vec<bool> = (0..rho.len())
-            .map(|i| tally.crossings[i] > 0 && rho[i] > 0.0)
-            .collect();
-        let diagonal = (0..rho.len())
-            .map(|i| {
-                if unknown[i] {
-                    tally.crossings[i] as f64 / rho[i]
+    fn new(tally: &'a FrameTally, rho: &'a [[f64; 3]]) -> Self {
+        let n = rho.len();
+        let mut diagonal = vec![[0.0; 3]; n];
+        for_rows(&mut diagonal, |i| {
+            let crossings = tally.crossings[i] as f64;
+            rho[i].map(|r| {
+                if crossings > 0.0 && r > 0.0 {
+                    crossings / r
                 } else {
                     0.0
                 }
             })
-            .collect();
+        });
+        let mut coupling = vec![[0.0; 3]; n];
+        let diagonal_ref = &diagonal;
+        for_rows(&mut coupling, |i| {
+            let mut sum = [0.0; 3];
+            if diagonal_ref[i] != [0.0; 3] {
+                for (j, s) in Self::row_of(tally, i) {
+                    if j < ABSORBED {
+                        let d = diagonal_ref[j as usize];
+                        (0..3).for_each(|c| {
+                            if d[c] > 0.0 {
+                                sum[c] += s;
+                            }
+                        });
+                    }
+                }
+            }
+            std::array::from_fn(|c| {
+                if diagonal_ref[i][c] > 0.0 {
+                    rho[i][c] * sum[c] / tally.crossings[i] as f64
+                } else {
+                    0.0
+                }
+            })
+        });
+        let max_coupling = coupling
+            .iter()
+            .fold([0.0f64; 3], |m, q| std::array::from_fn(|c| m[c].max(q[c])));
         Self {
             tally,
             rho,
-            unknown,
             diagonal,
+            coupling,
+            max_coupling,
         }
     }
 
-    fn row(&self, i: usize) -> impl Iterator<Item = (u32, f64)> + '_ {
-        let range = self.tally.offsets[i]..self.tally.offsets[i + 1];
-        self.tally.columns[range.clone()]
+    /// Whether patch i is solved for in channel c.
+    fn unknown(&self, i: usize, c: usize) -> bool {
+        self.diagonal[i][c] > 0.0
+    }
+
+    fn row_of(tally: &FrameTally, i: usize) -> impl Iterator<Item = (u32, f64)> + '_ {
+        let range = tally.offsets[i]..tally.offsets[i + 1];
+        tally.columns[range.clone()]
             .iter()
             .copied()
-            .zip(self.tally.counts[range].iter().map(|&c| c as f64))
+            .zip(tally.counts[range].iter().map(|&c| c as f64))
     }
 
-    /// `y = A x` on the unknowns.
-    fn apply(&self, x: &[f64], y: &mut [f64]) {
-        for (i, yi) in y.iter_mut().enumerate() {
-            if !self.unknown[i] {
-                *yi = 0.0;
-                continue;
+    /// `y = A x` on the unknowns, the three channels in one pass over the rows; `x` is 0 where
+    /// a patch is not solved for.
+    fn apply(&self, x: &[[f64; 3]], y: &mut [[f64; 3]]) {
+        for_rows(y, |i| {
+            let d = self.diagonal[i];
+            if d == [0.0; 3] {
+                return [0.0; 3];
             }
-            let mut sum = self.diagonal[i] * x[i];
-            for (j, s) in self.row(i) {
-                if j < ABSORBED && self.unknown[j as usize] {
-                    sum -= s * x[j as usize];
+            let mut sum = [d[0] * x[i][0], d[1] * x[i][1], d[2] * x[i][2]];
+            for (j, s) in Self::row_of(self.tally, i) {
+                if j < ABSORBED {
+                    let xj = x[j as usize];
+                    sum[0] -= s * xj[0];
+                    sum[1] -= s * xj[1];
+                    sum[2] -= s * xj[2];
                 }
             }
-            *yi = sum;
-        }
+            std::array::from_fn(|c| if d[c] > 0.0 { sum[c] } else { 0.0 })
+        });
     }
 
     /// Solves `L = Le + ρ F (L − seen) + ρ F_sky L_sky` for emission `le` (the known patches
-    /// keep `L = Le`); `seen` is the emission the lines do not carry (sampled emitters').
-    fn solve(&self, le: &[f64], seen: &[f64], sky: f64, params: &SolveParams) -> Solved {
-        self.solve_from(le, seen, sky, None, params)
-    }
-
-    /// [`System::solve`] starting from `start` (a nearby solution) instead of the emission.
-    fn solve_from(
+    /// keep `L = Le`); `seen` is the emission the lines do not carry (sampled emitters'). Starts
+    /// from `start` (a nearby solution) if given, else from the emission.
+    fn solve(
         &self,
-        le: &[f64],
-        seen: &[f64],
-        sky: f64,
-        start: Option<&[f64]>,
-        params: &SolveParams,
+        le: &[[f64; 3]],
+        seen: &[[f64; 3]],
+        sky: [f64; 3],
+        start: Option<&[[f64; 3]]>,
+        stop: &Stop<'_>,
     ) -> Solved {
         let n = le.len();
-        // The system is linear: solve it scaled to O(1) whatever the emission's magnitude
-        // (1e-30 or 1e30), and scale back.
-        let scale = le.iter().fold(sky.abs(), |m, v| m.max(v.abs()));
-        let mut values: Vec<f64> = le.to_vec();
-        if scale == 0.0 || !scale.is_finite() {
-            return Solved {
-                values,
-                iterations: 0,
-                residual: if scale == 0.0 { 0.0 } else { f64::INFINITY },
-                converged: scale == 0.0,
-            };
-        }
-        let le_s: Vec<f64> = le.iter().map(|v| v / scale).collect();
-        let sky_s = sky / scale;
-        let mut b = vec![0.0; n];
-        for i in 0..n {
-            if !self.unknown[i] {
-                continue;
-            }
-            let mut bi = self.diagonal[i] * le_s[i];
-            for (j, s) in self.row(i) {
-                bi += s * match j {
-                    SKY => sky_s,
-                    ABSORBED => 0.0,
-                    j if !self.unknown[j as usize] => (le[j as usize] - seen[j as usize]) / scale,
-                    j => -seen[j as usize] / scale,
-                };
-            }
-            b[i] = bi;
-        }
-        let x0: Vec<f64> = match start {
-            Some(x) => x.iter().map(|v| v / scale).collect(),
-            None => le_s.clone(),
+        // The system is linear: each channel is solved scaled to O(1) whatever the emission's
+        // magnitude (1e-30 or 1e30), and scaled back.
+        let scale: [f64; 3] =
+            std::array::from_fn(|c| le.iter().fold(sky[c].abs(), |m, v| m.max(v[c].abs())));
+        let solvable = scale.map(|s| s > 0.0 && s.is_finite());
+        let scaled = |v: &[f64; 3]| -> [f64; 3] {
+            std::array::from_fn(|c| if solvable[c] { v[c] / scale[c] } else { 0.0 })
         };
-        let (x, iterations, residual, converged) = self.conjugate_gradients(&b, &x0, params);
-        for i in 0..n {
-            if self.unknown[i] {
-                values[i] = x[i] * scale;
+        let le_s: Vec<[f64; 3]> = le.iter().map(scaled).collect();
+        let seen_s: Vec<[f64; 3]> = seen.iter().map(scaled).collect();
+        let sky_s = scaled(&sky);
+        let mut b = vec![[0.0; 3]; n];
+        for_rows(&mut b, |i| {
+            let d = self.diagonal[i];
+            let mut bi = [0.0; 3];
+            if d == [0.0; 3] {
+                return bi;
+            }
+            for c in 0..3 {
+                bi[c] = d[c] * le_s[i][c];
+            }
+            for (j, s) in Self::row_of(self.tally, i) {
+                for c in 0..3 {
+                    bi[c] += s * match j {
+                        SKY => sky_s[c],
+                        ABSORBED => 0.0,
+                        j if !self.unknown(j as usize, c) => {
+                            le_s[j as usize][c] - seen_s[j as usize][c]
+                        }
+                        j => -seen_s[j as usize][c],
+                    };
+                }
+            }
+            std::array::from_fn(|c| if d[c] > 0.0 { bi[c] } else { 0.0 })
+        });
+        let x0: Vec<[f64; 3]> = (0..n)
+            .map(|i| {
+                std::array::from_fn(|c| match start {
+                    _ if !self.unknown(i, c) || !solvable[c] => 0.0,
+                    Some(s) => s[i][c] / scale[c],
+                    None => le_s[i][c],
+                })
+            })
+            .collect();
+        let fixed: Option<Vec<[f64; 3]>> = match stop.target {
+            Target::FirstBounce => None,
+            Target::Fixed(sigma) => Some(sigma.iter().map(scaled).collect()),
+        };
+        let problem = Scaled {
+            b: &b,
+            le: &le_s,
+            seen: &seen_s,
+            sky: sky_s,
+            fixed: fixed.as_deref(),
+        };
+        let (x, iterations, mut residual, mut converged) =
+            self.conjugate_gradients(&problem, x0, solvable, stop);
+        let mut values = le.to_vec();
+        for (i, v) in values.iter_mut().enumerate() {
+            for c in 0..3 {
+                if solvable[c] && self.unknown(i, c) {
+                    v[c] = x[i][c] * scale[c];
+                }
+            }
+        }
+        for c in 0..3 {
+            if !solvable[c] {
+                // Nothing to solve (no light at all), or light beyond f64 (no answer).
+                converged[c] = scale[c] == 0.0;
+                residual[c] = if converged[c] { 0.0 } else { f64::INFINITY };
             }
         }
         Solved {
@@ -430,93 +594,288 @@ impl<'a> System<'a> {
         }
     }
 
-    /// Diagonally preconditioned conjugate gradients from `x0`.
+    /// Diagonally preconditioned conjugate gradients from `x`, the channels in step; a channel
+    /// stops as [`Stop`] says and its values stay as they are while the others go on.
     fn conjugate_gradients(
         &self,
-        b: &[f64],
-        x0: &[f64],
-        params: &SolveParams,
-    ) -> (Vec<f64>, usize, f64, bool) {
-        let n = b.len();
-        let dot = |a: &[f64], c: &[f64]| a.iter().zip(c).map(|(x, y)| x * y).sum::<f64>();
-        let mut x: Vec<f64> = (0..n)
-            .map(|i| if self.unknown[i] { x0[i] } else { 0.0 })
-            .collect();
-        let mut r = vec![0.0; n];
+        problem: &Scaled<'_>,
+        mut x: Vec<[f64; 3]>,
+        solvable: [bool; 3],
+        stop: &Stop<'_>,
+    ) -> (Vec<[f64; 3]>, usize, [f64; 3], [bool; 3]) {
+        let n = x.len();
+        let b = problem.b;
+        let mut r = vec![[0.0; 3]; n];
         self.apply(&x, &mut r);
-        r.iter_mut().zip(b).for_each(|(ri, bi)| *ri = bi - *ri);
-        let precondition = |r: &[f64], z: &mut [f64]| {
-            for i in 0..n {
-                z[i] = if self.unknown[i] {
-                    r[i] / self.diagonal[i]
-                } else {
-                    0.0
-                };
+        r.iter_mut().zip(b).for_each(|(ri, bi)| {
+            (0..3).for_each(|c| ri[c] = bi[c] - ri[c]);
+        });
+        let precondition = |r: &[[f64; 3]], z: &mut [[f64; 3]]| {
+            for (i, zi) in z.iter_mut().enumerate() {
+                let d = self.diagonal[i];
+                *zi = std::array::from_fn(|c| if d[c] > 0.0 { r[i][c] / d[c] } else { 0.0 });
             }
         };
-        let b_norm = dot(b, b).sqrt();
-        if b_norm == 0.0 {
-            return (vec![0.0; n], 0, 0.0, true);
+        let b_norm = dots(b, b).map(f64::sqrt);
+        let mut residual = [0.0; 3];
+        let mut converged = [false; 3];
+        // Channels still iterating.
+        let mut running = solvable;
+        for c in 0..3 {
+            if running[c] && b_norm[c] == 0.0 {
+                // Nothing reaches the unknowns: they are dark.
+                x.iter_mut().for_each(|v| v[c] = 0.0);
+                running[c] = false;
+                converged[c] = true;
+            }
         }
-        let mut z = vec![0.0; n];
+        let mut z = vec![[0.0; 3]; n];
         precondition(&r, &mut z);
         let mut p = z.clone();
-        let mut rz = dot(&r, &z);
-        let mut q = vec![0.0; n];
-        let mut residual = dot(&r, &r).sqrt() / b_norm;
-        for iteration in 0..params.max_iterations {
-            if residual <= params.tolerance {
-                return (x, iteration, residual, true);
+        let mut rz = dots(&r, &z);
+        let mut q = vec![[0.0; 3]; n];
+        let mut noise = Noise::new(problem.fixed);
+        let mut iteration = 0;
+        loop {
+            let rr = dots(&r, &r);
+            let mut check = [false; 3];
+            for c in 0..3 {
+                if running[c] {
+                    residual[c] = rr[c].sqrt() / b_norm[c];
+                    if residual[c] <= stop.tolerance {
+                        running[c] = false;
+                        converged[c] = true;
+                    } else {
+                        check[c] = true;
+                    }
+                }
+            }
+            let quiet = noise.quiet(self, problem, &x, &z, check, stop);
+            for c in 0..3 {
+                if quiet[c] {
+                    running[c] = false;
+                    converged[c] = true;
+                }
+            }
+            if running == [false; 3] || iteration == stop.max_iterations {
+                break;
             }
             self.apply(&p, &mut q);
-            let pq = dot(&p, &q);
-            if pq <= 0.0 || !pq.is_finite() {
-                return (x, iteration, residual, false);
+            let pq = dots(&p, &q);
+            let mut alpha = [0.0; 3];
+            for c in 0..3 {
+                if running[c] {
+                    if pq[c] <= 0.0 || !pq[c].is_finite() {
+                        // A breakdown: no answer.
+                        running[c] = false;
+                    } else {
+                        alpha[c] = rz[c] / pq[c];
+                    }
+                }
             }
-            let alpha = rz / pq;
             for i in 0..n {
-                x[i] += alpha * p[i];
-                r[i] -= alpha * q[i];
+                for c in 0..3 {
+                    x[i][c] += alpha[c] * p[i][c];
+                    r[i][c] -= alpha[c] * q[i][c];
+                }
             }
-            residual = dot(&r, &r).sqrt() / b_norm;
             precondition(&r, &mut z);
-            let rz_next = dot(&r, &z);
-            let beta = rz_next / rz;
+            let rz_next = dots(&r, &z);
+            let beta: [f64; 3] =
+                std::array::from_fn(|c| if running[c] { rz_next[c] / rz[c] } else { 0.0 });
             rz = rz_next;
             for i in 0..n {
-                p[i] = z[i] + beta * p[i];
+                for c in 0..3 {
+                    p[i][c] = z[i][c] + beta[c] * p[i][c];
+                }
             }
+            iteration += 1;
         }
-        let converged = residual <= params.tolerance;
-        (x, params.max_iterations, residual, converged)
+        (x, iteration, residual, converged)
     }
 
-    /// Standard error of the mean radiance the lines carry from the far ends of the segments
-    /// leaving unknown patch `i` (`l − seen`; sky at `sky`, absorbed at 0), from the spread between the line groups: the
-    /// ratio estimator `Σ_g Y_g / Σ_g X_g` (Y_g the radiance summed over group g's segments, X_g
-    /// their number) has variance `K/(K−1) Σ_g (Y_g − m X_g)² / N²`.
-    fn sample_deviation(&self, i: usize, l: &[f64], seen: &[f64], sky: f64) -> f64 {
-        let groups = tally::GROUPS as usize;
-        let (mut y, mut x) = (vec![0.0; groups], vec![0.0; groups]);
-        let range = self.tally.group_offsets[i]..self.tally.group_offsets[i + 1];
-        for &(j, g, count) in &self.tally.group_entries[range] {
-            let v = match j {
-                SKY => sky,
-                ABSORBED => 0.0,
-                j => l[j as usize] - seen[j as usize],
-            };
-            y[g as usize] += f64::from(count) * v;
-            x[g as usize] += f64::from(count);
+    /// `ρ_i` times the standard error of the mean radiance the lines carry from the far ends of
+    /// the segments leaving patch i (`l − seen`; sky at `sky`, absorbed at 0), per channel,
+    /// from the spread between the line groups: the ratio estimator `Σ_g Y_g / Σ_g X_g` (Y_g
+    /// the radiance summed over group g's segments, X_g their number) has variance
+    /// `K/(K−1) Σ_g (Y_g − m X_g)² / N²`. 0 where a patch is not solved for. Needs the per-group
+    /// entries (the pooled tallies, not a replica's).
+    fn first_bounce(&self, l: &[[f64; 3]], seen: &[[f64; 3]], sky: [f64; 3]) -> Vec<[f64; 3]> {
+        const K: usize = tally::GROUPS as usize;
+        let mut out = vec![[0.0; 3]; l.len()];
+        for_rows(&mut out, |i| {
+            let d = self.diagonal[i];
+            if d == [0.0; 3] {
+                return [0.0; 3];
+            }
+            let (mut y, mut x) = ([[0.0; 3]; K], [0.0; K]);
+            let range = self.tally.group_offsets[i]..self.tally.group_offsets[i + 1];
+            for &(j, g, count) in &self.tally.group_entries[range] {
+                let v = match j {
+                    SKY => sky,
+                    ABSORBED => [0.0; 3],
+                    j => std::array::from_fn(|c| l[j as usize][c] - seen[j as usize][c]),
+                };
+                let w = f64::from(count);
+                (0..3).for_each(|c| y[g as usize][c] += w * v[c]);
+                x[g as usize] += w;
+            }
+            let n: f64 = x.iter().sum();
+            debug_assert!(
+                n > 0.0,
+                "patch {i} is solved for but has no per-group entries"
+            );
+            let k = K as f64;
+            std::array::from_fn(|c| {
+                if d[c] == 0.0 {
+                    return 0.0;
+                }
+                let mean = y.iter().map(|yg| yg[c]).sum::<f64>() / n;
+                let spread: f64 = y
+                    .iter()
+                    .zip(&x)
+                    .map(|(yg, xg)| (yg[c] - mean * xg).powi(2))
+                    .sum();
+                self.rho[i][c] * (k / (k - 1.0) * spread).sqrt() / n
+            })
+        });
+        out
+    }
+}
+
+/// A system's right-hand side and what its stopping test reads, in the solve's scaled units.
+struct Scaled<'b> {
+    b: &'b [[f64; 3]],
+    /// The emission (the radiance of the patches not solved for).
+    le: &'b [[f64; 3]],
+    seen: &'b [[f64; 3]],
+    sky: [f64; 3],
+    /// The standard errors of [`Target::Fixed`].
+    fixed: Option<&'b [[f64; 3]]>,
+}
+
+/// The noise test of one solve (module docs).
+struct Noise {
+    /// Per patch and channel, a lower bound on the standard error; empty until measured.
+    floor: Vec<[f64; 3]>,
+    /// The first-bounce spread as last measured (empty with [`Target::Fixed`]).
+    spread: Vec<[f64; 3]>,
+    /// The error bound when `floor` was measured: it is measured again once the bound has
+    /// fallen 16-fold and the test still fails (the bound it was lowered by has shrunk).
+    measured_at: [f64; 3],
+}
+
+impl Noise {
+    fn new(fixed: Option<&[[f64; 3]]>) -> Self {
+        match fixed {
+            Some(sigma) => Self {
+                floor: sigma.to_vec(),
+                spread: Vec::new(),
+                measured_at: [0.0; 3],
+            },
+            None => Self {
+                floor: Vec::new(),
+                spread: Vec::new(),
+                measured_at: [f64::INFINITY; 3],
+            },
         }
-        let n: f64 = x.iter().sum();
-        let mean = y.iter().sum::<f64>() / n;
-        let k = groups as f64;
-        let spread: f64 = y
+    }
+
+    /// Per channel among `check`: whether the bound on every unknown patch's remaining error,
+    /// `|z_i| + q_i ‖z‖∞ / (1 − max q)`, is below `stop.noise` times its standard error or
+    /// `stop.precision` times its radiance. A channel whose transport does not contract
+    /// (`max q ≥ 1`, reflectance 1 in a closed scene) has no such bound.
+    fn quiet(
+        &mut self,
+        system: &System<'_>,
+        problem: &Scaled<'_>,
+        x: &[[f64; 3]],
+        z: &[[f64; 3]],
+        mut check: [bool; 3],
+        stop: &Stop<'_>,
+    ) -> [bool; 3] {
+        let mut bound = [f64::INFINITY; 3];
+        for c in 0..3 {
+            if check[c] && system.max_coupling[c] < 1.0 {
+                let largest = z.iter().fold(0.0f64, |m, v| m.max(v[c].abs()));
+                bound[c] = largest / (1.0 - system.max_coupling[c]);
+            } else {
+                check[c] = false;
+            }
+        }
+        if check == [false; 3] {
+            return check;
+        }
+        let quiet = Self::test(system, &self.floor, x, z, bound, check, stop);
+        if problem.fixed.is_some() {
+            return quiet;
+        }
+        // Measuring costs a pass over the per-group entries: only when the spread as last
+        // measured, not lowered, would let a channel stop (it hardly changes once the iterate
+        // is near), or once the bound has fallen a thousandfold since.
+        let hopeful = Self::test(system, &self.spread, x, z, bound, check, stop);
+        let stale = (0..3).any(|c| {
+            check[c] && !quiet[c] && (hopeful[c] || bound[c] <= self.measured_at[c] / 1e3)
+        });
+        if !stale {
+            return quiet;
+        }
+        let values: Vec<[f64; 3]> = (0..x.len())
+            .map(|i| {
+                std::array::from_fn(|c| {
+                    if system.unknown(i, c) {
+                        x[i][c]
+                    } else {
+                        problem.le[i][c]
+                    }
+                })
+            })
+            .collect();
+        let sigma = system.first_bounce(&values, problem.seen, problem.sky);
+        // The first bounce's spread is a seminorm of the radiance (plus a constant): an error of
+        // at most E on every patch moves it by at most ρ·2E·√(K/(K−1)) (each group's term by
+        // 2E·X_g). What is left is a lower bound on the spread at the answer.
+        let k = f64::from(tally::GROUPS);
+        let slack = 2.0 * (k / (k - 1.0)).sqrt();
+        self.floor = sigma
             .iter()
-            .zip(&x)
-            .map(|(yg, xg)| (yg - mean * xg).powi(2))
-            .sum();
-        debug_assert!(self.rho[i] > 0.0 && n > 0.0);
-        (k / (k - 1.0) * spread).sqrt() / n
+            .zip(system.rho)
+            .map(|(s, rho)| {
+                std::array::from_fn(|c| {
+                    if check[c] {
+                        (s[c] - slack * rho[c] * bound[c]).max(0.0)
+                    } else {
+                        0.0
+                    }
+                })
+            })
+            .collect();
+        self.measured_at = bound;
+        self.spread = sigma;
+        Self::test(system, &self.floor, x, z, bound, check, stop)
+    }
+
+    /// The test of [`Noise::quiet`] against `floor`.
+    fn test(
+        system: &System<'_>,
+        floor: &[[f64; 3]],
+        x: &[[f64; 3]],
+        z: &[[f64; 3]],
+        bound: [f64; 3],
+        mut quiet: [bool; 3],
+        stop: &Stop<'_>,
+    ) -> [bool; 3] {
+        for (i, (xi, zi)) in x.iter().zip(z).enumerate() {
+            for c in 0..3 {
+                if quiet[c] && system.unknown(i, c) {
+                    let error = zi[c].abs() + system.coupling[i][c] * bound[c];
+                    let floor = floor.get(i).map_or(0.0, |f| f[c]);
+                    if error > (stop.noise * floor).max(stop.precision * xi[c].abs()) {
+                        quiet[c] = false;
+                    }
+                }
+            }
+        }
+        quiet
     }
 }

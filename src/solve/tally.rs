@@ -327,32 +327,44 @@ impl FrameTally {
         assemble(aggregate(raw), patches)
     }
 
-    /// The tallies of one replica of the lines alone (no per-group entries).
+    /// The tallies of each replica of the lines alone (no per-group entries), in one pass over
+    /// the per-group entries.
     #[must_use]
-    pub fn replica(&self, group: u8) -> Self {
+    pub fn replicas(&self) -> Vec<Self> {
         let patches = self.crossings.len();
-        let mut t = Self {
-            crossings: vec![0; patches],
-            offsets: Vec::with_capacity(patches + 1),
-            columns: Vec::new(),
-            counts: Vec::new(),
-            group_offsets: vec![0; patches + 1],
-            group_entries: Vec::new(),
-        };
-        t.offsets.push(0);
+        let mut sizes = [0usize; GROUPS as usize];
+        self.group_entries
+            .iter()
+            .for_each(|&(_, g, _)| sizes[g as usize] += 1);
+        let mut replicas: Vec<Self> = sizes
+            .iter()
+            .map(|&size| {
+                let mut offsets = Vec::with_capacity(patches + 1);
+                offsets.push(0);
+                Self {
+                    crossings: vec![0; patches],
+                    offsets,
+                    columns: Vec::with_capacity(size),
+                    counts: Vec::with_capacity(size),
+                    group_offsets: vec![0; patches + 1],
+                    group_entries: Vec::new(),
+                }
+            })
+            .collect();
         for i in 0..patches {
             for &(column, g, count) in
                 &self.group_entries[self.group_offsets[i]..self.group_offsets[i + 1]]
             {
-                if g == group {
-                    t.columns.push(column);
-                    t.counts.push(u64::from(count));
-                    t.crossings[i] += u64::from(count);
-                }
+                let t = &mut replicas[g as usize];
+                t.columns.push(column);
+                t.counts.push(u64::from(count));
+                t.crossings[i] += u64::from(count);
             }
-            t.offsets.push(t.columns.len());
+            for t in &mut replicas {
+                t.offsets.push(t.columns.len());
+            }
         }
-        t
+        replicas
     }
 
     /// Whether `S` is symmetric between patches (reciprocity, `A_i F_ij = A_j F_ji`): true by
