@@ -76,6 +76,13 @@ pub fn all() -> Vec<Sample> {
                           raises its top 0.5 m and back over 2 s (animated weights).",
             gltf: morph_box(),
         },
+        Sample {
+            file_name: "spheres.gltf",
+            description: "Closed 6 m x 3 m x 6 m room lit by a 1 m square ceiling panel, with 12 \
+                          icospheres (1,280 triangles each), 2 bobbing and 2 sliding over 1 s \
+                          (LINEAR): the large benchmark, 207,616 patches at --patch-size 0.0695.",
+            gltf: spheres(),
+        },
     ]
 }
 
@@ -353,6 +360,155 @@ fn morph_box() -> String {
     b.finish("morph_box")
 }
 
+/// The spheres room spans x and z in [-SPHERES_HALF_WIDTH, SPHERES_HALF_WIDTH], y in
+/// [0, SPHERES_HEIGHT].
+const SPHERES_HALF_WIDTH: f32 = 3.0;
+const SPHERES_HEIGHT: f32 = 3.0;
+/// Icosphere subdivision level of every sphere: 20 x 4^3 = 1,280 triangles.
+const SPHERE_LEVEL: usize = 3;
+/// How far the lowest vertex of a sphere standing on the floor is above it: close enough to look
+/// like it rests there, far enough that no surface touches another.
+const SPHERE_GAP: f32 = 0.01;
+
+/// The spheres' materials: name and diffuse reflectance.
+const BALL_COLOURS: [(&str, [f64; 3]); 5] = [
+    ("white", [0.75; 3]),
+    ("green", [0.15, 0.55, 0.15]),
+    ("red", [0.7, 0.15, 0.1]),
+    ("blue", [0.15, 0.25, 0.7]),
+    ("yellow", [0.8, 0.65, 0.2]),
+];
+
+/// One sphere of the spheres room.
+struct Ball {
+    /// Where its centre stands over the floor (x, z) at t = 0 and t = 1 s.
+    at: [f32; 2],
+    radius: f32,
+    /// Index into the room's ball colours.
+    colour: usize,
+    /// How far the centre travels out (x, y, z), reached at t = 0.5 s, LINEAR there and back;
+    /// zero for a static sphere.
+    travel: Vec3,
+}
+
+/// The spheres room's layout: a back row (z = -2.1) and a front row (z = 2.1) of four static
+/// spheres each, 0.5 m and 0.6 m in radius; between them two spheres bob 1.2 m and 0.8 m up by
+/// the side walls, and two slide 2.4 m along x in opposite directions at z = -0.7 and z = 0.7.
+/// `spheres_keep_clear_of_each_other_and_the_room` checks that no two ever come closer than
+/// 0.15 m, nor a sphere to a wall or the ceiling.
+const BALLS: [Ball; 12] = {
+    const fn fixed(x: f32, z: f32, radius: f32, colour: usize) -> Ball {
+        moving(x, z, radius, colour, Vec3::ZERO)
+    }
+    const fn moving(x: f32, z: f32, radius: f32, colour: usize, travel: Vec3) -> Ball {
+        Ball {
+            at: [x, z],
+            radius,
+            colour,
+            travel,
+        }
+    }
+    [
+        fixed(-2.2, -2.1, 0.6, 0),
+        fixed(-0.75, -2.1, 0.5, 2),
+        fixed(0.75, -2.1, 0.6, 1),
+        fixed(2.2, -2.1, 0.5, 3),
+        fixed(-2.2, 2.1, 0.5, 3),
+        fixed(-0.75, 2.1, 0.6, 1),
+        fixed(0.75, 2.1, 0.5, 2),
+        fixed(2.2, 2.1, 0.6, 0),
+        moving(-2.2, 0.0, 0.5, 4, Vec3::new(0.0, 1.2, 0.0)),
+        moving(2.2, 0.0, 0.5, 4, Vec3::new(0.0, 0.8, 0.0)),
+        moving(-1.2, -0.7, 0.4, 0, Vec3::new(2.4, 0.0, 0.0)),
+        moving(1.2, 0.7, 0.4, 4, Vec3::new(-2.4, 0.0, 0.0)),
+    ]
+};
+
+/// The large benchmark: a closed room of 12 spheres under a small ceiling panel, 4 of them
+/// moving. The file stays small (16,512 triangles: 1,152 for the room's 0.5 m grid, 1,280 per
+/// sphere); the patches come from subdivision at load time: `--patch-size 0.0695` makes 207,616
+/// (147,456 of them the room's, each 0.5 m cell cut into 256 triangles; the count is the same
+/// for any patch size from 0.0692 to 0.0698), and over 1 s the timeline has 11 frames at
+/// `--fps 10`.
+fn spheres() -> String {
+    let mut b = Builder::default();
+    let floor = b.material(Material::diffuse("floor", [0.45; 3]));
+    let wall = b.material(Material::diffuse("wall", [0.7; 3]));
+    let accent = b.material(Material::diffuse("accent_wall", [0.65, 0.5, 0.3]));
+    let ceiling = b.material(Material::diffuse("ceiling", [0.8; 3]));
+    let panel = b.material(Material::emitter("panel", [0.78; 3], 40.0));
+
+    // The room on a 0.5 m grid: the panel is the ceiling's centre 2 x 2 cells, so it meets the
+    // rest of the ceiling vertex to vertex and the room is one watertight shell.
+    let half = SPHERES_HALF_WIDTH;
+    let grid = Lattice::uniform(
+        Vec3::new(-half, 0.0, -half),
+        Vec3::new(half, SPHERES_HEIGHT, half),
+        [12, 6, 12],
+    );
+    let top = grid.cells(1) - 1;
+    let centre = |i: usize| i == 5 || i == 6;
+    let room = shell(
+        &grid,
+        |_| true,
+        Facing::Inward,
+        |face| match face.normal {
+            [0, 1, 0] => floor,
+            [0, -1, 0] if face.cell[1] == top && centre(face.cell[0]) && centre(face.cell[2]) => {
+                panel
+            }
+            [0, -1, 0] => ceiling,
+            [0, 0, 1] => accent, // the back wall, at z = -3, looks toward +z
+            _ => wall,
+        },
+    );
+    let room = b.mesh("spheres_room", &room);
+    b.node("spheres_room", room, Vec3::ZERO, Quat::IDENTITY);
+
+    let colours =
+        BALL_COLOURS.map(|(name, reflectance)| b.material(Material::diffuse(name, reflectance)));
+    // One mesh per (radius, colour) in use, instanced by every sphere that has both: the file
+    // holds 7 sphere meshes for 12 spheres.
+    let mut meshes: Vec<((u32, usize), usize)> = Vec::new();
+    let mut moving = Vec::new();
+    for (i, ball) in BALLS.iter().enumerate() {
+        let key = (ball.radius.to_bits(), ball.colour);
+        let mesh = match meshes.iter().find(|(k, _)| *k == key) {
+            Some(&(_, mesh)) => mesh,
+            None => {
+                let sphere = icosphere(SPHERE_LEVEL, ball.radius, colours[ball.colour]);
+                let (colour, _) = BALL_COLOURS[ball.colour];
+                let name = format!("sphere_{}cm_{colour}", (ball.radius * 100.0).round());
+                let mesh = b.mesh(&name, &sphere);
+                meshes.push((key, mesh));
+                mesh
+            }
+        };
+        let rest = ball_rest(ball);
+        let node = b.node(&format!("sphere_{i}"), mesh, rest, Quat::IDENTITY);
+        if ball.travel != Vec3::ZERO {
+            moving.push((node, rest, ball.travel));
+        }
+    }
+    let times = b.key_times(&[0.0, 0.5, 1.0]);
+    let channels: Vec<(usize, &str, usize)> = (moving.iter())
+        .map(|&(node, rest, travel)| {
+            let path = b.vec3s(&[rest, rest + travel, rest]);
+            (node, "translation", path)
+        })
+        .collect();
+    b.animation("spheres_move", times, &channels);
+    b.finish("spheres")
+}
+
+/// Where a sphere's centre is at t = 0: over its spot, with its lowest vertex `SPHERE_GAP` above
+/// the floor.
+fn ball_rest(ball: &Ball) -> Vec3 {
+    let sphere = icosphere(SPHERE_LEVEL, ball.radius, 0);
+    let lowest = sphere.positions.iter().map(|p| p.y).fold(0.0, f32::min);
+    Vec3::new(ball.at[0], SPHERE_GAP - lowest, ball.at[1])
+}
+
 /// A rotation of `degrees` about +Y.
 fn turn_y(degrees: f32) -> Quat {
     Quat::from_rotation_y(degrees.to_radians())
@@ -527,6 +683,72 @@ fn solid_box(min: Vec3, max: Vec3, material: impl Fn(&Face) -> usize) -> Geometr
 fn block(size: Vec3, material: usize) -> Geometry {
     let half = Vec3::new(size.x / 2.0, 0.0, size.z / 2.0);
     solid_box(-half, size - half, |_| material)
+}
+
+/// A sphere of `radius` about the origin, facing outward: an icosahedron whose triangles are each
+/// cut in four, `level` times over, every new vertex pushed out onto the sphere. Each edge's midpoint is
+/// made once and shared by both triangles on that edge, so the sphere is watertight.
+fn icosphere(level: usize, radius: f32, material: usize) -> Geometry {
+    // The 12 vertices (0, ±1, ±φ) cyclically, and 20 faces counter-clockwise seen from outside.
+    let phi = (1.0 + 5f32.sqrt()) / 2.0;
+    let mut unit: Vec<Vec3> = [
+        [-1.0, phi, 0.0],
+        [1.0, phi, 0.0],
+        [-1.0, -phi, 0.0],
+        [1.0, -phi, 0.0],
+        [0.0, -1.0, phi],
+        [0.0, 1.0, phi],
+        [0.0, -1.0, -phi],
+        [0.0, 1.0, -phi],
+        [phi, 0.0, -1.0],
+        [phi, 0.0, 1.0],
+        [-phi, 0.0, -1.0],
+        [-phi, 0.0, 1.0],
+    ]
+    .map(|p| Vec3::from_array(p).normalize())
+    .to_vec();
+    let mut triangles: Vec<[u32; 3]> = vec![
+        [0, 11, 5],
+        [0, 5, 1],
+        [0, 1, 7],
+        [0, 7, 10],
+        [0, 10, 11],
+        [1, 5, 9],
+        [5, 11, 4],
+        [11, 10, 2],
+        [10, 7, 6],
+        [7, 1, 8],
+        [3, 9, 4],
+        [3, 4, 2],
+        [3, 2, 6],
+        [3, 6, 8],
+        [3, 8, 9],
+        [4, 9, 5],
+        [2, 4, 11],
+        [6, 2, 10],
+        [8, 6, 7],
+        [9, 8, 1],
+    ];
+    for _ in 0..level {
+        let mut midpoints: HashMap<(u32, u32), u32> = HashMap::new();
+        let mut middle = |a: u32, b: u32| {
+            *midpoints.entry((a.min(b), a.max(b))).or_insert_with(|| {
+                let m = (unit[a as usize] + unit[b as usize]).normalize();
+                unit.push(m);
+                (unit.len() - 1) as u32
+            })
+        };
+        triangles = (triangles.iter())
+            .flat_map(|&[a, b, c]| {
+                let (ab, bc, ca) = (middle(a, b), middle(b, c), middle(c, a));
+                [[a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca]]
+            })
+            .collect();
+    }
+    Geometry {
+        positions: unit.into_iter().map(|p| p * radius).collect(),
+        triangles: BTreeMap::from([(material, triangles.into_iter().flatten().collect())]),
+    }
 }
 
 /// Which way a horizontal [`square`] faces.
@@ -1044,6 +1266,7 @@ mod tests {
                 "level.gltf",
                 "level_lamps.gltf",
                 "morph_box.gltf",
+                "spheres.gltf",
             ]
         );
         for (a, b) in first.iter().zip(&second) {
@@ -1055,17 +1278,19 @@ mod tests {
 
     #[test]
     fn closed_scenes_are_watertight_and_wound_toward_the_inside() {
-        let inward = ["cornell_room", "furnace", "level_shell"];
+        let inward = ["cornell_room", "furnace", "level_shell", "spheres_room"];
         let expected_volume = [
             ("cornell_room", 1.0),
             ("furnace", 1.0),
             ("level_shell", 3.0 * 48.0 + 2.0 * 0.2 * 2.0),
+            ("spheres_room", 6.0 * 3.0 * 6.0),
         ];
         for file in [
             "cornell_box.gltf",
             "cornell_moving.gltf",
             "furnace.gltf",
             "level.gltf",
+            "spheres.gltf",
         ] {
             let doc = sample(file);
             for (name, mesh) in doc.meshes() {
@@ -1162,6 +1387,70 @@ mod tests {
             assert!(short.distance(TALL_BLOCK) > 2.0 * radius);
             for c in [short, TALL_BLOCK] {
                 assert!(c.x.abs() + radius < 0.5 && c.z.abs() + radius < 0.5, "{c}");
+            }
+        }
+    }
+
+    #[test]
+    fn icospheres_are_round_closed_and_face_outward() {
+        for level in 0..=SPHERE_LEVEL {
+            let sphere = icosphere(level, 0.4, 0);
+            let triangles: Vec<[Vec3; 3]> = sphere.triangles[&0]
+                .chunks_exact(3)
+                .map(|t| [0, 1, 2].map(|k| sphere.positions[t[k] as usize]))
+                .collect();
+            assert_eq!(triangles.len(), 20 << (2 * level));
+            // Euler: V - E + F = 2 with E = 3F/2.
+            assert_eq!(sphere.positions.len(), 2 + triangles.len() / 2);
+            for p in &sphere.positions {
+                assert!((p.length() - 0.4).abs() < 1e-6, "{p}");
+            }
+            let volume = assert_closed("icosphere", &triangles);
+            let ball = 4.0 / 3.0 * std::f32::consts::PI * 0.4f32.powi(3);
+            assert!(
+                volume > 0.0 && volume < ball,
+                "level {level}: volume {volume}"
+            );
+        }
+    }
+
+    /// Over the whole second (sampled every millisecond; the paths are straight between keys),
+    /// no two spheres come closer than `SPHERE_CLEARANCE`, nor a sphere to a wall or the
+    /// ceiling, and none dips below the floor; at rest, a sphere's lowest vertex is `SPHERE_GAP`
+    /// above the floor.
+    #[test]
+    fn spheres_keep_clear_of_each_other_and_the_room() {
+        /// The least distance between two spheres' surfaces, or a sphere and a wall or the
+        /// ceiling.
+        const SPHERE_CLEARANCE: f32 = 0.15;
+        let rests: Vec<Vec3> = BALLS.iter().map(ball_rest).collect();
+        let at = |i: usize, t: f32| rests[i] + BALLS[i].travel * (1.0 - (2.0 * t - 1.0).abs());
+        for (rest, ball) in rests.iter().zip(&BALLS) {
+            let bottom = rest.y - ball.radius;
+            assert!(bottom > 0.0 && bottom <= SPHERE_GAP, "{bottom}");
+        }
+        assert_eq!(BALLS.iter().filter(|b| b.travel != Vec3::ZERO).count(), 4);
+        for step in 0..=1000 {
+            let t = step as f32 / 1000.0;
+            for (i, a) in BALLS.iter().enumerate() {
+                let p = at(i, t);
+                let reach = p.x.abs().max(p.z.abs()) + a.radius;
+                assert!(
+                    reach + SPHERE_CLEARANCE <= SPHERES_HALF_WIDTH,
+                    "sphere {i} at {t}: {p}"
+                );
+                assert!(
+                    p.y + a.radius + SPHERE_CLEARANCE <= SPHERES_HEIGHT,
+                    "sphere {i} at {t}: {p}"
+                );
+                assert!(p.y - a.radius >= 0.0, "sphere {i} at {t}: {p}");
+                for (j, b) in BALLS.iter().enumerate().skip(i + 1) {
+                    let gap = p.distance(at(j, t)) - a.radius - b.radius;
+                    assert!(
+                        gap >= SPHERE_CLEARANCE,
+                        "spheres {i} and {j} at {t}: {gap} apart"
+                    );
+                }
             }
         }
     }

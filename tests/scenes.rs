@@ -40,6 +40,7 @@ fn each_scene_loads_as_intended() {
         ("level.gltf", 1, 0, 49),
         ("level_lamps.gltf", 1, 0, 49),
         ("morph_box.gltf", 0, 1, 49),
+        ("spheres.gltf", 4, 0, 25),
     ] {
         let s = load_sample(name, &options).summary();
         assert_eq!(
@@ -70,6 +71,7 @@ fn closed_scenes_are_watertight_at_every_frame() {
         ("cornell_box.gltf", Some(0.1)),
         ("cornell_moving.gltf", None),
         ("level.gltf", None),
+        ("spheres.gltf", None),
     ] {
         let options = LoadOptions {
             fps: 6.0,
