@@ -44,7 +44,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         DirectLight::compute(&scene, &tracer, &control)?;
         let punctual = t.elapsed().as_secs_f64();
         let t = Instant::now();
-        let area = AreaLights::compute(&scene, &tracer, Sampling::for_lines(lines, 1), &control)?;
+        let area = AreaLights::compute(
+            &scene,
+            &tracer,
+            Sampling::for_lines(lines, scene.patches.len(), 1),
+            &control,
+        )?;
         let area_time = t.elapsed().as_secs_f64();
         let (pairs, retraced) = area.pair_counts();
         let t = Instant::now();

@@ -54,7 +54,7 @@ impl Bake {
         let area = AreaLights::compute(
             &scene,
             &tracer,
-            Sampling::for_lines(list.lines() as u64, params.seed),
+            Sampling::for_lines(list.lines() as u64, scene.patches.len(), params.seed),
             control,
         )?;
         let warnings = overlap_warnings(&scene, &tracer, &list);

@@ -64,18 +64,24 @@ pub struct Sampling {
     /// seed).
     pub seed: u64,
     /// Shadow rays per pair (patch, emitter) relative to the standard 16 to 256 (below 1, the
-    /// standard): a bake with more lines samples its emitters more densely too (the bake's
-    /// lines / 1,000,000), so that neither error hides the other.
+    /// standard): a bake with more lines per patch samples its emitters more densely too, so
+    /// that neither error hides the other.
     pub density: f64,
 }
 
+/// Lines per patch at which emitters get the standard sampling: about the sample level's at
+/// 1M lines, where the direct light's error is well below the lines'.
+const LINES_PER_PATCH: f64 = 500.0;
+
 impl Sampling {
-    /// The sampling of a bake with `lines` lines and `seed`.
+    /// The sampling of a bake with `lines` lines over `patches` patches and `seed`: density
+    /// grows with the lines per patch (their error falls as 1/√ of it, and so does the direct
+    /// light's with the rays).
     #[must_use]
-    pub fn for_lines(lines: u64, seed: u64) -> Self {
+    pub fn for_lines(lines: u64, patches: usize, seed: u64) -> Self {
         Self {
             seed,
-            density: lines as f64 / 1e6,
+            density: lines as f64 / patches.max(1) as f64 / LINES_PER_PATCH,
         }
     }
 }
@@ -117,14 +123,15 @@ struct Pair {
     visible: u32,
 }
 
-/// One face of an emitting source triangle: the patches of its subdivision are one flat
-/// triangle of one material.
+/// One light: the emitting faces of one material, one side, in one plane of one object (a
+/// panel of several triangles is one light). Each source triangle's subdivided patches are one
+/// flat triangle.
 #[derive(Clone, Debug)]
 struct Cluster {
     /// Position of its material in [`AreaLights::materials`].
     slot: usize,
-    /// The traced triangles it is made of (global indices).
-    triangles: Vec<u32>,
+    /// Its source triangles, each as the traced triangles (global indices) it was cut into.
+    triangles: Vec<Vec<u32>>,
     /// Whether it is their back face that emits.
     back: bool,
     /// Whether it belongs to a moving object.
@@ -132,14 +139,16 @@ struct Cluster {
 }
 
 /// A cluster as posed at one frame.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Debug)]
 struct Emitter {
-    /// The source triangle's corners.
-    corners: [DVec3; 3],
+    /// Its source triangles' corners.
+    triangles: Vec<[DVec3; 3]>,
+    /// The convex hull of their corners, in their plane.
+    hull: Vec<DVec3>,
     /// Unit normal of the emitting face (zero if degenerate).
     normal: DVec3,
     centre: DVec3,
-    /// Longest edge.
+    /// Its diameter: the longest distance between two corners of the hull.
     edge: f64,
 }
 
@@ -420,11 +429,15 @@ fn choose(scene: &Scene, tracer: &SceneTracer) -> Vec<u32> {
     chosen
 }
 
-/// The clusters of the sampled materials: one per emitting source triangle and face.
+/// The clusters of the sampled materials: the emitting source triangles (each face apart) of
+/// one material, one object and one side that lie in one plane make one light; a deforming
+/// object's triangles are lights of their own (their plane does not stay shared).
 fn clusters(scene: &Scene, tracer: &SceneTracer, slot: &[Option<u16>]) -> Vec<Cluster> {
-    let statics = scene.statics.triangles.len() as u32;
+    let spaces = tracer.surfaces().spaces;
+    let triangles = scene.triangles_at(0);
+    // The source triangles: (source, side) → its traced triangles.
     let mut index = HashMap::new();
-    let mut out: Vec<Cluster> = Vec::new();
+    let mut sources: Vec<(usize, bool, u32, Vec<u32>)> = Vec::new();
     for (t, faces) in tracer.faces().iter().enumerate() {
         for (p, back) in [(Some(faces.front), false), (faces.back, true)] {
             let Some(p) = p else { continue };
@@ -433,25 +446,57 @@ fn clusters(scene: &Scene, tracer: &SceneTracer, slot: &[Option<u16>]) -> Vec<Cl
                 continue;
             };
             let k = *index.entry((patch.source, back)).or_insert_with(|| {
-                out.push(Cluster {
-                    slot: usize::from(s),
-                    triangles: Vec::new(),
-                    back,
-                    moving: t as u32 >= statics,
-                });
-                out.len() - 1
+                sources.push((usize::from(s), back, spaces[t], Vec::new()));
+                sources.len() - 1
             });
-            out[k].triangles.push(t as u32);
+            sources[k].3.push(t as u32);
         }
     }
-    out
+    let deforming = |space: u32| {
+        space > 0
+            && matches!(
+                scene.objects[space as usize - 1].motion,
+                Motion::Deforming(_)
+            )
+    };
+    let mut out: Vec<(Cluster, u32, DVec3, f64)> = Vec::new();
+    for (slot, back, space, pieces) in sources {
+        let corners = source_corners(&pieces, &triangles);
+        let normal = face_normal(&triangles, pieces[0], back);
+        let offset = normal.dot(corners[0]);
+        let size = longest_edge(&corners).max(f64::MIN_POSITIVE);
+        let same = out.iter_mut().find(|(c, s, n, d)| {
+            c.slot == slot
+                && c.back == back
+                && *s == space
+                && !deforming(space)
+                && n.dot(normal) > 1.0 - 1e-9
+                && corners
+                    .iter()
+                    .all(|p| (n.dot(*p) - d).abs() <= 1e-9 * size.max(1.0))
+        });
+        match same {
+            Some((cluster, ..)) => cluster.triangles.push(pieces),
+            None => out.push((
+                Cluster {
+                    slot,
+                    triangles: vec![pieces],
+                    back,
+                    moving: space > 0,
+                },
+                space,
+                normal,
+                offset,
+            )),
+        }
+    }
+    out.into_iter().map(|(c, ..)| c).collect()
 }
 
-/// A cluster posed with `triangles` (every traced triangle at one frame): its source triangle
-/// is the hull of its pieces, whose three extreme points are the source's corners.
-fn pose(cluster: &Cluster, triangles: &[([glam::Vec3; 3], Faces)]) -> Emitter {
-    let points: Vec<DVec3> = cluster
-        .triangles
+/// The corners of a source triangle cut into the traced triangles `pieces`: the hull of the
+/// pieces, whose three extreme points are the source's corners.
+fn source_corners(pieces: &[u32], triangles: &[([glam::Vec3; 3], Faces)]) -> [DVec3; 3] {
+    let points: Vec<DVec3> = pieces
         .iter()
         .flat_map(|&t| triangles[t as usize].0.map(|c| c.as_dvec3()))
         .collect();
@@ -467,21 +512,76 @@ fn pose(cluster: &Cluster, triangles: &[([glam::Vec3; 3], Faces)]) -> Emitter {
     let b = farthest(&|p| p.distance_squared(a));
     let ab = (b - a).normalize_or_zero();
     let c = farthest(&|p| (p - a).reject_from_normalized(ab).length_squared());
-    // The emitting face's normal, from the pieces' winding (all alike).
-    let [p0, p1, p2] = triangles[cluster.triangles[0] as usize]
-        .0
-        .map(|c| c.as_dvec3());
-    let mut normal = (p1 - p0).cross(p2 - p0).normalize_or_zero();
-    if cluster.back {
-        normal = -normal;
-    }
-    let corners = [a, b, c];
+    [a, b, c]
+}
+
+/// The unit normal of the emitting face of traced triangle `t` (its back if `back`).
+fn face_normal(triangles: &[([glam::Vec3; 3], Faces)], t: u32, back: bool) -> DVec3 {
+    let [p0, p1, p2] = triangles[t as usize].0.map(|c| c.as_dvec3());
+    let normal = (p1 - p0).cross(p2 - p0).normalize_or_zero();
+    if back { -normal } else { normal }
+}
+
+/// A cluster posed with `triangles` (every traced triangle at one frame).
+fn pose(cluster: &Cluster, triangles: &[([glam::Vec3; 3], Faces)]) -> Emitter {
+    let sources: Vec<[DVec3; 3]> = cluster
+        .triangles
+        .iter()
+        .map(|pieces| source_corners(pieces, triangles))
+        .collect();
+    let normal = face_normal(triangles, cluster.triangles[0][0], cluster.back);
+    let hull = planar_hull(sources.iter().flatten().copied(), normal);
+    let centre = hull.iter().sum::<DVec3>() / hull.len().max(1) as f64;
+    let edge = hull
+        .iter()
+        .flat_map(|a| hull.iter().map(move |b| a.distance(*b)))
+        .fold(0.0, f64::max);
     Emitter {
-        corners,
+        triangles: sources,
+        hull,
         normal,
-        centre: (a + b + c) / 3.0,
-        edge: longest_edge(&corners),
+        centre,
+        edge,
     }
+}
+
+/// The convex hull of `points`, which lie in a plane of normal `normal` (monotone chain in
+/// the plane's coordinates; all the points if the normal is degenerate).
+fn planar_hull(points: impl Iterator<Item = DVec3>, normal: DVec3) -> Vec<DVec3> {
+    let points: Vec<DVec3> = points.collect();
+    if normal == DVec3::ZERO || points.len() <= 3 {
+        return points;
+    }
+    let (u, v) = normal.any_orthonormal_pair();
+    let mut flat: Vec<(f64, f64, DVec3)> =
+        points.iter().map(|&p| (u.dot(p), v.dot(p), p)).collect();
+    flat.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.total_cmp(&b.1)));
+    flat.dedup_by(|a, b| a.0 == b.0 && a.1 == b.1);
+    if flat.len() <= 3 {
+        return flat.into_iter().map(|f| f.2).collect();
+    }
+    let cross = |o: &(f64, f64, DVec3), a: &(f64, f64, DVec3), b: &(f64, f64, DVec3)| {
+        (a.0 - o.0) * (b.1 - o.1) - (a.1 - o.1) * (b.0 - o.0)
+    };
+    let mut hull: Vec<(f64, f64, DVec3)> = Vec::with_capacity(2 * flat.len());
+    for pass in 0..2 {
+        let start = hull.len();
+        let ordered: Box<dyn Iterator<Item = &(f64, f64, DVec3)>> = if pass == 0 {
+            Box::new(flat.iter())
+        } else {
+            Box::new(flat.iter().rev())
+        };
+        for p in ordered {
+            while hull.len() >= start + 2
+                && cross(&hull[hull.len() - 2], &hull[hull.len() - 1], p) <= 0.0
+            {
+                hull.pop();
+            }
+            hull.push(*p);
+        }
+        hull.pop();
+    }
+    hull.into_iter().map(|f| f.2).collect()
 }
 
 fn longest_edge(corners: &[DVec3; 3]) -> f64 {
@@ -500,9 +600,9 @@ impl Face {
             && self
                 .corners
                 .iter()
-                .any(|&c| e.dot(c - emitter.corners[0]) > 0.0)
+                .any(|&c| e.dot(c - emitter.hull[0]) > 0.0)
             && emitter
-                .corners
+                .hull
                 .iter()
                 .any(|&c| n.dot(c - self.corners[0]) > 0.0)
     }
@@ -637,20 +737,15 @@ fn changed_pairs(
                     if !moving && !receiver.may_see(emitter) {
                         continue;
                     }
-                    let hull: [DVec3; 6] = [
-                        receiver.corners[0],
-                        receiver.corners[1],
-                        receiver.corners[2],
-                        emitter.corners[0],
-                        emitter.corners[1],
-                        emitter.corners[2],
-                    ];
                     if moving {
                         let pair = pair(&at, &receiver, c, emitter, sampling, Rays::Trace, hits);
                         if pair.value > 0.0 {
                             out.push((receiver.patch, pair));
                         }
-                    } else if boxes.iter().any(|b| b.meets_hull(&hull)) {
+                    } else if boxes.iter().any(|b| {
+                        let hull = receiver.corners.iter().chain(&emitter.hull);
+                        b.meets_hull(&hull.copied().collect::<Vec<_>>())
+                    }) {
                         // Dark with the static geometry alone: dark whatever moves.
                         let Some(base) = lights.static_pair(receiver.patch, c) else {
                             continue;
@@ -704,7 +799,7 @@ impl Block {
     /// among them) and the cross products of its edges with every segment between two of them
     /// (the hull's edges are among them). Exact for touching or not; degenerate axes never
     /// separate.
-    fn meets_hull(&self, points: &[DVec3; 6]) -> bool {
+    fn meets_hull(&self, points: &[DVec3]) -> bool {
         let [a, b, c] = self.half;
         let separates = |axis: DVec3| {
             if axis.length_squared() <= 1e-30 {
@@ -727,13 +822,14 @@ impl Block {
         {
             return false;
         }
-        for i in 0..6 {
-            for j in i + 1..6 {
+        let count = points.len();
+        for i in 0..count {
+            for j in i + 1..count {
                 let edge = points[j] - points[i];
                 if self.half.iter().any(|h| separates(edge.cross(*h))) {
                     return false;
                 }
-                for k in j + 1..6 {
+                for k in j + 1..count {
                     if separates(edge.cross(points[k] - points[i])) {
                         return false;
                     }
@@ -791,8 +887,9 @@ fn form_factor(
         return (0.0, 0.0);
     }
     let (n, e) = (face.n, emitter.normal);
-    let origin = emitter.corners[0];
+    let origin = emitter.hull[0];
     let count = g * g;
+    let mut fans: Vec<[DVec3; 3]> = Vec::with_capacity(2 * emitter.triangles.len());
     let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed);
     let mut strata: Vec<usize> = (0..count).collect();
     for k in (1..count).rev() {
@@ -802,6 +899,7 @@ fn form_factor(
         bits.clear();
         bits.resize(count.div_ceil(64), 0);
     }
+    let receiver = super::inset(&face.corners);
     let mut values = vec![0.0; count];
     for (k, value) in values.iter_mut().enumerate() {
         let jitter: [f64; 4] = [rng.random(), rng.random(), rng.random(), rng.random()];
@@ -812,17 +910,28 @@ fn form_factor(
             )
         };
         let (u, v) = cell(k, jitter[0], jitter[1]);
-        let x = triangle_point(&face.corners, u, v);
+        let x = triangle_point(&receiver, u, v);
         if e.dot(x - origin) <= 0.0 {
             continue;
         }
-        let mut polygon = [DVec3::ZERO; 4];
-        let sides = clip(&emitter.corners, n, x, &mut polygon);
-        if sides < 3 {
+        // The emitter's part above the face's plane, as triangles.
+        fans.clear();
+        for t in &emitter.triangles {
+            let mut polygon = [DVec3::ZERO; 4];
+            match clip(t, n, x, &mut polygon) {
+                3 => fans.push([polygon[0], polygon[1], polygon[2]]),
+                4 => fans.extend([
+                    [polygon[0], polygon[1], polygon[2]],
+                    [polygon[0], polygon[2], polygon[3]],
+                ]),
+                _ => {}
+            }
+        }
+        if fans.is_empty() {
             continue;
         }
         let (u, v) = cell(strata[k], jitter[2], jitter[3]);
-        let Some((y, f)) = sample_polygon(x, n, e, &polygon[..sides], u, v) else {
+        let Some((y, f)) = sample_fans(x, n, e, &fans, u, v) else {
             continue;
         };
         if f <= 0.0 {
@@ -849,38 +958,41 @@ fn form_factor(
 /// sampling.
 const TINY_SOLID_ANGLE: f64 = 1e-9;
 
-/// A point `y` of convex `polygon` (3 or 4 corners, wholly in front of the plane through `x`
-/// with normal `n`; `e` the emitter's normal) at `(u, v)` in the unit square, and the one-sample
-/// estimate `f` of the form factor from `x` to the polygon if `y` is visible: uniform in solid
-/// angle (f = Ω cos θ / π), `u` picking the fan triangle by its solid angle; by area where the
+/// A point `y` of the triangles `fans` (wholly in front of the plane through `x` with normal
+/// `n`, in the emitter's plane of normal `e`) at `(u, v)` in the unit square, and the one-sample
+/// estimate `f` of the form factor from `x` to them if `y` is visible: uniform in their solid
+/// angle (f = Ω cos θ / π), `u` picking the triangle by its solid angle; by area where the
 /// solid angle is tiny (f = A cos θ cos θ' / (π r²)). Both are unbiased.
-fn sample_polygon(
+fn sample_fans(
     x: DVec3,
     n: DVec3,
     e: DVec3,
-    polygon: &[DVec3],
+    fans: &[[DVec3; 3]],
     u: f64,
     v: f64,
 ) -> Option<(DVec3, f64)> {
-    let fans: &[[usize; 3]] = if polygon.len() == 3 {
-        &[[0, 1, 2]]
-    } else {
-        &[[0, 1, 2], [0, 2, 3]]
+    // Picks the triangle whose share of `weights` holds u; u rescaled within it.
+    let pick = |weights: &mut dyn Iterator<Item = f64>, total: f64| {
+        let mut below = 0.0;
+        let mut last = (0, 0.0);
+        for (k, w) in weights.enumerate() {
+            if w > 0.0 {
+                last = (k, (u * total - below) / w);
+                if u * total < below + w {
+                    break;
+                }
+            }
+            below += w;
+        }
+        (last.0, last.1.clamp(0.0, 1.0))
     };
-    let triangle = |f: &[usize; 3]| f.map(|i| polygon[i]);
-    let angles: Vec<f64> = fans.iter().map(|f| solid_angle(x, &triangle(f))).collect();
+    let angles: Vec<f64> = fans.iter().map(|t| solid_angle(x, t)).collect();
     let total: f64 = angles.iter().sum();
-    if total >= TINY_SOLID_ANGLE * fans.len() as f64 && angles.iter().all(|a| a.is_finite()) {
-        // Pick the fan triangle by solid angle, then a direction uniform in it.
-        let split = angles[0] / total;
-        let (t, u) = if fans.len() == 1 || u < split {
-            (0, u / split.max(f64::MIN_POSITIVE))
-        } else {
-            (1, (u - split) / (1.0 - split))
-        };
-        let w = sample_spherical_triangle(x, &triangle(&fans[t]), u.clamp(0.0, 1.0), v)?;
+    if total >= TINY_SOLID_ANGLE && total.is_finite() {
+        let (t, u) = pick(&mut angles.iter().copied(), total);
+        let w = sample_spherical_triangle(x, &fans[t], u, v)?;
         // Where the direction meets the emitter's plane.
-        let along = e.dot(polygon[0] - x) / e.dot(w);
+        let along = e.dot(fans[t][0] - x) / e.dot(w);
         if !(along.is_finite() && along > 0.0) {
             return None;
         }
@@ -888,14 +1000,13 @@ fn sample_polygon(
         return Some((x + w * along, total * cos / std::f64::consts::PI));
     }
     // By area.
-    let y = polygon_point(polygon, u, v);
-    let area: f64 = fans
-        .iter()
-        .map(|f| {
-            let [a, b, c] = triangle(f);
-            0.5 * (b - a).cross(c - a).length()
-        })
-        .sum();
+    let area = |[a, b, c]: &[DVec3; 3]| 0.5 * (b - a).cross(c - a).length();
+    let total: f64 = fans.iter().map(area).sum();
+    if total <= 0.0 {
+        return None;
+    }
+    let (t, u) = pick(&mut fans.iter().map(area), total);
+    let y = triangle_point(&fans[t], u, v);
     let d = y - x;
     let r2 = d.length_squared();
     if r2 <= 0.0 {
@@ -905,7 +1016,7 @@ fn sample_polygon(
     let cos = n.dot(d) / r;
     let cos_emitter = -e.dot(d) / r;
     (cos > 0.0 && cos_emitter > 0.0)
-        .then(|| (y, area * cos * cos_emitter / (std::f64::consts::PI * r2)))
+        .then(|| (y, total * cos * cos_emitter / (std::f64::consts::PI * r2)))
 }
 
 /// The angle between unit vectors, accurate near 0 and π.
@@ -972,24 +1083,6 @@ fn sample_spherical_triangle(x: DVec3, t: &[DVec3; 3], u: f64, v: f64) -> Option
     (w.is_finite() && w != DVec3::ZERO).then(|| w.normalize())
 }
 
-/// The point of convex `polygon` (3 or 4 corners) at `(u, v)` in the unit square,
-/// area-preserving: `u` picks the fan triangle by area.
-fn polygon_point(polygon: &[DVec3], u: f64, v: f64) -> DVec3 {
-    if polygon.len() == 3 {
-        return triangle_point(&[polygon[0], polygon[1], polygon[2]], u, v);
-    }
-    let area = |a: DVec3, b: DVec3, c: DVec3| (b - a).cross(c - a).length();
-    let first = area(polygon[0], polygon[1], polygon[2]);
-    let second = area(polygon[0], polygon[2], polygon[3]);
-    let split = first / (first + second).max(f64::MIN_POSITIVE);
-    if u < split {
-        triangle_point(&[polygon[0], polygon[1], polygon[2]], u / split, v)
-    } else {
-        let rest = ((u - split) / (1.0 - split)).clamp(0.0, 1.0);
-        triangle_point(&[polygon[0], polygon[2], polygon[3]], rest, v)
-    }
-}
-
 /// Clips triangle `t` to the half-space in front of the plane through `x` with normal `n`;
 /// writes the corners (at most 4) to `out` and returns their number.
 fn clip(t: &[DVec3; 3], n: DVec3, x: DVec3, out: &mut [DVec3; 4]) -> usize {
@@ -1026,7 +1119,7 @@ mod tests {
         };
         let scene = crate::loader::load(&std::fs::read(path).unwrap(), &options).unwrap();
         let tracer = SceneTracer::new(&scene);
-        let sampling = Sampling::for_lines(1_000_000, 9);
+        let sampling = Sampling::for_lines(1_000_000, scene.patches.len(), 9);
         let lights = AreaLights::compute(&scene, &tracer, sampling, &Control::default()).unwrap();
         assert!(!lights.is_empty() && !scene.objects.is_empty());
         let mut slot = vec![None; scene.materials.len()];
@@ -1066,6 +1159,11 @@ mod tests {
         assert!(retraced > 0 && retraced < lights.pairs.len() * scene.frames.count / 2);
     }
 
+    /// A quad as two triangles.
+    fn fans(q: &[DVec3; 4]) -> [[DVec3; 3]; 2] {
+        [[q[0], q[1], q[2]], [q[0], q[2], q[3]]]
+    }
+
     /// Howell C-11: a point under the corner of a parallel a × b rectangle at height h.
     fn corner(a: f64, b: f64, h: f64) -> f64 {
         let (a, b) = (a / h, b / h);
@@ -1099,7 +1197,7 @@ mod tests {
         for i in 0..g {
             for j in 0..g {
                 let (u, v) = ((i as f64 + 0.5) / g as f64, (j as f64 + 0.5) / g as f64);
-                let (y, f) = sample_polygon(DVec3::ZERO, DVec3::Z, -DVec3::Z, &square, u, v)
+                let (y, f) = sample_fans(DVec3::ZERO, DVec3::Z, -DVec3::Z, &fans(&square), u, v)
                     .expect("a sample");
                 assert!((y.z - h).abs() < 1e-12 && (0.0..=0.5).contains(&y.x), "{y}");
                 sum += f;
@@ -1119,7 +1217,8 @@ mod tests {
             DVec3::new(s, s, h),
             DVec3::new(0.0, s, h),
         ];
-        let (_, f) = sample_polygon(DVec3::ZERO, DVec3::Z, -DVec3::Z, &square, 0.3, 0.6).unwrap();
+        let (_, f) =
+            sample_fans(DVec3::ZERO, DVec3::Z, -DVec3::Z, &fans(&square), 0.3, 0.6).unwrap();
         let exact = s * s / std::f64::consts::PI;
         assert!((f / exact - 1.0).abs() < 1e-5, "{f} vs {exact}");
     }
@@ -1138,30 +1237,5 @@ mod tests {
         let all = clip(&t, DVec3::Z, DVec3::new(0.0, 0.0, -2.0), &mut out);
         assert_eq!(all, 3);
         assert_eq!(clip(&t, DVec3::Z, DVec3::new(0.0, 0.0, 2.0), &mut out), 0);
-    }
-
-    #[test]
-    fn polygon_points_cover_a_quad_uniformly() {
-        let quad = [
-            DVec3::new(0.0, 0.0, 0.0),
-            DVec3::new(3.0, 0.0, 0.0),
-            DVec3::new(3.0, 1.0, 0.0),
-            DVec3::new(0.0, 1.0, 0.0),
-        ];
-        // The mean of a grid of (u, v) maps to the centroid.
-        let g = 64;
-        let mut sum = DVec3::ZERO;
-        for i in 0..g {
-            for j in 0..g {
-                let p = polygon_point(
-                    &quad,
-                    (i as f64 + 0.5) / g as f64,
-                    (j as f64 + 0.5) / g as f64,
-                );
-                sum += p;
-            }
-        }
-        let mean = sum / (g * g) as f64;
-        assert!((mean - DVec3::new(1.5, 0.5, 0.0)).length() < 0.01, "{mean}");
     }
 }

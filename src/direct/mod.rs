@@ -359,6 +359,20 @@ fn sample_points(
     }
 }
 
+/// Triangle `t` shrunk towards its centroid so that every point of it lies at least
+/// `8·COINCIDENT` from its edges (at most halfway): a shadow ray from a point a hair from an
+/// edge could cross the neighbouring face inside the window where crossings at its start are
+/// taken for the surface it starts on, and leak. The mean over the shrunk triangle differs from
+/// the whole one's by far less than the sampling's error (4e-6 of the radius in 5e-5 of it).
+fn inset(t: &[DVec3; 3]) -> [DVec3; 3] {
+    let centre = (t[0] + t[1] + t[2]) / 3.0;
+    let area2 = (t[1] - t[0]).cross(t[2] - t[0]).length();
+    let perimeter: f64 = (0..3).map(|k| t[k].distance(t[(k + 1) % 3])).sum();
+    let inradius = area2 / perimeter.max(f64::MIN_POSITIVE);
+    let shrink = (8.0 * f64::from(COINCIDENT) / inradius.max(f64::MIN_POSITIVE)).min(0.5);
+    t.map(|p| centre + (p - centre) * (1.0 - shrink))
+}
+
 /// The point of triangle `t` at `(u, v)` in the unit square, area-preserving.
 fn triangle_point(t: &[DVec3; 3], u: f64, v: f64) -> DVec3 {
     let s = u.sqrt();
@@ -498,7 +512,12 @@ fn patch_irradiance(
         .fold(0.0, f64::max);
     let mut points = Vec::new();
     let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed);
-    sample_points(corners, sample_level(edge, distance), &mut rng, &mut points);
+    sample_points(
+        inset(&corners),
+        sample_level(edge, distance),
+        &mut rng,
+        &mut points,
+    );
     let values: Vec<f64> = points
         .iter()
         .map(|&x| {
