@@ -63,9 +63,9 @@ pub struct Sampling {
     /// Seeds the sampling: two bakes with different seeds are independent (the bake's line
     /// seed).
     pub seed: u64,
-    /// Shadow rays per pair (patch, emitter) relative to the standard 16 to 256 (below 1, the
-    /// standard): a bake with more lines per patch samples its emitters more densely too, so
-    /// that neither error hides the other.
+    /// Shadow rays per pair (patch, emitter) relative to the standard 16 to 256 (never fewer
+    /// than 16): a bake with more lines per patch samples its emitters more densely too, and
+    /// one with fewer less densely, so that neither error hides the other.
     pub density: f64,
 }
 
@@ -854,9 +854,8 @@ fn bounds(points: impl Iterator<Item = DVec3>) -> (DVec3, DVec3) {
 
 /// The side of the grid of strata for a pair: 4, 8 or 16 as the face and the emitter look small
 /// or as large as their distance from each other (the irradiance varies more over the face,
-/// and a shadow's edge is wider), times the square root of `density` when above 1; at most 64.
-/// Never fewer: a face across a shadow's edge whose few rays all happen to agree would report
-/// a tiny error bar on a large error (with 16 rays, one penumbra patch in a few hundred does).
+/// and a shadow's edge is wider), times the square root of `density`; from 4 (8 pairs of
+/// strata: a variance from fewer is itself too noisy) to 64.
 fn grid(face: &Face, emitter: &Emitter, density: f64) -> usize {
     let centre = (face.corners[0] + face.corners[1] + face.corners[2]) / 3.0;
     let distance = centre.distance(emitter.centre).max(f64::MIN_POSITIVE);
@@ -866,7 +865,7 @@ fn grid(face: &Face, emitter: &Emitter, density: f64) -> usize {
         r if r < 0.5 => 8.0,
         _ => 16.0,
     };
-    (base * density.max(1.0).sqrt()).round().min(64.0) as usize
+    (base * density.sqrt()).round().clamp(4.0, 64.0) as usize
 }
 
 /// The form factor from `face` to `emitter` with `at`'s occluders, and its variance: the mean
@@ -900,6 +899,7 @@ fn form_factor(
         bits.resize(count.div_ceil(64), 0);
     }
     let receiver = super::inset(&face.corners);
+    let (mut eligible, mut seen, mut squares) = (0usize, 0usize, 0.0);
     let mut values = vec![0.0; count];
     for (k, value) in values.iter_mut().enumerate() {
         let jitter: [f64; 4] = [rng.random(), rng.random(), rng.random(), rng.random()];
@@ -941,6 +941,8 @@ fn form_factor(
             Rays::Known(bits) if bits[k / 64] >> (k % 64) & 1 == 0 => false,
             _ => !at.blocked(x, y, face.own, face.back, hits),
         };
+        squares += f * f;
+        (eligible, seen) = (eligible + 1, seen + usize::from(visible));
         if visible {
             *value = f;
             if let Rays::Record(bits) = &mut rays {
@@ -948,8 +950,18 @@ fn form_factor(
             }
         }
     }
-    // Neighbouring cells (k, k + 1 in a row of the grid) make the pairs.
-    super::collapsed_variance(&values)
+    // Neighbouring cells (k, k + 1 in a row of the grid) make the pairs. Across a shadow's
+    // edge that estimate is unreliable (neighbouring strata on the same side of the edge agree,
+    // and the strata the edge cuts are few): there, never less than the binomial variance of
+    // the visible fraction, as if the rays were independent (wider than stratified sampling's).
+    let (mean, collapsed) = super::collapsed_variance(&values);
+    let binomial = if seen > 0 && seen < eligible {
+        let p = seen as f64 / eligible as f64;
+        p * (1.0 - p) * squares / (count * count) as f64
+    } else {
+        0.0
+    };
+    (mean, collapsed.max(binomial))
 }
 
 /// Below this solid angle (steradians), a fan triangle of the emitter is sampled by area: the
