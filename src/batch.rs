@@ -134,6 +134,9 @@ struct Summary<'a> {
     /// (`bench::estimated_error`), what the README's preset table measures against a
     /// reference. `null` when no patch qualifies (a scene where everything emits).
     mean_relative_error: Option<f64>,
+    /// The emitting materials (index and name) whose direct light is sampled as area lights
+    /// rather than carried by the lines (`direct::area`): small ones; empty if none.
+    area_lights: Vec<(u32, Option<&'a str>)>,
     /// The tone map's exposure: `COLOR_0` and previews show `exposure · radiance` through
     /// Reinhard's curve.
     exposure: f64,
@@ -462,6 +465,12 @@ pub fn bake_one(
             .first()
             .map_or(0, |f| f.samples.iter().filter(|&&n| n == 0).count()),
         mean_relative_error: crate::bench::estimated_error(scene, &frames),
+        area_lights: bake
+            .area_lights()
+            .materials()
+            .iter()
+            .map(|&m| (m, scene.materials[m as usize].name.as_deref()))
+            .collect(),
         exposure: tone.exposure,
         glb_frames: params.outputs.glb_frames.frames(count),
         preview_frames: params.outputs.preview_frames.frames(count),

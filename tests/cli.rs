@@ -69,6 +69,20 @@ fn a_directory_bakes_skips_when_unchanged_and_survives_a_broken_scene() {
             iterations.iter().all(serde_json::Value::is_u64),
             "{name}: {iterations:?}"
         );
+        // The Cornell box's small light is sampled as an area light; the parallel squares'
+        // emitter covers half the scene and stays with the lines.
+        let sampled: Vec<&str> = summary["area_lights"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|m| m[1].as_str().unwrap())
+            .collect();
+        let expected: &[&str] = if name == "cornell_moving" {
+            &["light"]
+        } else {
+            &[]
+        };
+        assert_eq!(sampled, expected, "{name}");
     }
     assert!(!out.join("broken").exists());
     // Nothing half-written is left behind: no staging directory beside the outputs.
