@@ -64,7 +64,7 @@ pub struct Sampling {
     /// seed).
     pub seed: u64,
     /// Shadow rays per pair (patch, emitter) relative to the standard 16 to 256 (never fewer
-    /// than 16, at most 4 times as many): a bake with more lines per patch samples its emitters
+    /// than 16, at most 16 times as many): a bake with more lines per patch samples its emitters
     /// more densely too, and one with fewer less densely, so that neither error hides the
     /// other.
     pub density: f64,
@@ -74,10 +74,11 @@ pub struct Sampling {
 /// 1M lines, where the direct light's error is well below the lines'.
 const LINES_PER_PATCH: f64 = 500.0;
 
-/// The most [`Sampling::density`]: 4 times the standard rays per pair. A scene of few patches
-/// gets thousands of lines per patch cheaply, but as many shadow rays per pair would cost far
-/// more than its lines (the Cornell box at 1M lines: 4,096 rays per pair, 12.7 s against 2.5).
-const MAX_DENSITY: f64 = 4.0;
+/// The most [`Sampling::density`]: 16 times the standard rays per pair (the grid's side at
+/// most 64 in any case). A scene of few patches gets thousands of lines per patch cheaply, and
+/// as many shadow rays per pair would cost far more than its lines; at 4 the Cornell box's
+/// error stopped falling at 0.6% from 1M to 10M lines, its direct light's.
+const MAX_DENSITY: f64 = 16.0;
 
 impl Sampling {
     /// The sampling of a bake with `lines` lines over `patches` patches and `seed`: density
