@@ -34,11 +34,13 @@ pub struct LineParams {
 /// same names in the CLI and the API.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Preset {
-    /// 100,000 lines: previews (about 6% RMS error on the sample level, 0.4 s for 25 frames).
+    /// 100,000 lines: previews (about 2.4% per-patch error on the sample level's lit walls,
+    /// under a second for 25 frames; the README's preset table).
     Draft,
-    /// 1,000,000 lines: everyday bakes (about 1.7% on the sample level, 2.5 s).
+    /// 1,000,000 lines: everyday bakes (about 0.6% per patch on the sample level and the
+    /// Cornell box).
     Default,
-    /// 10,000,000 lines: final bakes (about 0.5% on the sample level).
+    /// 10,000,000 lines: final bakes (about 0.2–0.3% per patch on both).
     Final,
 }
 
