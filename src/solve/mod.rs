@@ -636,8 +636,8 @@ impl<'a> System<'a> {
         let mut q = vec![[0.0; 3]; n];
         let mut noise = Noise::new(problem.fixed);
         let mut iteration = 0;
+        let mut rr = dots(&r, &r);
         loop {
-            let rr = dots(&r, &r);
             let mut check = [false; 3];
             for c in 0..3 {
                 if running[c] {
@@ -673,14 +673,21 @@ impl<'a> System<'a> {
                     }
                 }
             }
+            // One pass: the step, the preconditioned residual and the next dot products
+            // (summed in the same order as `dots`, so the same to the bit).
+            let mut rz_next = [0.0; 3];
+            let mut rr_next = [0.0; 3];
             for i in 0..n {
+                let d = self.diagonal[i];
                 for c in 0..3 {
                     x[i][c] += alpha[c] * p[i][c];
                     r[i][c] -= alpha[c] * q[i][c];
+                    z[i][c] = if d[c] > 0.0 { r[i][c] / d[c] } else { 0.0 };
+                    rz_next[c] += r[i][c] * z[i][c];
+                    rr_next[c] += r[i][c] * r[i][c];
                 }
             }
-            precondition(&r, &mut z);
-            let rz_next = dots(&r, &z);
+            rr = rr_next;
             let beta: [f64; 3] =
                 std::array::from_fn(|c| if running[c] { rz_next[c] / rz[c] } else { 0.0 });
             rz = rz_next;
