@@ -389,12 +389,16 @@ fn collapsed_variance(values: &[f64]) -> (f64, f64) {
     (mean, spread / (n * n))
 }
 
-/// Subdivision level for a patch of longest edge `edge` seen from `distance`: 16 points while
-/// the patch looks small from the light (8 pairs of strata: a variance from fewer is itself too
-/// noisy to cover the error reliably), 64 when it fills a wide angle.
+/// Subdivision level for a patch of longest edge `edge` seen from `distance`: 4 points while
+/// the patch looks tiny from the light (its light varies little over it, and a large scene has
+/// many such patches), 16 while small, 64 when it fills a wide angle.
 fn sample_level(edge: f64, distance: f64) -> u32 {
     let ratio = edge / distance.max(f64::MIN_POSITIVE);
-    if ratio < 1.0 { 2 } else { 3 }
+    match ratio {
+        r if r < 0.05 => 1,
+        r if r < 1.0 => 2,
+        _ => 3,
+    }
 }
 
 /// A spot's angular attenuation at `cos_angle` from its axis: the extension's recommended
@@ -534,11 +538,25 @@ fn patch_irradiance(
             if e > 0.0 && !at.blocked(x, position, own, back, hits) {
                 e
             } else {
-                0.0
+                -e
             }
         })
         .collect();
-    collapsed_variance(&values)
+    // Negative: lit but shadowed (its unshadowed irradiance, for the binomial variance below).
+    let shadowed = values.iter().filter(|&&v| v < 0.0).count();
+    let lit = values.iter().filter(|&&v| v > 0.0).count();
+    let squares: f64 = values.iter().map(|v| v * v).sum();
+    let values: Vec<f64> = values.iter().map(|&v| v.max(0.0)).collect();
+    let (mean, collapsed) = collapsed_variance(&values);
+    // Across a shadow's edge the pairs of strata are unreliable (see `area`): never less than
+    // the binomial variance of the lit fraction there.
+    let binomial = if lit > 0 && shadowed > 0 {
+        let p = lit as f64 / (lit + shadowed) as f64;
+        p * (1.0 - p) * squares / (values.len() * values.len()) as f64
+    } else {
+        0.0
+    };
+    (mean, collapsed.max(binomial))
 }
 
 /// Unit irradiance per patch from a directional light: one bundle of parallel lines.
