@@ -136,19 +136,7 @@ fn bake(scene: Scene, lines: u64, seed: u64) -> Bake {
 
 /// The mean over triangle `t` of `f`, by the midpoint rule on its 4^5 sub-triangles.
 fn over_triangle(t: [DVec3; 3], f: &dyn Fn(DVec3) -> f64) -> f64 {
-    fn walk(t: [DVec3; 3], level: u32, f: &dyn Fn(DVec3) -> f64) -> f64 {
-        if level == 0 {
-            return f((t[0] + t[1] + t[2]) / 3.0);
-        }
-        let [a, b, c] = t;
-        let (ab, bc, ca) = ((a + b) * 0.5, (b + c) * 0.5, (c + a) * 0.5);
-        [[a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca]]
-            .into_iter()
-            .map(|s| walk(s, level - 1, f))
-            .sum::<f64>()
-            / 4.0
-    }
-    walk(t, 5, f)
+    common::mean_over_triangle(t, 5, f)
 }
 
 /// The unoccluded form factor from floor triangle `t` to the emitter (Howell C-11 integrated).

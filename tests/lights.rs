@@ -108,19 +108,7 @@ fn floor_triangles(scene: &Scene) -> Vec<(usize, [DVec3; 3])> {
 
 /// The mean of `f` over triangle `t`: the midpoint rule on its 4^4 sub-triangles.
 fn mean_over(t: [DVec3; 3], f: &dyn Fn(DVec3) -> f64) -> f64 {
-    fn walk(t: [DVec3; 3], level: u32, f: &dyn Fn(DVec3) -> f64) -> f64 {
-        if level == 0 {
-            return f((t[0] + t[1] + t[2]) / 3.0);
-        }
-        let [a, b, c] = t;
-        let (ab, bc, ca) = ((a + b) * 0.5, (b + c) * 0.5, (c + a) * 0.5);
-        [[a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca]]
-            .into_iter()
-            .map(|s| walk(s, level - 1, f))
-            .sum::<f64>()
-            / 4.0
-    }
-    walk(t, 4, f)
+    common::mean_over_triangle(t, 4, f)
 }
 
 #[test]

@@ -316,3 +316,18 @@ pub fn cuboid(size: [f32; 3], center: [f32; 3], inward: bool) -> (Vec<[f32; 3]>,
         .collect();
     (positions, indices)
 }
+
+/// The mean over triangle `t` of `f`, by the midpoint rule on its 4^`level` equal
+/// sub-triangles (a reference quadrature for the bake's stratified sampling).
+pub fn mean_over_triangle(t: [glam::DVec3; 3], level: u32, f: &dyn Fn(glam::DVec3) -> f64) -> f64 {
+    if level == 0 {
+        return f((t[0] + t[1] + t[2]) / 3.0);
+    }
+    let [a, b, c] = t;
+    let (ab, bc, ca) = ((a + b) * 0.5, (b + c) * 0.5, (c + a) * 0.5);
+    [[a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca]]
+        .into_iter()
+        .map(|s| mean_over_triangle(s, level - 1, f))
+        .sum::<f64>()
+        / 4.0
+}
