@@ -5,18 +5,21 @@
 //! A patch's direct light from an emitting face is `ρ·Le·F`, with `F` the patch's form factor
 //! to that face. Lines estimate `F` from the fraction of their segments that end on the emitter:
 //! for a ceiling panel seen under a few percent of a wall patch's lines, a few dozen crossings,
-//! the 5–10% noise of a wall lit by such a panel. Here each emitting source triangle is a
-//! *cluster* (its subdivided patches are one flat triangle), and a patch's form factor to it is
+//! the 5–10% noise of a wall lit by such a panel. Here the coplanar emitting source triangles of
+//! one material, one object and one side are one light (a *cluster*; each source triangle's
+//! subdivided patches are one flat triangle), and a patch's form factor to it,
+//! `F = (1/A) ∫_patch ∫_light cos θ cos θ' V / (π r²)`, is estimated as the mean over g × g
+//! stratified points `x_k` of the patch of
 //!
-//! `F = (1/A) ∫_patch F_x(cluster) V(x, y) dx`, estimated as the mean over stratified points
-//! `x_k` of the patch of `F_x(clipped triangle) · V(x_k, y_k)`,
+//! `(Ω_k / π) · cos θ_k · V(x_k, y_k)`,
 //!
-//! where `F_x` is the *exact* point-to-polygon form factor (Lambert's formula) of the part of
-//! the triangle above the patch's plane, and `V(x_k, y_k)` one shadow ray to a stratified point
-//! of that part. Where the emitter is wholly visible or wholly hidden from a point, its
-//! estimate is exact: only shadow edges (and the patch's own irradiance gradient, through the
-//! stratified points) leave any noise. Its variance comes from the stratification: the
-//! collapsed-strata estimate over pairs of neighbouring strata (conservative).
+//! with `Ω_k` the solid angle of the light's part above the patch's plane seen from `x_k`, `θ_k`
+//! the angle of one stratified direction drawn uniformly in that solid angle (Arvo's method),
+//! and `V` its shadow ray to the light at `y_k`. Unbiased; exactly 0 where every ray is
+//! blocked; where none is, only the variation of cos θ over the light (and the patch's own
+//! irradiance gradient, through its stratified points) leaves any noise. The variance comes
+//! from pairs of neighbouring strata, never below the binomial variance of the visible fraction
+//! across a shadow's edge (conservative).
 //!
 //! The light is kept per unit radiance of each sampled emitting *material* (so relighting an
 //! emitter stays linear and needs no tracing), and the solve subtracts these materials'
@@ -26,15 +29,17 @@
 //! **Which emitters.** Sampling costs shadow rays per patch and per cluster; the lines cost
 //! nothing more. A material is sampled when its emitting faces cover at most
 //! [`MAX_AREA_SHARE`] of the scene's area (there the lines' estimate is poor: a patch's
-//! fraction of lines that reach it is small) and the sampled clusters stay within
+//! fraction of lines that reach it is small) and the sampled source triangles stay within
 //! [`MAX_CLUSTERS`], smallest share first. A room whose every wall glows stays with the lines,
 //! and costs what it did.
 //!
-//! **Frames.** The static geometry's shadows are computed once. At each distinct pose of the
-//! moving geometry, only the pairs (patch, cluster) it can change are traced again: those with
-//! a moving end, and those whose bounding box (patch and cluster together, which holds every
-//! shadow ray between them) meets a moving object's. The rest of the frame reuses the static
-//! result; cost and memory grow with what moves.
+//! **Frames.** The static geometry's shadows are computed once, and every shadow ray's verdict
+//! is kept (a bit). At each distinct pose of the moving geometry, only the pairs (patch,
+//! cluster) it can change are traced again: those with a moving end (whole), and those whose
+//! convex hull (patch and light together, which holds every shadow ray between them) meets a
+//! moving object's box (through the moving objects only, along the rays the static geometry let
+//! through). The rest of the frame reuses the static result; cost and memory grow with what
+//! moves.
 
 use std::collections::HashMap;
 
@@ -53,8 +58,8 @@ use crate::trace::{FrameMeshes, SceneTracer};
 /// the lines: most lines from most patches reach them, and the lines estimate them well.
 pub const MAX_AREA_SHARE: f64 = 0.25;
 
-/// Most emitting source triangles (each face counted) sampled explicitly: the cost is shadow
-/// rays per patch per cluster.
+/// Most emitting source triangles (each face counted) sampled explicitly: the cost of a point
+/// is a solid angle per triangle of its light.
 pub const MAX_CLUSTERS: usize = 64;
 
 /// How densely, and with which random numbers, the emitters are sampled.
