@@ -16,8 +16,9 @@
 //!   scene statistics measured by the lines.
 //! - [`solve`]: tallies of the list per frame (`N_i`, `S_ij`, with per-frame changes only for
 //!   what moves) and the radiosity solve with per-patch error bars.
-//! - [`direct`]: direct light from punctual lights (point, spot, directional) with shadows,
-//!   the light the interreflection starts from.
+//! - [`direct`]: direct light from punctual lights (point, spot, directional) and, in
+//!   [`direct::area`], from small emitting surfaces sampled as area lights, with shadows and
+//!   their sampling error: the light the interreflection starts from.
 //! - [`bake`]: a traced scene ready to solve, refine and relight any frame.
 //! - [`output`]: what people use and look at: the baked glTF (per-vertex radiance), PNG and
 //!   GIF previews, the tone map.
