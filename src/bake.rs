@@ -196,7 +196,7 @@ impl Bake {
         power: &[[f64; 3]],
         params: &SolveParams,
     ) -> FrameSolution {
-        self.solve_tally(&self.frame_tally(frame), frame, materials, power, params)
+        self.solve_frame_from(frame, materials, power, params, None)
     }
 
     /// [`Bake::solve_frame_lit`] starting from `start`, the solution of a nearby frame (with the

@@ -688,7 +688,7 @@ fn block(size: Vec3, material: usize) -> Geometry {
 /// A sphere of `radius` about the origin, facing outward: an icosahedron whose triangles are each
 /// cut in four, `level` times over, every new vertex pushed out onto the sphere. Each edge's midpoint is
 /// made once and shared by both triangles on that edge, so the sphere is watertight.
-fn icosphere(level: usize, radius: f32, material: usize) -> Geometry {
+pub fn icosphere_mesh(level: usize, radius: f32) -> (Vec<Vec3>, Vec<[u32; 3]>) {
     // The 12 vertices (0, ±1, ±φ) cyclically, and 20 faces counter-clockwise seen from outside.
     let phi = (1.0 + 5f32.sqrt()) / 2.0;
     let mut unit: Vec<Vec3> = [
@@ -745,8 +745,14 @@ fn icosphere(level: usize, radius: f32, material: usize) -> Geometry {
             })
             .collect();
     }
+    (unit.into_iter().map(|p| p * radius).collect(), triangles)
+}
+
+/// [`icosphere_mesh`] of one material.
+fn icosphere(level: usize, radius: f32, material: usize) -> Geometry {
+    let (positions, triangles) = icosphere_mesh(level, radius);
     Geometry {
-        positions: unit.into_iter().map(|p| p * radius).collect(),
+        positions,
         triangles: BTreeMap::from([(material, triangles.into_iter().flatten().collect())]),
     }
 }

@@ -48,7 +48,7 @@ use rand::rngs::Xoshiro256PlusPlus;
 use rand::{RngExt, SeedableRng};
 use rayon::prelude::*;
 
-use super::{Face, Frame, Occluders, geometry_key, triangle_point};
+use super::{Face, Frame, Occluders, Posed, geometry_key, triangle_point};
 use crate::scene::{Faces, Material, Motion, Scene};
 use crate::timeline::{Control, TraceError};
 use crate::trace::coincident::mix;
@@ -185,7 +185,8 @@ impl AreaLights {
         for (k, &m) in materials.iter().enumerate() {
             slot[m as usize] = Some(k as u16);
         }
-        let clusters = clusters(scene, tracer, &slot);
+        let triangles = scene.triangles_at(0);
+        let clusters = clusters(scene, tracer, &triangles, &slot);
         let patches = scene.patches.len();
         let statics = scene.statics.triangles.len();
         let frames = scene.frames.count;
@@ -209,7 +210,6 @@ impl AreaLights {
         control.add_work(1 + firsts.len() as u64);
 
         // The static part: static patches lit by static clusters, static occluders.
-        let triangles = scene.triangles_at(0);
         let none = FrameMeshes::none();
         let at = Frame {
             scene,
@@ -340,15 +340,17 @@ impl AreaLights {
         };
         let row = |p: usize| &self.pairs[self.offsets[p] as usize..self.offsets[p + 1] as usize];
         let mut changed = self.states[state].iter().peekable();
+        let mut buffer: Vec<Pair> = Vec::new();
         for p in 0..patches {
-            let mut row: Vec<Pair> = row(p).to_vec();
+            buffer.clear();
+            buffer.extend_from_slice(row(p));
             while let Some((_, pair)) = changed.next_if(|(q, _)| *q as usize == p) {
-                match row.iter_mut().find(|e| e.cluster == pair.cluster) {
+                match buffer.iter_mut().find(|e| e.cluster == pair.cluster) {
                     Some(e) => *e = *pair,
-                    None => row.push(*pair),
+                    None => buffer.push(*pair),
                 }
             }
-            for e in row {
+            for e in &buffer {
                 let k = p * slots + usize::from(self.cluster_slot[e.cluster as usize]);
                 values[k] += f64::from(e.value);
                 variances[k] += f64::from(e.variance);
@@ -445,9 +447,13 @@ fn choose(scene: &Scene, tracer: &SceneTracer) -> Vec<u32> {
 /// The clusters of the sampled materials: the emitting source triangles (each face apart) of
 /// one material, one object and one side that lie in one plane make one light; a deforming
 /// object's triangles are lights of their own (their plane does not stay shared).
-fn clusters(scene: &Scene, tracer: &SceneTracer, slot: &[Option<u16>]) -> Vec<Cluster> {
+fn clusters(
+    scene: &Scene,
+    tracer: &SceneTracer,
+    triangles: &[([glam::Vec3; 3], Faces)],
+    slot: &[Option<u16>],
+) -> Vec<Cluster> {
     let spaces = tracer.surfaces().spaces;
-    let triangles = scene.triangles_at(0);
     // The source triangles: (source, side) → its traced triangles.
     let mut index = HashMap::new();
     let mut sources: Vec<(usize, bool, u32, Vec<u32>)> = Vec::new();
@@ -474,8 +480,8 @@ fn clusters(scene: &Scene, tracer: &SceneTracer, slot: &[Option<u16>]) -> Vec<Cl
     };
     let mut out: Vec<(Cluster, u32, DVec3, f64)> = Vec::new();
     for (slot, back, space, pieces) in sources {
-        let corners = source_corners(&pieces, &triangles);
-        let normal = face_normal(&triangles, pieces[0], back);
+        let corners = source_corners(&pieces, triangles);
+        let normal = face_normal(triangles, pieces[0], back);
         let offset = normal.dot(corners[0]);
         let size = longest_edge(&corners).max(f64::MIN_POSITIVE);
         let same = out.iter_mut().find(|(c, s, n, d)| {
@@ -702,21 +708,11 @@ fn changed_pairs(
     clusters: &[Cluster],
     sampling: Sampling,
 ) -> Vec<(u32, Pair)> {
-    let triangles = scene.triangles_at(frame);
-    let deformed = tracer.deformed_at(scene, frame);
-    let at = Frame {
-        scene,
-        tracer,
-        deformed: &deformed,
-        triangles: &triangles,
-        frame,
-        occluders: Occluders::All,
-    };
-    let moving_only = Frame {
-        occluders: Occluders::Moving,
-        ..at
-    };
-    let emitters: Vec<Emitter> = clusters.iter().map(|c| pose(c, &triangles)).collect();
+    let posed = Posed::at(scene, tracer, frame);
+    let at = posed.frame(scene, tracer, Occluders::All);
+    let moving_only = posed.frame(scene, tracer, Occluders::Moving);
+    let triangles = &posed.triangles;
+    let emitters: Vec<Emitter> = clusters.iter().map(|c| pose(c, triangles)).collect();
     let statics = scene.statics.triangles.len();
     // The moving objects' boxes at this frame: a rigid object's own box carried by its pose
     // (a door stays a thin slab however it turns), a deforming one's box around its triangles.
@@ -742,38 +738,39 @@ fn changed_pairs(
     }
     let mut changed: Vec<(u32, Pair)> = (0..triangles.len())
         .into_par_iter()
-        .map_init(Vec::new, |hits, t| {
-            let mut out = Vec::new();
-            for receiver in faces(&triangles, t) {
-                for (c, emitter) in emitters.iter().enumerate() {
-                    let moving = t >= statics || clusters[c].moving;
-                    if !moving && !receiver.may_see(emitter) {
-                        continue;
-                    }
-                    if moving {
-                        let pair = pair(&at, &receiver, c, emitter, sampling, Rays::Trace, hits);
-                        if pair.value > 0.0 {
-                            out.push((receiver.patch, pair));
+        .map_init(
+            || (Vec::new(), Vec::new()),
+            |(hits, hull), t| {
+                let mut out = Vec::new();
+                for receiver in faces(triangles, t) {
+                    for (c, emitter) in emitters.iter().enumerate() {
+                        if t >= statics || clusters[c].moving {
+                            let pair =
+                                pair(&at, &receiver, c, emitter, sampling, Rays::Trace, hits);
+                            if pair.value > 0.0 {
+                                out.push((receiver.patch, pair));
+                            }
+                            continue;
                         }
-                    } else if boxes.iter().any(|b| {
-                        let hull = receiver.corners.iter().chain(&emitter.hull);
-                        b.meets_hull(&hull.copied().collect::<Vec<_>>())
-                    }) {
                         // Dark with the static geometry alone: dark whatever moves.
                         let Some(base) = lights.static_pair(receiver.patch, c) else {
                             continue;
                         };
-                        let known = &lights.visible[base.visible as usize..];
-                        let rays = Rays::Known(known);
+                        hull.clear();
+                        hull.extend(receiver.corners.iter().chain(&emitter.hull));
+                        if !boxes.iter().any(|b| b.meets_hull(hull)) {
+                            continue;
+                        }
+                        let rays = Rays::Known(&lights.visible[base.visible as usize..]);
                         let pair = pair(&moving_only, &receiver, c, emitter, sampling, rays, hits);
                         if pair.value != base.value {
                             out.push((receiver.patch, pair));
                         }
                     }
                 }
-            }
-            out
-        })
+                out
+            },
+        )
         .flatten()
         .collect();
     changed.sort_unstable_by_key(|&(p, pair)| (p, pair.cluster));
@@ -1151,25 +1148,18 @@ mod tests {
         for (k, &m) in lights.materials.iter().enumerate() {
             slot[m as usize] = Some(k as u16);
         }
-        let clusters = clusters(&scene, &tracer, &slot);
+        let clusters = clusters(&scene, &tracer, &scene.triangles_at(0), &slot);
         let slots = lights.materials.len();
         let mut retraced = 0;
         for frame in 0..scene.frames.count {
-            let triangles = scene.triangles_at(frame);
-            let deformed = tracer.deformed_at(&scene, frame);
-            let at = Frame {
-                scene: &scene,
-                tracer: &tracer,
-                deformed: &deformed,
-                triangles: &triangles,
-                frame,
-                occluders: Occluders::All,
-            };
-            let emitters: Vec<Emitter> = clusters.iter().map(|c| pose(c, &triangles)).collect();
+            let posed = Posed::at(&scene, &tracer, frame);
+            let at = posed.frame(&scene, &tracer, Occluders::All);
+            let triangles = &posed.triangles;
+            let emitters: Vec<Emitter> = clusters.iter().map(|c| pose(c, triangles)).collect();
             let mut whole = vec![0.0f64; scene.patches.len() * slots];
             let mut hits = Vec::new();
             for t in 0..triangles.len() {
-                for face in faces(&triangles, t) {
+                for face in faces(triangles, t) {
                     for (c, emitter) in emitters.iter().enumerate() {
                         let p = pair(&at, &face, c, emitter, sampling, Rays::Trace, &mut hits);
                         whole[face.patch as usize * slots + clusters[c].slot] += f64::from(p.value);

@@ -166,32 +166,34 @@ impl DirectLight {
     /// intensity per light, in the scene's order); `None` without lights.
     #[must_use]
     pub fn irradiance(&self, frame: usize, power: &[[f64; 3]]) -> Option<Vec<[f64; 3]>> {
-        self.state(frame)?;
-        let patches = self.terms.first()?.first().map_or(0, Vec::len);
-        let mut out = vec![[0.0; 3]; patches];
-        for ((states, terms), p) in self.frame_term.iter().zip(&self.terms).zip(power) {
-            let unit = &terms[states[frame] as usize];
-            for (e, &u) in out.iter_mut().zip(unit) {
-                for c in 0..3 {
-                    e[c] += p[c] * f64::from(u);
-                }
-            }
-        }
-        Some(out)
+        self.sum(frame, &self.terms, power, |p| p)
     }
 
     /// The variance of [`DirectLight::irradiance`] from its sampling (lux²); `None` without
     /// lights. The lights are sampled independently: their variances add.
     #[must_use]
     pub fn variance(&self, frame: usize, power: &[[f64; 3]]) -> Option<Vec<[f64; 3]>> {
+        self.sum(frame, &self.variances, power, |p| p * p)
+    }
+
+    /// Σ over lights of `weight(power)` times the light's unit value per patch in `per_light`
+    /// (its terms or their variances) at `frame`; `None` without lights.
+    fn sum(
+        &self,
+        frame: usize,
+        per_light: &[Vec<Vec<f32>>],
+        power: &[[f64; 3]],
+        weight: fn(f64) -> f64,
+    ) -> Option<Vec<[f64; 3]>> {
         self.state(frame)?;
-        let patches = self.variances.first()?.first().map_or(0, Vec::len);
+        let patches = per_light.first()?.first().map_or(0, Vec::len);
         let mut out = vec![[0.0; 3]; patches];
-        for ((states, variances), p) in self.frame_term.iter().zip(&self.variances).zip(power) {
-            let unit = &variances[states[frame] as usize];
+        for ((states, values), p) in self.frame_term.iter().zip(per_light).zip(power) {
+            let unit = &values[states[frame] as usize];
+            let w = p.map(weight);
             for (e, &u) in out.iter_mut().zip(unit) {
                 for c in 0..3 {
-                    e[c] += p[c] * p[c] * f64::from(u);
+                    e[c] += w[c] * f64::from(u);
                 }
             }
         }
@@ -245,16 +247,8 @@ fn frame_irradiance(
     frame: usize,
     lights: &[usize],
 ) -> Vec<(usize, Term)> {
-    let deformed = tracer.deformed_at(scene, frame);
-    let triangles = scene.triangles_at(frame);
-    let at = Frame {
-        scene,
-        tracer,
-        deformed: &deformed,
-        triangles: &triangles,
-        frame,
-        occluders: Occluders::All,
-    };
+    let posed = Posed::at(scene, tracer, frame);
+    let at = posed.frame(scene, tracer, Occluders::All);
     lights
         .iter()
         .map(|&l| {
@@ -267,6 +261,40 @@ fn frame_irradiance(
             (l, (values, unit.iter().map(|e| e.1 as f32).collect()))
         })
         .collect()
+}
+
+/// What a [`Frame`] borrows: the scene's triangles and deforming meshes at one frame.
+struct Posed {
+    frame: usize,
+    deformed: FrameMeshes,
+    triangles: Vec<([Vec3; 3], Faces)>,
+}
+
+impl Posed {
+    fn at(scene: &Scene, tracer: &SceneTracer, frame: usize) -> Self {
+        Self {
+            frame,
+            deformed: tracer.deformed_at(scene, frame),
+            triangles: scene.triangles_at(frame),
+        }
+    }
+
+    /// The posed scene with `occluders` for its shadow rays.
+    fn frame<'a>(
+        &'a self,
+        scene: &'a Scene,
+        tracer: &'a SceneTracer,
+        occluders: Occluders,
+    ) -> Frame<'a> {
+        Frame {
+            scene,
+            tracer,
+            deformed: &self.deformed,
+            triangles: &self.triangles,
+            frame: self.frame,
+            occluders,
+        }
+    }
 }
 
 /// The scene posed at one frame, ready for shadow rays.

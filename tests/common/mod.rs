@@ -211,78 +211,14 @@ pub const QUAD: [[f32; 3]; 4] = [
 pub const QUAD_INDICES: [u32; 6] = [0, 1, 2, 0, 2, 3];
 
 /// An icosphere of radius `r`: `level` subdivisions of the icosahedron (20 × 4^level faces),
-/// vertices on the sphere, faces outward or, if `inward`, inward.
+/// vertices on the sphere, faces outward or, if `inward`, inward (the sample generator's).
 pub fn icosphere(level: usize, r: f32, inward: bool) -> (Vec<[f32; 3]>, Vec<u32>) {
-    let t = (1.0 + 5f64.sqrt()) / 2.0;
-    let mut v: Vec<glam::DVec3> = [
-        [-1.0, t, 0.0],
-        [1.0, t, 0.0],
-        [-1.0, -t, 0.0],
-        [1.0, -t, 0.0],
-        [0.0, -1.0, t],
-        [0.0, 1.0, t],
-        [0.0, -1.0, -t],
-        [0.0, 1.0, -t],
-        [t, 0.0, -1.0],
-        [t, 0.0, 1.0],
-        [-t, 0.0, -1.0],
-        [-t, 0.0, 1.0],
-    ]
-    .iter()
-    .map(|p| glam::DVec3::from_array(*p).normalize())
-    .collect();
-    let mut f: Vec<[u32; 3]> = vec![
-        [0, 11, 5],
-        [0, 5, 1],
-        [0, 1, 7],
-        [0, 7, 10],
-        [0, 10, 11],
-        [1, 5, 9],
-        [5, 11, 4],
-        [11, 10, 2],
-        [10, 7, 6],
-        [7, 1, 8],
-        [3, 9, 4],
-        [3, 4, 2],
-        [3, 2, 6],
-        [3, 6, 8],
-        [3, 8, 9],
-        [4, 9, 5],
-        [2, 4, 11],
-        [6, 2, 10],
-        [8, 6, 7],
-        [9, 8, 1],
-    ];
-    for _ in 0..level {
-        let mut mid = std::collections::HashMap::new();
-        let mut next = Vec::new();
-        for t in &f {
-            let mut m = [0u32; 3];
-            for k in 0..3 {
-                let (a, b) = (t[k].min(t[(k + 1) % 3]), t[k].max(t[(k + 1) % 3]));
-                m[k] = *mid.entry((a, b)).or_insert_with(|| {
-                    v.push(((v[a as usize] + v[b as usize]) * 0.5).normalize());
-                    (v.len() - 1) as u32
-                });
-            }
-            next.extend([
-                [t[0], m[0], m[2]],
-                [t[1], m[1], m[0]],
-                [t[2], m[2], m[1]],
-                m,
-            ]);
-        }
-        f = next;
-    }
-    let positions = v
-        .iter()
-        .map(|p| (*p * f64::from(r)).as_vec3().to_array())
-        .collect();
-    let indices = f
+    let (positions, triangles) = radiosity::samples::icosphere_mesh(level, r);
+    let indices = triangles
         .iter()
         .flat_map(|t| if inward { [t[0], t[2], t[1]] } else { *t })
         .collect();
-    (positions, indices)
+    (positions.iter().map(|p| p.to_array()).collect(), indices)
 }
 
 /// A closed box of `size` centred at `center`: 8 vertices, 12 triangles, faces outward or, if
