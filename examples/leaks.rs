@@ -40,7 +40,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let t = bake.frame_tally(0);
         let lost: u64 = (0..t.columns.len())
             .filter(|&k| t.columns[k] >= ABSORBED)
-            .map(|k| t.counts[k])
+            .map(|k| u64::from(t.counts[k]))
             .sum();
         println!(
             "{name}: {} lines, {odd} odd, {unordered} not alternating, {lost} segments to the sky, absorbed or at a contact",

@@ -49,7 +49,7 @@ impl Bake {
         let tracer = SceneTracer::new(&scene);
         let list = IntersectionList::build(&scene, &tracer, params, control)?;
         let mut tallies = Tallies::default();
-        tallies.update(&list, &tracer.surfaces());
+        tallies.update(&list, &tracer.surfaces(), scene.patches.len());
         let direct = DirectLight::compute(&scene, &tracer, control)?;
         let area = AreaLights::compute(
             &scene,
@@ -80,7 +80,11 @@ impl Bake {
         };
         self.list
             .add_lines(&self.scene, &self.tracer, &params, control)?;
-        self.tallies.update(&self.list, &self.tracer.surfaces());
+        self.tallies.update(
+            &self.list,
+            &self.tracer.surfaces(),
+            self.scene.patches.len(),
+        );
         self.warnings = overlap_warnings(&self.scene, &self.tracer, &self.list);
         Ok(())
     }

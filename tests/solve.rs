@@ -650,7 +650,7 @@ proptest::proptest! {
         proptest::prop_assert!(tally.is_symmetric());
         proptest::prop_assert!(!tally.columns.iter().any(|&c| c >= radiosity::solve::tally::ABSORBED));
         for i in 0..tally.crossings.len() {
-            let row: u64 = tally.counts[tally.offsets[i]..tally.offsets[i + 1]].iter().sum();
+            let row: u64 = tally.counts[tally.offsets[i]..tally.offsets[i + 1]].iter().map(|&c| u64::from(c)).sum();
             proptest::prop_assert_eq!(row, tally.crossings[i]);
         }
     }

@@ -478,7 +478,7 @@ impl<'a> System<'a> {
         tally.columns[range.clone()]
             .iter()
             .copied()
-            .zip(tally.counts[range].iter().map(|&c| c as f64))
+            .zip(tally.counts[range].iter().map(|&c| f64::from(c)))
     }
 
     /// `y = A x` on the unknowns, the three channels in one pass over the rows; `x` is 0 where

@@ -134,8 +134,9 @@ fn merge(a: &[(u64, i64)], b: &[(u64, i64)]) -> Entries {
 /// a frame's changes take more memory than the moving crossings they come from).
 #[derive(Clone, Debug, Default)]
 pub struct Tallies {
-    /// Segment counts of every line's static crossings, sorted by (row, column, group).
-    statics: Entries,
+    /// Segment counts of every line's static crossings: the tallies of a frame without its
+    /// moving objects.
+    statics: FrameTally,
     /// Lines crossing a moving object at frame f: `touched[touched_offsets[f]..touched_offsets[f + 1]]`.
     touched_offsets: Vec<u32>,
     touched: Vec<u32>,
@@ -148,7 +149,7 @@ pub struct Tallies {
 }
 
 /// One frame's tallies, assembled.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct FrameTally {
     /// Crossings of each patch (the row sums of `S`).
     pub crossings: Vec<u64>,
@@ -156,8 +157,8 @@ pub struct FrameTally {
     pub offsets: Vec<usize>,
     /// Column of each entry: a patch, [`SKY`] or [`ABSORBED`].
     pub columns: Vec<u32>,
-    /// Segment count of each entry (> 0).
-    pub counts: Vec<u64>,
+    /// Segment count of each entry (> 0; fewer than 2^32, as are the crossings of a list).
+    pub counts: Vec<u32>,
     /// Row starts of the per-group entries (length patches + 1).
     pub group_offsets: Vec<usize>,
     /// Per-group entries of each row: (column, group, count), for the error estimate.
@@ -167,11 +168,11 @@ pub struct FrameTally {
 impl Tallies {
     /// Tallies the lines `list` holds beyond those already tallied (all of them the first
     /// time): call again after [`IntersectionList::add_lines`] to refine.
-    pub fn update(&mut self, list: &IntersectionList, surfaces: &Surfaces<'_>) {
+    pub fn update(&mut self, list: &IntersectionList, surfaces: &Surfaces<'_>, patches: usize) {
         let new = self.lines..list.lines();
         self.groups = list.line_groups(GROUPS);
         let statics = tally_static(list, surfaces, new.clone(), &self.groups);
-        self.statics = merge(&self.statics, &statics);
+        self.statics = assemble(merge(&self.statics.entries(), &statics), patches);
         self.lines = new.end;
         // Which lines each frame's moving objects touch, over all lines.
         let mut pairs: Vec<(u32, u32)> = (0..list.lines())
@@ -212,19 +213,25 @@ impl Tallies {
     fn changes(&self, list: &IntersectionList, surfaces: &Surfaces<'_>, frame: usize) -> Entries {
         let touched = &self.touched
             [self.touched_offsets[frame] as usize..self.touched_offsets[frame + 1] as usize];
-        let mut raw = Vec::new();
-        let mut merged = Vec::new();
-        for &l in touched {
-            let l = l as usize;
-            let g = self.groups[l];
-            let surfaces = surfaces.along(list.direction(l));
-            walk(list.static_hits(l), &surfaces, |a, b| {
-                raw.push((key(a, b, g), -1))
-            });
-            list.frame_hits(l, frame, &mut merged);
-            walk(&merged, &surfaces, |a, b| raw.push((key(a, b, g), 1)));
-        }
-        aggregate(raw)
+        // In chunks on every core; sums of integers, so the same whatever the split.
+        touched
+            .par_chunks(4096)
+            .map(|chunk| {
+                let mut raw = Vec::new();
+                let mut merged = Vec::new();
+                for &l in chunk {
+                    let l = l as usize;
+                    let g = self.groups[l];
+                    let surfaces = surfaces.along(list.direction(l));
+                    walk(list.static_hits(l), &surfaces, |a, b| {
+                        raw.push((key(a, b, g), -1))
+                    });
+                    list.frame_hits(l, frame, &mut merged);
+                    walk(&merged, &surfaces, |a, b| raw.push((key(a, b, g), 1)));
+                }
+                aggregate(raw)
+            })
+            .reduce(Vec::new, |a, b| merge(&a, &b))
     }
 
     /// Frames whose tallies equal an earlier frame's: `representative[f]` is the first frame
@@ -248,7 +255,7 @@ impl Tallies {
     /// Bytes held: the static entries, the touched lines per frame, the line groups.
     #[must_use]
     pub fn bytes(&self) -> usize {
-        self.statics.len() * size_of::<(u64, i64)>()
+        self.statics.bytes()
             + (self.touched.len() + self.touched_offsets.len()) * size_of::<u32>()
             + self.fingerprints.len() * size_of::<u64>()
             + self.groups.len()
@@ -263,13 +270,12 @@ impl Tallies {
         frame: usize,
         patches: usize,
     ) -> FrameTally {
+        debug_assert_eq!(self.statics.crossings.len(), patches);
         let changes = self.changes(list, surfaces, frame);
-        let entries = if changes.is_empty() {
-            self.statics.clone()
-        } else {
-            merge(&self.statics, &changes)
-        };
-        assemble(entries, patches)
+        if changes.is_empty() {
+            return self.statics.clone();
+        }
+        self.statics.with_changes(&changes)
     }
 }
 
@@ -294,15 +300,7 @@ fn assemble(entries: Entries, patches: usize) -> FrameTally {
             t.group_offsets.push(t.group_entries.len());
             row += 1;
         }
-        let c = c as u64;
-        if t.columns.len() > t.offsets[row] && t.columns.last() == Some(&col) {
-            *t.counts.last_mut().unwrap_or(&mut 0) += c;
-        } else {
-            t.columns.push(col);
-            t.counts.push(c);
-        }
-        t.group_entries.push((col, group, c as u32));
-        t.crossings[r as usize] += c;
+        t.push(r as usize, col, group, c as u32);
     }
     while t.offsets.len() <= patches {
         t.offsets.push(t.columns.len());
@@ -312,6 +310,124 @@ fn assemble(entries: Entries, patches: usize) -> FrameTally {
 }
 
 impl FrameTally {
+    /// Appends `count` segments of group `group` from `row` (the last row, or a new one after
+    /// it) to `column`, keys in increasing order; the caller closes the rows.
+    fn push(&mut self, row: usize, column: u32, group: u8, count: u32) {
+        if self.columns.len() > self.offsets[row] && self.columns.last() == Some(&column) {
+            *self.counts.last_mut().unwrap_or(&mut 0) += count;
+        } else {
+            self.columns.push(column);
+            self.counts.push(count);
+        }
+        self.group_entries.push((column, group, count));
+        self.crossings[row] += u64::from(count);
+    }
+
+    /// The sorted entries these tallies were assembled from.
+    fn entries(&self) -> Entries {
+        let mut out = Vec::with_capacity(self.group_entries.len());
+        for row in 0..self.crossings.len() {
+            let range = self.group_offsets[row]..self.group_offsets[row + 1];
+            for &(column, group, count) in &self.group_entries[range] {
+                out.push((key(row as u32, column, group), i64::from(count)));
+            }
+        }
+        out
+    }
+
+    /// Bytes held.
+    #[must_use]
+    pub fn bytes(&self) -> usize {
+        self.crossings.len() * size_of::<u64>()
+            + (self.offsets.len() + self.group_offsets.len()) * size_of::<usize>()
+            + self.columns.len() * size_of::<u32>()
+            + self.counts.len() * size_of::<u32>()
+            + self.group_entries.len() * size_of::<(u32, u8, u32)>()
+    }
+
+    /// These tallies plus `changes` (sorted keys, counts that never take an entry below 0): the
+    /// rows without changes are copied whole, the others merged.
+    fn with_changes(&self, changes: &[(u64, i64)]) -> Self {
+        let patches = self.crossings.len();
+        let mut t = Self {
+            crossings: self.crossings.clone(),
+            offsets: Vec::with_capacity(patches + 1),
+            columns: Vec::with_capacity(self.columns.len() + changes.len()),
+            counts: Vec::with_capacity(self.columns.len() + changes.len()),
+            group_offsets: Vec::with_capacity(patches + 1),
+            group_entries: Vec::with_capacity(self.group_entries.len() + changes.len()),
+        };
+        let mut next = 0;
+        let mut row = 0;
+        while row < patches {
+            let changed = changes
+                .get(next)
+                .map_or(patches, |&(k, _)| unkey(k).0 as usize);
+            // The rows before the next change, as they are.
+            let (a, b) = (self.offsets[row], self.offsets[changed]);
+            let (ga, gb) = (self.group_offsets[row], self.group_offsets[changed]);
+            let (shift, group_shift) = (t.columns.len() - a, t.group_entries.len() - ga);
+            t.offsets
+                .extend(self.offsets[row..changed].iter().map(|&o| o + shift));
+            t.group_offsets.extend(
+                self.group_offsets[row..changed]
+                    .iter()
+                    .map(|&o| o + group_shift),
+            );
+            t.columns.extend_from_slice(&self.columns[a..b]);
+            t.counts.extend_from_slice(&self.counts[a..b]);
+            t.group_entries
+                .extend_from_slice(&self.group_entries[ga..gb]);
+            row = changed;
+            if row == patches {
+                break;
+            }
+            // The changed row: its per-group entries merged with its changes, in key order.
+            let end = next + changes[next..].partition_point(|&(k, _)| unkey(k).0 as usize == row);
+            t.offsets.push(t.columns.len());
+            t.group_offsets.push(t.group_entries.len());
+            t.crossings[row] = 0;
+            let old = &self.group_entries[self.group_offsets[row]..self.group_offsets[row + 1]];
+            let new = changes[next..end].iter().map(|&(k, c)| {
+                let (_, column, group) = unkey(k);
+                (column, group, c)
+            });
+            let mut old = old
+                .iter()
+                .map(|&(column, group, c)| (column, group, i64::from(c)))
+                .peekable();
+            let mut new = new.peekable();
+            loop {
+                let (column, group, count) = match (old.peek(), new.peek()) {
+                    (None, None) => break,
+                    (Some(_), None) => old.next(),
+                    (None, Some(_)) => new.next(),
+                    (Some(o), Some(n)) => match (o.0, o.1).cmp(&(n.0, n.1)) {
+                        std::cmp::Ordering::Less => old.next(),
+                        std::cmp::Ordering::Greater => new.next(),
+                        std::cmp::Ordering::Equal => {
+                            let c = o.2 + n.2;
+                            let e = (o.0, o.1, c);
+                            old.next();
+                            new.next();
+                            Some(e)
+                        }
+                    },
+                }
+                .unwrap_or_default();
+                debug_assert!(count >= 0, "a frame's segment count went negative");
+                if count > 0 {
+                    t.push(row, column, group, count as u32);
+                }
+            }
+            next = end;
+            row += 1;
+        }
+        t.offsets.push(t.columns.len());
+        t.group_offsets.push(t.group_entries.len());
+        t
+    }
+
     /// The tallies of arbitrary per-line crossing lists (each sorted along its line, with the
     /// line's group): for checking the multiframe tallies against a frame traced alone.
     #[must_use]
@@ -357,7 +473,7 @@ impl FrameTally {
             {
                 let t = &mut replicas[g as usize];
                 t.columns.push(column);
-                t.counts.push(u64::from(count));
+                t.counts.push(count);
                 t.crossings[i] += u64::from(count);
             }
             for t in &mut replicas {
@@ -471,5 +587,50 @@ mod tests {
         // 0 sees the sky, 1 sees 2 and 2 sees 1, 3 sees the sky: each face crossed once.
         let expected = [(0, SKY), (1, 2), (2, 1), (3, SKY)].map(|(a, b)| (key(a, b, 0), 1));
         assert_eq!(entries, expected.to_vec());
+    }
+
+    #[test]
+    fn a_frame_is_its_static_rows_with_the_changed_ones_merged() {
+        use rand::{RngExt, SeedableRng};
+        let mut rng = rand::rngs::Xoshiro256PlusPlus::seed_from_u64(7);
+        let patches = 40;
+        let raw: Vec<(u64, i64)> = (0..600)
+            .map(|_| {
+                let column = if rng.random_bool(0.1) {
+                    SKY
+                } else {
+                    rng.random_range(0..patches)
+                };
+                let k = key(
+                    rng.random_range(0..patches),
+                    column,
+                    rng.random_range(0..GROUPS) as u8,
+                );
+                (k, rng.random_range(1..4))
+            })
+            .collect();
+        let statics = aggregate(raw);
+        // Remove some static segments (never more than there are) and add new ones.
+        let mut raw = Vec::new();
+        for &(k, c) in &statics {
+            if rng.random_bool(0.2) {
+                raw.push((k, -rng.random_range(1..=c)));
+            }
+        }
+        raw.extend((0..100).map(|_| {
+            let k = key(
+                rng.random_range(0..patches),
+                rng.random_range(0..patches),
+                3,
+            );
+            (k, 1)
+        }));
+        let changes = aggregate(raw);
+        let tally = assemble(statics.clone(), patches as usize);
+        assert_eq!(tally.entries(), statics);
+        assert_eq!(
+            tally.with_changes(&changes),
+            assemble(merge(&statics, &changes), patches as usize)
+        );
     }
 }
