@@ -203,9 +203,11 @@ impl Bake {
         self.solve_frame_from(frame, materials, power, params, None)
     }
 
-    /// [`Bake::solve_frame_lit`] starting from `start`, the solution of a nearby frame (with the
-    /// same materials and lights): the same answer to within the solve's stopping criterion
-    /// ([`SolveParams::noise`]), in fewer iterations.
+    /// [`Bake::solve_frame_lit`] starting from `start`, a nearby frame and its solution (with
+    /// the same materials and lights): the same answer to within the solve's stopping criterion
+    /// ([`SolveParams::noise`]), in fewer iterations. The start is first moved by what the
+    /// direct light changes between the two frames (a shadow that moved), which the solve then
+    /// need not find.
     #[must_use]
     pub fn solve_frame_from(
         &self,
@@ -213,7 +215,7 @@ impl Bake {
         materials: &[Material],
         power: &[[f64; 3]],
         params: &SolveParams,
-        start: Option<&FrameSolution>,
+        start: Option<(usize, &FrameSolution)>,
     ) -> FrameSolution {
         self.solve_tally_from(
             &self.frame_tally(frame),
@@ -247,15 +249,58 @@ impl Bake {
         materials: &[Material],
         power: &[[f64; 3]],
         params: &SolveParams,
-        start: Option<&FrameSolution>,
+        start: Option<(usize, &FrameSolution)>,
     ) -> FrameSolution {
         let patch_materials = self.patch_materials();
+        let (irradiance, variance) = self.direct_light(frame, materials, power);
+        let sampled: Vec<bool> = patch_materials
+            .iter()
+            .map(|&m| self.area.samples(m))
+            .collect();
+        let direct = (!irradiance.is_empty()).then_some(Direct {
+            irradiance: &irradiance,
+            variance: &variance,
+            sampled: &sampled,
+        });
+        // The start's radiance, with this frame's direct light in place of its own.
+        let start = start.map(|(from, solution)| {
+            let mut radiance = solution.radiance.clone();
+            if !irradiance.is_empty() {
+                let (before, _) = self.direct_light(from, materials, power);
+                for (i, l) in radiance.iter_mut().enumerate() {
+                    let rho = materials[patch_materials[i] as usize].reflectance;
+                    for c in 0..3 {
+                        let old = before.get(i).map_or(0.0, |e| e[c]);
+                        l[c] += rho[c] * (irradiance[i][c] - old) * std::f64::consts::FRAC_1_PI;
+                    }
+                }
+            }
+            radiance
+        });
+        solve_lit_from(
+            tally,
+            &patch_materials,
+            materials,
+            params,
+            direct,
+            start.as_deref(),
+        )
+    }
+
+    /// The irradiance straight from the punctual lights at `power` and the sampled emitters of
+    /// `materials` at `frame`, and its variance (both empty when there are none).
+    fn direct_light(
+        &self,
+        frame: usize,
+        materials: &[Material],
+        power: &[[f64; 3]],
+    ) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
         let punctual = self
             .direct
             .irradiance(frame, power)
             .zip(self.direct.variance(frame, power));
         let area = self.area.irradiance(frame, materials);
-        let (irradiance, variance) = match (punctual, area) {
+        match (punctual, area) {
             (None, None) => (Vec::new(), Vec::new()),
             (Some(one), None) | (None, Some(one)) => one,
             (Some((mut e, mut v)), Some((a, w))) => {
@@ -267,24 +312,7 @@ impl Bake {
                 }
                 (e, v)
             }
-        };
-        let sampled: Vec<bool> = patch_materials
-            .iter()
-            .map(|&m| self.area.samples(m))
-            .collect();
-        let direct = (!irradiance.is_empty()).then_some(Direct {
-            irradiance: &irradiance,
-            variance: &variance,
-            sampled: &sampled,
-        });
-        solve_lit_from(
-            tally,
-            &patch_materials,
-            materials,
-            params,
-            direct,
-            start.map(|s| s.radiance.as_slice()),
-        )
+        }
     }
 
     /// Solves every frame; frames with identical tallies and direct light share one solution.
@@ -322,14 +350,14 @@ impl Bake {
             .into_par_iter()
             .flat_map_iter(|k| {
                 let run = &distinct[k * distinct.len() / runs..(k + 1) * distinct.len() / runs];
-                let mut previous: Option<Arc<FrameSolution>> = None;
+                let mut previous: Option<(usize, Arc<FrameSolution>)> = None;
                 run.iter()
                     .map(|&f| {
-                        let start = previous.as_deref();
+                        let start = previous.as_ref().map(|(p, s)| (*p, s.as_ref()));
                         let solution =
                             Arc::new(self.solve_frame_from(f, materials, &power, params, start));
                         control.advance(1);
-                        previous = Some(solution.clone());
+                        previous = Some((f, solution.clone()));
                         (f, solution)
                     })
                     .collect::<Vec<_>>()

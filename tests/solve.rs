@@ -423,7 +423,7 @@ fn frames_whose_state_repeats_share_their_solution() {
         &bake.scene.materials,
         &bake.light_power(),
         &SolveParams::default(),
-        Some(&all[3]),
+        Some((3, &all[3])),
     );
     assert_eq!(*all[5], alone);
 }

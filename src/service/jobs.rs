@@ -453,7 +453,7 @@ impl Job {
         let frames = self.frame_times.len();
         let mut frame = 0;
         // The last frame solved for this version, where the next runs start.
-        let mut last: Option<Arc<FrameSolution>> = None;
+        let mut last: Option<(usize, Arc<FrameSolution>)> = None;
         while frame < frames {
             if self.control.is_cancelled() {
                 return Ok(());
@@ -479,10 +479,10 @@ impl Job {
                                         &materials,
                                         &power,
                                         &params,
-                                        previous.as_deref(),
+                                        previous.as_ref().map(|(p, s)| (*p, s.as_ref())),
                                     )),
                                 };
-                                previous = Some(solution.clone());
+                                previous = Some((f, solution.clone()));
                                 solution
                             })
                             .collect::<Vec<_>>()
@@ -494,7 +494,9 @@ impl Job {
                 .enumerate()
                 .find_map(|(k, s)| s.ensure_converged(frame + k, &params).err());
             let good = failed.as_ref().map_or(solved.len(), |e| e.frame - frame);
-            last = solved.get(good.wrapping_sub(1)).cloned();
+            last = good
+                .checked_sub(1)
+                .and_then(|k| solved.get(k).map(|s| (frame + k, s.clone())));
             if let Ok(mut results) = self.results.write() {
                 for (k, s) in solved.into_iter().take(good).enumerate() {
                     results[frame + k] = Some((version, s));
