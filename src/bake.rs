@@ -140,9 +140,7 @@ impl Bake {
     /// same tallies and the same direct light as f.
     #[must_use]
     pub fn representatives(&self) -> Vec<usize> {
-        let by_tally = self
-            .tallies
-            .representatives(&self.list, &self.tracer.surfaces());
+        let by_tally = self.tallies.representatives();
         if self.direct.is_empty() && self.area.is_empty() {
             return by_tally;
         }
@@ -380,7 +378,7 @@ impl Bake {
 
 /// Distinct frames per run of [`Bake::solve_all_with`]: a run's first frame starts cold, the
 /// others from the frame before; runs are solved in parallel.
-pub const RUN: usize = 8;
+pub const RUN: usize = 4;
 
 /// Overlaps below this share of a node's crossings are chance coincidences (lines through the
 /// seam where two surfaces meet), not overlapping faces.

@@ -232,7 +232,7 @@ fn a_room_of_reflectance_1_lit_by_one_face_converges_once_capped() {
     let source = (1.0 - rho) * emitted + reflected;
     // The balance is the sum of the rows of the system: its relative error is the residual's
     // sum over that of the right-hand side (all ≥ 0), at most √n times the relative residual
-    // the solve stopped at (it stops once the answer is within a hundredth of its noise, not at
+    // the solve stopped at (it stops once the answer is within a twentieth of its noise, not at
     // a fixed residual).
     let bound = count.sqrt() * s.residual;
     assert!(

@@ -346,7 +346,7 @@ fn a_moving_light_changes_its_frames_and_lights_relight_without_tracing() {
     assert!(all[0].radiance != all[1].radiance);
     // Twice the intensity, twice the light, no tracing. (Against frame 2 solved the same way,
     // from the emission: `solve_all` starts it from frame 1, which agrees only to within the
-    // solve's stopping criterion, a hundredth of σ.)
+    // solve's stopping criterion, a twentieth of σ.)
     let doubled: Vec<[f64; 3]> = power.iter().map(|p| p.map(|c| 2.0 * c)).collect();
     let params = SolveParams::default();
     let twice = bake.solve_frame_lit(2, &bake.scene.materials, &doubled, &params);

@@ -657,7 +657,7 @@ proptest::proptest! {
 }
 
 /// The solve stops once the answer cannot move by a visible share of its own noise
-/// (`SolveParams::noise`, 1% of each patch's σ): against the solve to a relative residual of
+/// (`SolveParams::noise`, 5% of each patch's σ): against the solve to a relative residual of
 /// 1e-10 (the noise and precision stops off), cold, every patch of every frame of the sample
 /// scenes, warm-started from the frame before as `solve_all` does, is within 0.05σ, and so is
 /// its σ.

@@ -140,8 +140,9 @@ pub struct Tallies {
     /// Lines crossing a moving object at frame f: `touched[touched_offsets[f]..touched_offsets[f + 1]]`.
     touched_offsets: Vec<u32>,
     touched: Vec<u32>,
-    /// Per frame, a fingerprint of its changes: frames with equal changes have equal solutions.
-    fingerprints: Vec<u64>,
+    /// Per frame, a 128-bit fingerprint of its changes: frames with equal changes have equal
+    /// solutions.
+    fingerprints: Vec<u128>,
     /// Group of each line (see [`GROUPS`]).
     groups: Vec<u8>,
     /// Lines tallied so far.
@@ -195,9 +196,15 @@ impl Tallies {
             .into_par_iter()
             .map(|f| {
                 use std::hash::{Hash, Hasher};
-                let mut h = std::collections::hash_map::DefaultHasher::new();
-                self.changes(list, surfaces, f).hash(&mut h);
-                h.finish()
+                let changes = self.changes(list, surfaces, f);
+                // Two independent 64-bit hashes (different prefixes).
+                let half = |prefix: u8| {
+                    let mut h = std::collections::hash_map::DefaultHasher::new();
+                    prefix.hash(&mut h);
+                    changes.hash(&mut h);
+                    h.finish()
+                };
+                (u128::from(half(0)) << 64) | u128::from(half(1))
             })
             .collect();
     }
@@ -235,20 +242,16 @@ impl Tallies {
     }
 
     /// Frames whose tallies equal an earlier frame's: `representative[f]` is the first frame
-    /// with the same tallies (itself if none). Such frames have the same solution.
+    /// with the same tallies (itself if none). Such frames have the same solution. Frames are
+    /// matched by the fingerprints of their changes: 128 bits, so that two different frames of
+    /// a timeline of n frames match by chance with a probability below n²·2^-129 (10^-31 for
+    /// 10,000 frames), where comparing the changes themselves cost 0.3 s per matched pair at 4M
+    /// lines.
     #[must_use]
-    pub fn representatives(&self, list: &IntersectionList, surfaces: &Surfaces<'_>) -> Vec<usize> {
-        let mut first: HashMap<u64, usize> = HashMap::new();
+    pub fn representatives(&self) -> Vec<usize> {
+        let mut first: HashMap<u128, usize> = HashMap::new();
         (0..self.fingerprints.len())
-            .map(|f| {
-                let r = *first.entry(self.fingerprints[f]).or_insert(f);
-                // A fingerprint is a hash: share only what is verified equal.
-                if r != f && self.changes(list, surfaces, r) != self.changes(list, surfaces, f) {
-                    f
-                } else {
-                    r
-                }
-            })
+            .map(|f| *first.entry(self.fingerprints[f]).or_insert(f))
             .collect()
     }
 
@@ -257,7 +260,7 @@ impl Tallies {
     pub fn bytes(&self) -> usize {
         self.statics.bytes()
             + (self.touched.len() + self.touched_offsets.len()) * size_of::<u32>()
-            + self.fingerprints.len() * size_of::<u64>()
+            + self.fingerprints.len() * size_of::<u128>()
             + self.groups.len()
     }
 
