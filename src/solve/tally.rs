@@ -101,6 +101,26 @@ fn aggregate(mut raw: Vec<(u64, i64)>) -> Entries {
     out
 }
 
+/// Adds sorted entry lists, pairwise in rounds (each entry is copied once per round, about
+/// log₂ of the lists' number times), the pairs of a round on every core.
+fn merge_all(mut lists: Vec<Entries>) -> Entries {
+    while lists.len() > 1 {
+        let mut pairs = Vec::with_capacity(lists.len().div_ceil(2));
+        let mut rest = lists.into_iter();
+        while let Some(a) = rest.next() {
+            pairs.push((a, rest.next()));
+        }
+        lists = pairs
+            .into_par_iter()
+            .map(|(a, b)| match b {
+                Some(b) => merge(&a, &b),
+                None => a,
+            })
+            .collect();
+    }
+    lists.pop().unwrap_or_default()
+}
+
 /// Adds two sorted entry lists.
 fn merge(a: &[(u64, i64)], b: &[(u64, i64)]) -> Entries {
     let mut out = Vec::with_capacity(a.len() + b.len());
@@ -173,7 +193,12 @@ impl Tallies {
         let new = self.lines..list.lines();
         self.groups = list.line_groups(GROUPS);
         let statics = tally_static(list, surfaces, new.clone(), &self.groups);
-        self.statics = assemble(merge(&self.statics.entries(), &statics), patches);
+        let entries = if self.lines == 0 {
+            statics
+        } else {
+            merge(&self.statics.entries(), &statics)
+        };
+        self.statics = assemble(entries, patches);
         self.lines = new.end;
         // Which lines each frame's moving objects touch, over all lines.
         let mut pairs: Vec<(u32, u32)> = (0..list.lines())
@@ -221,7 +246,7 @@ impl Tallies {
         let touched = &self.touched
             [self.touched_offsets[frame] as usize..self.touched_offsets[frame + 1] as usize];
         // In chunks on every core; sums of integers, so the same whatever the split.
-        touched
+        let chunks: Vec<Entries> = touched
             .par_chunks(4096)
             .map(|chunk| {
                 let mut raw = Vec::new();
@@ -238,7 +263,8 @@ impl Tallies {
                 }
                 aggregate(raw)
             })
-            .reduce(Vec::new, |a, b| merge(&a, &b))
+            .collect();
+        merge_all(chunks)
     }
 
     /// Frames whose tallies equal an earlier frame's: `representative[f]` is the first frame
