@@ -290,10 +290,10 @@ const REPLICA_TOLERANCE: f64 = 1e-5;
 /// Standard errors from the independent replicas of the lines (METHOD.md §6): each replica's
 /// tallies alone give a full solution (warm-started from the `pooled` one, stopped at the
 /// relative residual [`REPLICA_TOLERANCE`]), and the spread of those solutions, divided by √K,
-/// is the error of their pooled mean. It carries every bounce and every correlation between patches. `None` for a patch
-/// fewer than 4 replicas crossed. A replica channel that stops at the iteration cap is left out
-/// (its values, still near the pooled ones it started from, would narrow the spread): the
-/// others' spread over √(their number) is wider in expectation.
+/// is the error of their pooled mean. It carries every bounce and every correlation between
+/// patches. `None` for a patch fewer than 4 replicas crossed. A replica channel that stops at
+/// the iteration cap is left out (its values, still near the pooled ones it started from,
+/// would narrow the spread): the others' spread over √(their number) is wider in expectation.
 fn replica_errors(
     tally: &FrameTally,
     rho: &[[f64; 3]],
