@@ -395,13 +395,14 @@ impl FrameTally {
             // The rows before the next change, as they are.
             let (a, b) = (self.offsets[row], self.offsets[changed]);
             let (ga, gb) = (self.group_offsets[row], self.group_offsets[changed]);
-            let (shift, group_shift) = (t.columns.len() - a, t.group_entries.len() - ga);
+            // Their starts move by what the changed rows before them gained or lost.
+            let (base, group_base) = (t.columns.len(), t.group_entries.len());
             t.offsets
-                .extend(self.offsets[row..changed].iter().map(|&o| o + shift));
+                .extend(self.offsets[row..changed].iter().map(|&o| o - a + base));
             t.group_offsets.extend(
                 self.group_offsets[row..changed]
                     .iter()
-                    .map(|&o| o + group_shift),
+                    .map(|&o| o - ga + group_base),
             );
             t.columns.extend_from_slice(&self.columns[a..b]);
             t.counts.extend_from_slice(&self.counts[a..b]);
