@@ -18,7 +18,9 @@
 //!   what moves) and the radiosity solve with per-patch error bars.
 //! - [`direct`]: direct light from punctual lights (point, spot, directional) and, in
 //!   [`direct::area`], from small emitting surfaces sampled as area lights, with shadows and
-//!   their sampling error: the light the interreflection starts from.
+//!   their sampling error: the light the interreflection starts from. [`direct::reference`]
+//!   is the path-traced reference the bake is judged against (the continuous scene's radiance
+//!   averaged over each patch, not a discretisation's).
 //! - [`bake`]: a traced scene ready to solve, refine and relight any frame.
 //! - [`output`]: what people use and look at: the baked glTF (per-vertex radiance), PNG and
 //!   GIF previews, the tone map.

@@ -1,0 +1,82 @@
+//! The bake against physics: per-patch error of lit, non-emitting patches at frame 0 against
+//! the path-traced reference (`radiosity::direct::reference`), with the reference's own error.
+//!
+//!     cargo run --release --example reference [LINES] [PATHS] [PATCH_SIZE or -] [SCENE...]
+
+use std::time::Instant;
+
+use radiosity::bake::Bake;
+use radiosity::direct::reference::path_traced;
+use radiosity::loader::{LoadOptions, load};
+use radiosity::solve::SolveParams;
+use radiosity::timeline::LineParams;
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let mut args = std::env::args().skip(1);
+    let lines: u64 = args.next().map_or(Ok(1_000_000), |a| a.parse())?;
+    let paths: usize = args.next().map_or(Ok(256), |a| a.parse())?;
+    let patch_size: Option<f64> = args
+        .next()
+        .filter(|a| a != "-")
+        .map(|a| a.parse())
+        .transpose()?;
+    let mut scenes: Vec<String> = args.collect();
+    if scenes.is_empty() {
+        scenes = ["cornell_box", "cornell_moving", "level"]
+            .map(|s| format!("scenes/{s}.gltf"))
+            .to_vec();
+    }
+    println!(
+        "scene\tpatches\tbake s\treference s\tlit error\treference error\tmean (bake/ref − 1)"
+    );
+    for name in scenes {
+        let options = LoadOptions {
+            patch_size,
+            ..LoadOptions::default()
+        };
+        let scene = load(&std::fs::read(&name)?, &options)?;
+        let t = Instant::now();
+        let bake = Bake::trace(
+            scene.clone(),
+            &LineParams {
+                lines,
+                bundles: None,
+                seed: 1,
+            },
+        )?;
+        let solved = bake.solve_frame(0, &scene.materials, &SolveParams::default());
+        let bake_seconds = t.elapsed().as_secs_f64();
+        let t = Instant::now();
+        let reference = path_traced(&scene, bake.tracer(), 0, paths, [0.0; 3], 7)?;
+        let reference_seconds = t.elapsed().as_secs_f64();
+        // Area-weighted RMS of the relative error over lit, non-emitting patches and channels.
+        let (mut sum, mut sum_ref, mut weight, mut bias, mut bias_weight) =
+            (0.0, 0.0, 0.0, 0.0, 0.0);
+        for (i, p) in scene.patches.iter().enumerate() {
+            let m = &scene.materials[p.material as usize];
+            if m.is_emitter() {
+                continue;
+            }
+            for c in 0..3 {
+                let r = reference[i].radiance[c];
+                if m.reflectance[c] == 0.0 || r <= 0.0 {
+                    continue;
+                }
+                let e = solved.radiance[i][c] / r - 1.0;
+                sum += p.area * e * e;
+                sum_ref += p.area * (reference[i].stderr[c] / r).powi(2);
+                weight += p.area;
+                bias += p.area * solved.radiance[i][c];
+                bias_weight += p.area * r;
+            }
+        }
+        println!(
+            "{name}\t{}\t{bake_seconds:.2}\t{reference_seconds:.2}\t{:.4}\t{:.4}\t{:+.4}",
+            scene.patches.len(),
+            (sum / weight).sqrt(),
+            (sum_ref / weight).sqrt(),
+            bias / bias_weight - 1.0
+        );
+    }
+    Ok(())
+}

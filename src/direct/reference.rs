@@ -1,0 +1,395 @@
+//! A path-traced reference to judge the solver against physics rather than against itself
+//! (METHOD.md §10; issue 13): per patch, the area average of the true outgoing radiance,
+//! `L̄_i = Le_i + (ρ_i/π) Ē_i`, with `Ē_i` the mean irradiance over the patch estimated from
+//! uniformly random points on it.
+//!
+//! At each point the irradiance is estimated from two samples, combined by multiple importance
+//! sampling (the balance heuristic): next-event estimation alone has infinite variance where an
+//! emitter meets the receiver at a corner (`1/r²`), cosine sampling alone misses small bright
+//! emitters.
+//! - **Next-event estimation**: one emitting patch picked in proportion to its area times its
+//!   brightest channel, one uniform point on it, one shadow ray.
+//! - **The path**: one cosine-weighted direction; the first surface it meets gives its
+//!   emission (weighted against next-event estimation's density of the same direction) and
+//!   reflects `ρ` times its own irradiance, estimated the same way on from there; the sky gives
+//!   `π·L_sky`; the back of a one-sided face absorbs. Russian roulette from the third bounce,
+//!   surviving with the largest reflectance.
+//!
+//! Every estimate is unbiased for the radiance of the continuous scene, not of a discretisation
+//! of it, which is the point: no patch-constant model, no contact or leak the solver's tallies
+//! share. Each patch's standard error is its samples' spread. Punctual lights are not modelled:
+//! a scene with lights is refused.
+
+use glam::DVec3;
+use rand::rngs::Xoshiro256PlusPlus;
+use rand::{RngExt, SeedableRng};
+use rayon::prelude::*;
+
+use super::{Frame, Occluders, Posed, inset, triangle_point};
+use crate::scene::Scene;
+use crate::trace::coincident::COINCIDENT;
+use crate::trace::{Hit, Line, SceneTracer};
+
+/// The reference radiance of one patch.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Estimate {
+    /// Area-mean outgoing radiance, RGB.
+    pub radiance: [f64; 3],
+    /// Its standard error.
+    pub stderr: [f64; 3],
+}
+
+/// Why there is no reference.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum ReferenceError {
+    /// The path tracer does not model punctual lights.
+    #[error("the path-traced reference does not model punctual lights ({0} in the scene)")]
+    Lights(usize),
+}
+
+/// One emitting patch, for next-event estimation.
+struct Emitter {
+    patch: usize,
+    corners: [DVec3; 3],
+    /// Unit normal on its emitting side.
+    normal: DVec3,
+    area: f64,
+    emission: [f64; 3],
+    /// Cumulative pick probability up to and including this one.
+    cumulative: f64,
+    /// Its own pick probability.
+    probability: f64,
+}
+
+/// Where each patch lies: its triangle (global id), the face, its corners and the unit normal
+/// on its side, at one frame.
+struct Place {
+    triangle: u32,
+    back: bool,
+    corners: [DVec3; 3],
+    normal: DVec3,
+}
+
+/// The path-traced reference of every patch at `frame`, from `paths` points per patch, with
+/// `sky` the radiance of everything outside the scene. Deterministic for a seed.
+pub fn path_traced(
+    scene: &Scene,
+    tracer: &SceneTracer,
+    frame: usize,
+    paths: usize,
+    sky: [f64; 3],
+    seed: u64,
+) -> Result<Vec<Estimate>, ReferenceError> {
+    if !scene.lights.is_empty() {
+        return Err(ReferenceError::Lights(scene.lights.len()));
+    }
+    let posed = Posed::at(scene, tracer, frame);
+    let view = posed.frame(scene, tracer, Occluders::All);
+    let places = places(scene, &view);
+    let emitters = emitters(scene, &places);
+    let mut emitter_of = vec![None; scene.patches.len()];
+    for (k, e) in emitters.iter().enumerate() {
+        emitter_of[e.patch] = Some(k);
+    }
+    let tracer = Tracer {
+        scene,
+        view: &view,
+        places: &places,
+        emitters: &emitters,
+        emitter_of,
+        sky,
+    };
+    Ok((0..scene.patches.len())
+        .into_par_iter()
+        .map(|i| {
+            let mut rng = Xoshiro256PlusPlus::seed_from_u64(
+                seed ^ (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+            );
+            tracer.patch(i, paths.max(2), &mut rng)
+        })
+        .collect())
+}
+
+/// Every patch's place at the frame.
+fn places(scene: &Scene, view: &Frame<'_>) -> Vec<Place> {
+    let mut out: Vec<Option<Place>> = (0..scene.patches.len()).map(|_| None).collect();
+    for (t, (corners, faces)) in view.triangles.iter().enumerate() {
+        let corners = corners.map(|c| c.as_dvec3());
+        let normal = (corners[1] - corners[0])
+            .cross(corners[2] - corners[0])
+            .normalize_or_zero();
+        let mut put = |patch: u32, back: bool| {
+            out[patch as usize] = Some(Place {
+                triangle: t as u32,
+                back,
+                corners,
+                normal: if back { -normal } else { normal },
+            });
+        };
+        put(faces.front, false);
+        if let Some(b) = faces.back {
+            put(b, true);
+        }
+    }
+    out.into_iter()
+        .map(|p| {
+            p.unwrap_or(Place {
+                triangle: u32::MAX,
+                back: false,
+                corners: [DVec3::ZERO; 3],
+                normal: DVec3::ZERO,
+            })
+        })
+        .collect()
+}
+
+/// The emitting patches, with their pick probabilities (area × brightest channel).
+fn emitters(scene: &Scene, places: &[Place]) -> Vec<Emitter> {
+    let mut out: Vec<Emitter> = scene
+        .patches
+        .iter()
+        .zip(places)
+        .enumerate()
+        .filter_map(|(i, (p, place))| {
+            let emission = scene.materials[p.material as usize].emission;
+            let area = 0.5
+                * (place.corners[1] - place.corners[0])
+                    .cross(place.corners[2] - place.corners[0])
+                    .length();
+            (emission.iter().any(|&e| e > 0.0) && area > 0.0).then_some(Emitter {
+                patch: i,
+                corners: place.corners,
+                normal: place.normal,
+                area,
+                emission,
+                cumulative: area * emission.iter().fold(0.0f64, |m, &e| m.max(e)),
+                probability: 0.0,
+            })
+        })
+        .collect();
+    let mut sum = 0.0;
+    for e in &mut out {
+        sum += e.cumulative;
+        e.cumulative = sum;
+    }
+    let mut before = 0.0;
+    for e in &mut out {
+        e.cumulative /= sum;
+        e.probability = e.cumulative - before;
+        before = e.cumulative;
+    }
+    out
+}
+
+/// What a ray meets first.
+enum Met {
+    /// Nothing: it leaves the scene.
+    Sky,
+    /// The back of a one-sided face, which absorbs.
+    Nothing,
+    /// A patch, at this distance.
+    Patch(usize, f64),
+}
+
+/// Bounces after which Russian roulette starts.
+const ROULETTE: usize = 2;
+/// Bounces after which a path stops whatever: at reflectance 0.999 the light left after them
+/// is 0.999^100000 ≈ 4e-44 of it.
+const MAX_BOUNCES: usize = 100_000;
+
+struct Tracer<'a> {
+    scene: &'a Scene,
+    view: &'a Frame<'a>,
+    places: &'a [Place],
+    emitters: &'a [Emitter],
+    /// Per patch, its index among the emitters.
+    emitter_of: Vec<Option<usize>>,
+    sky: [f64; 3],
+}
+
+impl Tracer<'_> {
+    /// Patch i's estimate from `paths` points.
+    fn patch(&self, i: usize, paths: usize, rng: &mut Xoshiro256PlusPlus) -> Estimate {
+        let material = &self.scene.materials[self.scene.patches[i].material as usize];
+        let place = &self.places[i];
+        if place.triangle == u32::MAX || material.reflectance == [0.0; 3] {
+            return Estimate {
+                radiance: material.emission,
+                stderr: [0.0; 3],
+            };
+        }
+        let corners = inset(&place.corners);
+        let mut hits = Vec::new();
+        let (mut sum, mut sum_sq) = ([0.0; 3], [0.0; 3]);
+        for _ in 0..paths {
+            let x = triangle_point(&corners, rng.random(), rng.random());
+            let e = self.irradiance(x, place, rng, &mut hits);
+            for c in 0..3 {
+                let l = material.reflectance[c] * e[c] * std::f64::consts::FRAC_1_PI;
+                sum[c] += l;
+                sum_sq[c] += l * l;
+            }
+        }
+        let n = paths as f64;
+        Estimate {
+            radiance: std::array::from_fn(|c| material.emission[c] + sum[c] / n),
+            stderr: std::array::from_fn(|c| {
+                let mean = sum[c] / n;
+                ((sum_sq[c] / n - mean * mean).max(0.0) / (n - 1.0)).sqrt()
+            }),
+        }
+    }
+
+    /// An estimate of the irradiance at `x` on `place` (module docs).
+    fn irradiance(
+        &self,
+        x: DVec3,
+        place: &Place,
+        rng: &mut Xoshiro256PlusPlus,
+        hits: &mut Vec<Hit>,
+    ) -> [f64; 3] {
+        let (mut x, mut place) = (x, place);
+        let mut total = [0.0; 3];
+        let mut throughput = [1.0; 3];
+        for bounce in 0..MAX_BOUNCES {
+            let direct = self.next_event(x, place, rng, hits);
+            (0..3).for_each(|c| total[c] += throughput[c] * direct[c]);
+            // A cosine-weighted direction: the irradiance is π times the mean radiance coming
+            // in along it.
+            let w = cosine_direction(place.normal, rng);
+            let (patch, t) = match self.first_hit(x, w, place, hits) {
+                Met::Sky => {
+                    (0..3).for_each(|c| {
+                        total[c] += throughput[c] * std::f64::consts::PI * self.sky[c];
+                    });
+                    break;
+                }
+                Met::Nothing => break,
+                Met::Patch(patch, t) => (patch, t),
+            };
+            if let Some(k) = self.emitter_of[patch] {
+                // Its emission, weighted against next-event estimation's density of the same
+                // direction: `Le·cos / (p_cosine + p_light)` with both densities per solid
+                // angle, the cosine's `cos/π` over the uniform pick of `w`.
+                let light = &self.emitters[k];
+                let cos_y = -light.normal.dot(w);
+                let cos_x = place.normal.dot(w);
+                if cos_y > 0.0 && cos_x > 0.0 {
+                    let p_light = light.probability / light.area * t * t / cos_y;
+                    let p_cosine = cos_x * std::f64::consts::FRAC_1_PI;
+                    let g = cos_x / (p_cosine + p_light);
+                    (0..3).for_each(|c| total[c] += throughput[c] * light.emission[c] * g);
+                }
+            }
+            let rho = self.scene.materials[self.scene.patches[patch].material as usize].reflectance;
+            let survive = if bounce >= ROULETTE {
+                rho.iter().fold(0.0f64, |m, &r| m.max(r)).min(1.0)
+            } else {
+                1.0
+            };
+            if rho == [0.0; 3] || rng.random::<f64>() >= survive {
+                break;
+            }
+            (0..3).for_each(|c| throughput[c] *= rho[c] / survive);
+            place = &self.places[patch];
+            // The next point kept 8·COINCIDENT inside its patch's edges, as the first is (see
+            // [`inset`]): a ray from a point a hair from a corner would meet the wall across it
+            // inside the window where crossings are taken for its own surface, and escape.
+            x = into_inset(x + w * t, &place.corners);
+        }
+        total
+    }
+
+    /// One next-event sample of the irradiance at `x` from the emitting patches.
+    fn next_event(
+        &self,
+        x: DVec3,
+        place: &Place,
+        rng: &mut Xoshiro256PlusPlus,
+        hits: &mut Vec<Hit>,
+    ) -> [f64; 3] {
+        if self.emitters.is_empty() {
+            return [0.0; 3];
+        }
+        let u: f64 = rng.random();
+        let k = self
+            .emitters
+            .partition_point(|e| e.cumulative < u)
+            .min(self.emitters.len() - 1);
+        let light = &self.emitters[k];
+        let y = triangle_point(&light.corners, rng.random(), rng.random());
+        let d = y - x;
+        let r2 = d.length_squared();
+        if r2 <= 0.0 {
+            return [0.0; 3];
+        }
+        let w = d / r2.sqrt();
+        let (cos_x, cos_y) = (place.normal.dot(w), -light.normal.dot(w));
+        if cos_x <= 0.0 || cos_y <= 0.0 {
+            return [0.0; 3];
+        }
+        if self.view.blocked(x, y, place.triangle, place.back, hits) {
+            return [0.0; 3];
+        }
+        // `Le·cos_x / (p_light + p_cosine)`, both per solid angle (see the path's emission).
+        let p_light = light.probability / light.area * r2 / cos_y;
+        let p_cosine = cos_x * std::f64::consts::FRAC_1_PI;
+        let g = cos_x / (p_light + p_cosine);
+        light.emission.map(|le| le * g)
+    }
+
+    /// What the ray from `x` (on `place`) along unit `w` meets first.
+    fn first_hit(&self, x: DVec3, w: DVec3, place: &Place, hits: &mut Vec<Hit>) -> Met {
+        let behind = f64::from(4.0 * COINCIDENT);
+        let line = Line {
+            origin: (x - w * behind).as_vec3(),
+            direction: w.as_vec3(),
+        };
+        self.view.trace(&line, hits);
+        let start = behind as f32 + COINCIDENT;
+        // A surface touching the point's face (a contact: a box resting on the floor) meets
+        // the ray where it starts: nothing gets through (as for the lines and shadow rays).
+        let surfaces = self.view.tracer.surfaces();
+        if hits.iter().any(|&h| {
+            h.surface() != place.triangle
+                && (h.t - behind as f32).abs() <= COINCIDENT
+                && surfaces.touching(place.triangle, place.back, h)
+        }) {
+            return Met::Nothing;
+        }
+        let Some(hit) = hits
+            .iter()
+            .find(|h| h.t > start && h.surface() != place.triangle)
+        else {
+            return Met::Sky;
+        };
+        let faces = self.view.triangles[hit.surface() as usize].1;
+        match if hit.front() {
+            Some(faces.front)
+        } else {
+            faces.back
+        } {
+            Some(patch) => Met::Patch(patch as usize, f64::from(hit.t) - behind),
+            None => Met::Nothing,
+        }
+    }
+}
+
+/// Point `p` of triangle `t` moved as [`inset`] moves the triangle (towards its centroid).
+fn into_inset(p: DVec3, t: &[DVec3; 3]) -> DVec3 {
+    let centre = (t[0] + t[1] + t[2]) / 3.0;
+    let shrunk = inset(t);
+    // `inset` scales about the centroid: recover its factor from one corner.
+    let (from, to) = ((t[0] - centre).length(), (shrunk[0] - centre).length());
+    let factor = if from > 0.0 { to / from } else { 1.0 };
+    centre + (p - centre) * factor
+}
+
+/// A direction about unit `n` with density cos θ / π.
+fn cosine_direction(n: DVec3, rng: &mut Xoshiro256PlusPlus) -> DVec3 {
+    let (u, v): (f64, f64) = (rng.random(), rng.random());
+    let r = u.sqrt();
+    let phi = 2.0 * std::f64::consts::PI * v;
+    let (a, b) = n.any_orthonormal_pair();
+    (a * (r * phi.cos()) + b * (r * phi.sin()) + n * (1.0 - u).sqrt()).normalize()
+}
