@@ -61,6 +61,19 @@ struct Emitter {
     probability: f64,
 }
 
+impl Emitter {
+    /// What a sample of this emitter's light in a direction at `cos_x` from the receiver's
+    /// normal, `cos_y` from the emitter's and `r2` away adds to the irradiance per unit of
+    /// emission, by the balance heuristic: `cos_x / (p_light + p_cosine)`, with both densities
+    /// of the direction per solid angle (the pick of a point on this emitter, and the cosine
+    /// sampling's `cos_x/π`). The same whichever sampled it.
+    fn weight(&self, cos_x: f64, cos_y: f64, r2: f64) -> f64 {
+        let p_light = self.probability / self.area * r2 / cos_y;
+        let p_cosine = cos_x * std::f64::consts::FRAC_1_PI;
+        cos_x / (p_light + p_cosine)
+    }
+}
+
 /// Where each patch lies: its triangle (global id), the face, its corners and the unit normal
 /// on its side, at one frame.
 struct Place {
@@ -269,15 +282,12 @@ impl Tracer<'_> {
             };
             if let Some(k) = self.emitter_of[patch] {
                 // Its emission, weighted against next-event estimation's density of the same
-                // direction: `Le·cos / (p_cosine + p_light)` with both densities per solid
-                // angle, the cosine's `cos/π` over the uniform pick of `w`.
+                // direction ([`Emitter::weight`]).
                 let light = &self.emitters[k];
                 let cos_y = -light.normal.dot(w);
                 let cos_x = place.normal.dot(w);
                 if cos_y > 0.0 && cos_x > 0.0 {
-                    let p_light = light.probability / light.area * t * t / cos_y;
-                    let p_cosine = cos_x * std::f64::consts::FRAC_1_PI;
-                    let g = cos_x / (p_cosine + p_light);
+                    let g = light.weight(cos_x, cos_y, t * t);
                     (0..3).for_each(|c| total[c] += throughput[c] * light.emission[c] * g);
                 }
             }
@@ -331,10 +341,7 @@ impl Tracer<'_> {
         if self.view.blocked(x, y, place.triangle, place.back, hits) {
             return [0.0; 3];
         }
-        // `Le·cos_x / (p_light + p_cosine)`, both per solid angle (see the path's emission).
-        let p_light = light.probability / light.area * r2 / cos_y;
-        let p_cosine = cos_x * std::f64::consts::FRAC_1_PI;
-        let g = cos_x / (p_light + p_cosine);
+        let g = light.weight(cos_x, cos_y, r2);
         light.emission.map(|le| le * g)
     }
 
