@@ -77,6 +77,14 @@ pub fn all() -> Vec<Sample> {
             gltf: morph_box(),
         },
         Sample {
+            file_name: "panel_room.gltf",
+            description: "A room as Blender exports one: a closed 4 m x 2.7 m x 4 m box of 12 \
+                          large triangles and a 1 m square emissive panel hanging 1 cm below the \
+                          ceiling, every material double-sided (Blender's default), so the \
+                          panel's back lights the ceiling through the 1 cm gap; static.",
+            gltf: panel_room(),
+        },
+        Sample {
             file_name: "spheres.gltf",
             description: "Closed 6 m x 3 m x 6 m room lit by a 1 m square ceiling panel, with 12 \
                           icospheres (1,280 triangles each), 2 bobbing and 2 sliding over 1 s \
@@ -156,6 +164,36 @@ fn cornell_box(moving: bool) -> String {
         "cornell_box"
     };
     b.finish(name)
+}
+
+/// How far the panel of `panel_room` hangs below the ceiling.
+const PANEL_GAP: f32 = 0.01;
+
+/// A room as a Blender export has it: large triangles, double-sided materials, and a thin
+/// emissive panel just below the ceiling (issue 13: the light its back sends into the gap is
+/// trapped there physically, not in a model with one radiance per ceiling triangle).
+fn panel_room() -> String {
+    let mut b = Builder::default();
+    let wall = b.material(Material::diffuse("wall", [0.8; 3]).double_sided());
+    let panel = b.material(Material::emitter("panel", [0.8; 3], 10.0).double_sided());
+    let height = 2.7;
+    let grid = Lattice::uniform(
+        Vec3::new(-2.0, 0.0, -2.0),
+        Vec3::new(2.0, height, 2.0),
+        [1; 3],
+    );
+    let room = shell(&grid, |_| true, Facing::Inward, |_| wall);
+    let room = b.mesh("room", &room);
+    b.node("room", room, Vec3::ZERO, Quat::IDENTITY);
+    let light = square(
+        Vec3::new(0.0, height - PANEL_GAP, 0.0),
+        1.0,
+        Look::Down,
+        panel,
+    );
+    let light = b.mesh("panel", &light);
+    b.node("panel", light, Vec3::ZERO, Quat::IDENTITY);
+    b.finish("panel_room")
 }
 
 /// The white furnace test.
@@ -804,6 +842,8 @@ struct Material {
     emission: [f64; 3],
     /// Multiplies `emission`; written as KHR_materials_emissive_strength when it is not 1.
     strength: f64,
+    /// Both faces reflect (and emit): glTF's `doubleSided`, Blender's default.
+    double_sided: bool,
 }
 
 impl Material {
@@ -814,6 +854,7 @@ impl Material {
             reflectance,
             emission: [0.0; 3],
             strength: 1.0,
+            double_sided: false,
         }
     }
 
@@ -824,6 +865,15 @@ impl Material {
             reflectance,
             emission: [1.0; 3],
             strength,
+            double_sided: false,
+        }
+    }
+
+    /// The same material on both faces.
+    fn double_sided(self) -> Material {
+        Material {
+            double_sided: true,
+            ..self
         }
     }
 }
@@ -880,7 +930,7 @@ impl Builder {
                 "roughnessFactor": 1.0,
             },
             "emissiveFactor": m.emission,
-            "doubleSided": false,
+            "doubleSided": m.double_sided,
         });
         if m.strength != 1.0 {
             material["extensions"] =
@@ -1272,6 +1322,7 @@ mod tests {
                 "level.gltf",
                 "level_lamps.gltf",
                 "morph_box.gltf",
+                "panel_room.gltf",
                 "spheres.gltf",
             ]
         );

@@ -41,6 +41,7 @@ fn each_scene_loads_as_intended() {
         ("level_lamps.gltf", 1, 0, 49),
         ("morph_box.gltf", 0, 1, 49),
         ("spheres.gltf", 4, 0, 25),
+        ("panel_room.gltf", 0, 0, 1),
     ] {
         let s = load_sample(name, &options).summary();
         assert_eq!(
@@ -56,6 +57,9 @@ fn each_scene_loads_as_intended() {
         (lamps.emitters, lamps.lights, lamps.moving_lights),
         (0, 3, 1)
     );
+    // Blender-style: 12 room triangles and 2 panel triangles, every one with a patch per face.
+    let panel = load_sample("panel_room.gltf", &options);
+    assert_eq!(panel.patches.len(), 2 * 14);
     let furnace = load_sample("furnace.gltf", &options);
     assert_eq!(furnace.summary().emitters, furnace.patches.len());
     assert_eq!(furnace.materials[0].reflectance, [0.999f32 as f64; 3]);
