@@ -128,12 +128,8 @@ impl Bake {
     /// The tallies of one frame.
     #[must_use]
     pub fn frame_tally(&self, frame: usize) -> FrameTally {
-        self.tallies.frame(
-            &self.list,
-            &self.tracer.surfaces(),
-            frame,
-            self.scene.patches.len(),
-        )
+        self.tallies
+            .frame(&self.list, &self.tracer.surfaces(), frame)
     }
 
     /// Frames that share their solution: `representatives()[f]` is the first frame with the
@@ -263,7 +259,8 @@ impl Bake {
         // The start's radiance, with this frame's direct light in place of its own.
         let start = start.map(|(from, solution)| {
             let mut radiance = solution.radiance.clone();
-            if !irradiance.is_empty() {
+            let state = |f: usize| (self.direct.state(f), self.area.state(f));
+            if !irradiance.is_empty() && state(from) != state(frame) {
                 let (before, _) = self.direct_light(from, materials, power);
                 for (i, l) in radiance.iter_mut().enumerate() {
                     let rho = materials[patch_materials[i] as usize].reflectance;

@@ -25,7 +25,7 @@ use rand::rngs::Xoshiro256PlusPlus;
 use rand::{RngExt, SeedableRng};
 use rayon::prelude::*;
 
-use super::{Frame, Occluders, Posed, inset, triangle_point};
+use super::{Frame, Occluders, Posed, inset, into_inset, triangle_point};
 use crate::scene::Scene;
 use crate::trace::coincident::COINCIDENT;
 use crate::trace::{Hit, Line, SceneTracer};
@@ -380,16 +380,6 @@ impl Tracer<'_> {
             None => Met::Nothing,
         }
     }
-}
-
-/// Point `p` of triangle `t` moved as [`inset`] moves the triangle (towards its centroid).
-fn into_inset(p: DVec3, t: &[DVec3; 3]) -> DVec3 {
-    let centre = (t[0] + t[1] + t[2]) / 3.0;
-    let shrunk = inset(t);
-    // `inset` scales about the centroid: recover its factor from one corner.
-    let (from, to) = ((t[0] - centre).length(), (shrunk[0] - centre).length());
-    let factor = if from > 0.0 { to / from } else { 1.0 };
-    centre + (p - centre) * factor
 }
 
 /// A direction about unit `n` with density cos θ / π.

@@ -290,16 +290,14 @@ impl Tallies {
             + self.groups.len()
     }
 
-    /// The tallies of `frame` for `patches` patches.
+    /// The tallies of `frame` (over the patches [`Tallies::update`] was given).
     #[must_use]
     pub fn frame(
         &self,
         list: &IntersectionList,
         surfaces: &Surfaces<'_>,
         frame: usize,
-        patches: usize,
     ) -> FrameTally {
-        debug_assert_eq!(self.statics.crossings.len(), patches);
         let changes = self.changes(list, surfaces, frame);
         if changes.is_empty() {
             return self.statics.clone();
@@ -553,7 +551,7 @@ fn tally_static(
             aggregate(raw)
         })
         .collect();
-    aggregate(chunks.into_iter().flatten().collect())
+    merge_all(chunks)
 }
 
 #[cfg(test)]
