@@ -1,25 +1,24 @@
 //! The bake against physics: per-patch error of lit, non-emitting patches at frame 0 against
 //! the path-traced reference (`radiosity::direct::reference`), with the reference's own error.
 //!
-//!     cargo run --release --example reference [LINES] [PATHS] [PATCH_SIZE or -] [SCENE...]
+//!     cargo run --release --example reference [LINES] [PATHS] [PATCH_SIZE, - or auto] [SCENE...]
 
 use std::time::Instant;
 
+use radiosity::adaptive::{Adaptive, adapt};
 use radiosity::bake::Bake;
 use radiosity::direct::reference::path_traced;
 use radiosity::loader::{LoadOptions, load};
 use radiosity::solve::SolveParams;
-use radiosity::timeline::LineParams;
+use radiosity::timeline::{Control, LineParams};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut args = std::env::args().skip(1);
     let lines: u64 = args.next().map_or(Ok(1_000_000), |a| a.parse())?;
     let paths: usize = args.next().map_or(Ok(256), |a| a.parse())?;
-    let patch_size: Option<f64> = args
-        .next()
-        .filter(|a| a != "-")
-        .map(|a| a.parse())
-        .transpose()?;
+    let size = args.next().unwrap_or_else(|| "-".into());
+    let auto = size == "auto";
+    let patch_size: Option<f64> = (size != "-" && !auto).then(|| size.parse()).transpose()?;
     let mut scenes: Vec<String> = args.collect();
     if scenes.is_empty() {
         scenes = ["cornell_box", "cornell_moving", "level"]
@@ -36,18 +35,37 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         };
         let scene = load(&std::fs::read(&name)?, &options)?;
         let t = Instant::now();
-        let bake = Bake::trace(
-            scene.clone(),
+        let mut bake = Bake::trace(
+            scene,
             &LineParams {
                 lines,
                 bundles: None,
                 seed: 1,
             },
         )?;
+        if auto {
+            let mut auto = Adaptive::for_lines(lines, bake.scene.patches.len());
+            if let Ok(r) = std::env::var("AUTO_ROUNDS") {
+                auto.rounds = r.parse()?;
+            }
+            if let Ok(b) = std::env::var("AUTO_BUDGET") {
+                auto.budget = b.parse()?;
+            }
+            let rounds = adapt(
+                &mut bake,
+                &auto,
+                &SolveParams::default(),
+                &Control::default(),
+            )?;
+            for r in rounds {
+                eprintln!("{r:?}");
+            }
+        }
+        let scene = &bake.scene;
         let solved = bake.solve_frame(0, &scene.materials, &SolveParams::default());
         let bake_seconds = t.elapsed().as_secs_f64();
         let t = Instant::now();
-        let reference = path_traced(&scene, bake.tracer(), 0, paths, [0.0; 3], 7)?;
+        let reference = path_traced(scene, bake.tracer(), 0, paths, [0.0; 3], 7)?;
         let reference_seconds = t.elapsed().as_secs_f64();
         // Area-weighted RMS of the relative error over lit, non-emitting patches and channels.
         let (mut sum, mut sum_ref, mut weight, mut bias, mut bias_weight) =

@@ -89,6 +89,46 @@ impl Bake {
         Ok(())
     }
 
+    /// Cuts the traced triangles marked in `marked` (by global index), with the cuts their
+    /// neighbours need ([`crate::scene::refine::cut`]), and moves every crossing of the list to
+    /// the piece it lies on: the same lines through finer patches, without tracing them again.
+    /// The direct light is sampled again for the new patches. Returns the patches added.
+    pub fn cut(&mut self, marked: &[bool], control: &Control) -> Result<usize, TraceError> {
+        use crate::scene::refine::{self, Corners};
+        let (scene, refinement) = refine::cut(&self.scene, marked);
+        let added = scene.patches.len() - self.scene.patches.len();
+        if added == 0 {
+            return Ok(0);
+        }
+        // What can fail (cancellation) first: the bake is left as it was.
+        let tracer = SceneTracer::new(&scene);
+        let direct = DirectLight::compute(&scene, &tracer, control)?;
+        let area = AreaLights::compute(
+            &scene,
+            &tracer,
+            Sampling::for_lines(self.list.lines() as u64, scene.patches.len(), self.seed),
+            control,
+        )?;
+        let corners = Corners::new(&self.scene);
+        self.list.relabel(&self.scene, |hit, frame, point| {
+            let old = hit.surface();
+            let bary = if refinement.is_cut(old) {
+                corners
+                    .posed(old, frame)
+                    .and_then(|c| refine::barycentric(c, point))
+            } else {
+                None
+            };
+            refinement.locate(old, bary.unwrap_or([1.0, 0.0, 0.0]))
+        });
+        let mut tallies = Tallies::default();
+        tallies.update(&self.list, &tracer.surfaces(), scene.patches.len());
+        self.warnings = overlap_warnings(&scene, &tracer, &self.list);
+        (self.scene, self.tracer, self.tallies) = (scene, tracer, tallies);
+        (self.direct, self.area) = (direct, area);
+        Ok(added)
+    }
+
     /// What the lines found that the user should know: nodes with coplanar overlapping faces
     /// (duplicated faces, decals), whose crossings are shared between them
     /// ([`crate::trace::coincident`]).

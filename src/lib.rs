@@ -33,6 +33,7 @@
 //!
 //! The method is described in `METHOD.md` (shared with the team) and the README.
 
+pub mod adaptive;
 pub mod bake;
 pub mod batch;
 pub mod bench;

@@ -10,6 +10,7 @@
 //! millimetre and one of a kilometre placed far from the origin. [`Normalisation`] takes results
 //! back to the scene's own units.
 
+pub mod refine;
 pub mod subdivide;
 
 use glam::{DAffine3, DVec3, Vec3};

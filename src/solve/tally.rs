@@ -50,6 +50,11 @@ pub fn unkey(k: u64) -> (u32, u32, u8) {
 /// and `to` a patch, [`SKY`] or [`ABSORBED`]. Coincident crossings are resolved first
 /// ([`resolve`]); the segment across a contact is dark both ways.
 fn walk(hits: &[Hit], surfaces: &Surfaces<'_>, mut visit: impl FnMut(u32, u32)) {
+    walk_from(hits, surfaces, |from, to, _| visit(from, to));
+}
+
+/// [`walk`], also giving the crossing the segment leaves `from` at.
+pub fn walk_from(hits: &[Hit], surfaces: &Surfaces<'_>, mut visit: impl FnMut(u32, u32, Hit)) {
     let faces = surfaces.faces;
     let reordered = resolve(hits, surfaces);
     let hits = reordered.as_deref().unwrap_or(hits);
@@ -64,26 +69,31 @@ fn walk(hits: &[Hit], surfaces: &Surfaces<'_>, mut visit: impl FnMut(u32, u32)) 
         if h.front() { f.back } else { Some(f.front) }
     };
     if let Some(a) = entry(first) {
-        visit(a, SKY);
+        visit(a, SKY, *first);
     }
     for w in hits.windows(2) {
         // `a` faces the segment from one end, `b` from the other; a missing face absorbs.
         let (a, b) = (exit(&w[0]), entry(&w[1]));
         if is_contact(&w[0], &w[1]) {
-            a.into_iter()
-                .chain(b)
-                .for_each(|face| visit(face, ABSORBED));
+            if let Some(a) = a {
+                visit(a, ABSORBED, w[0]);
+            }
+            if let Some(b) = b {
+                visit(b, ABSORBED, w[1]);
+            }
             continue;
         }
         if let Some(a) = a {
-            visit(a, b.unwrap_or(ABSORBED));
+            visit(a, b.unwrap_or(ABSORBED), w[0]);
         }
         if let Some(b) = b {
-            visit(b, a.unwrap_or(ABSORBED));
+            visit(b, a.unwrap_or(ABSORBED), w[1]);
         }
     }
-    if let Some(a) = hits.last().and_then(exit) {
-        visit(a, SKY);
+    if let Some(last) = hits.last()
+        && let Some(a) = exit(last)
+    {
+        visit(a, SKY, *last);
     }
 }
 

@@ -142,7 +142,7 @@ impl Control {
         self.done.fetch_add(work, Ordering::Relaxed);
     }
 
-    fn check(&self) -> Result<(), TraceError> {
+    pub(crate) fn check(&self) -> Result<(), TraceError> {
         if self.is_cancelled() {
             Err(TraceError::Cancelled)
         } else {
@@ -458,6 +458,84 @@ impl IntersectionList {
                 lines_of(&bundle).collect::<Vec<_>>()
             })
         })
+    }
+
+    /// Every bundle of the list regenerated, with the index of its first line, on every core.
+    pub fn bundles<'a>(
+        &'a self,
+        scene: &'a Scene,
+    ) -> impl ParallelIterator<Item = (usize, Bundle)> + 'a {
+        self.bundle_ranges()
+            .into_par_iter()
+            .map(move |(b, k, first, _)| (first, self.batches[b].batch.bundle(k, &scene.bounds)))
+    }
+
+    /// (batch, bundle, first line, lines) of every bundle, in line order.
+    fn bundle_ranges(&self) -> Vec<(usize, u32, usize, usize)> {
+        let mut out = Vec::with_capacity(self.bundle_starts.len());
+        let mut first = 0;
+        for (b, batch) in self.batches.iter().enumerate() {
+            for (k, &n) in batch.bundle_lines.iter().enumerate() {
+                out.push((b, k as u32, first, n as usize));
+                first += n as usize;
+            }
+        }
+        out
+    }
+
+    /// Gives every crossing the traced triangle `surface(hit, frame, point)` (the frame of a
+    /// moving crossing, `None` for a static one; the point crossed, in normalised space), then
+    /// sorts each line's crossings again: the list of the same lines through a scene whose
+    /// triangles were cut ([`crate::scene::refine`]), without tracing them again.
+    pub fn relabel(
+        &mut self,
+        scene: &Scene,
+        surface: impl Fn(Hit, Option<usize>, glam::DVec3) -> u32 + Sync,
+    ) {
+        // Each bundle's crossings, split off the two arrays so bundles are relabelled apart.
+        let ranges = self.bundle_ranges();
+        let mut tasks = Vec::with_capacity(ranges.len());
+        let (mut statics, mut moving) = (&mut self.static_hits[..], &mut self.dynamic_hits[..]);
+        for (b, k, first, n) in ranges {
+            let s = (self.static_offsets[first + n] - self.static_offsets[first]) as usize;
+            let d = (self.dynamic_offsets[first + n] - self.dynamic_offsets[first]) as usize;
+            let (s_here, s_rest) = std::mem::take(&mut statics).split_at_mut(s);
+            let (d_here, d_rest) = std::mem::take(&mut moving).split_at_mut(d);
+            (statics, moving) = (s_rest, d_rest);
+            tasks.push((b, k, first, n, s_here, d_here));
+        }
+        let (batches, static_offsets, dynamic_offsets) =
+            (&self.batches, &self.static_offsets, &self.dynamic_offsets);
+        tasks
+            .into_par_iter()
+            .for_each(|(b, k, first, n, s_hits, d_hits)| {
+                let bundle = batches[b].batch.bundle(k, &scene.bounds);
+                debug_assert_eq!(bundle.origins.len(), n);
+                let point = |line: &Line, t: f32| {
+                    line.origin.as_dvec3() + line.direction.as_dvec3() * f64::from(t)
+                };
+                let (s0, d0) = (static_offsets[first], dynamic_offsets[first]);
+                for (i, line) in lines_of(&bundle).enumerate() {
+                    let l = first + i;
+                    let range = |offsets: &[u32], base: u32| {
+                        (offsets[l] - base) as usize..(offsets[l + 1] - base) as usize
+                    };
+                    let hits = &mut s_hits[range(static_offsets, s0)];
+                    for h in hits.iter_mut() {
+                        *h = Hit::new(h.t, surface(*h, None, point(&line, h.t)), h.front());
+                    }
+                    hits.sort_unstable_by(Hit::order);
+                    let hits = &mut d_hits[range(dynamic_offsets, d0)];
+                    for h in hits.iter_mut() {
+                        let at = point(&line, h.hit.t);
+                        let new = surface(h.hit, Some(h.frame as usize), at);
+                        h.hit = Hit::new(h.hit.t, new, h.hit.front());
+                    }
+                    hits.sort_unstable_by(|a, b| {
+                        a.frame.cmp(&b.frame).then(Hit::order(&a.hit, &b.hit))
+                    });
+                }
+            });
     }
 
     /// What the list holds and its size in bytes.

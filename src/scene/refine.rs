@@ -1,0 +1,535 @@
+//! Adaptive patches: chosen traced triangles bisected after the lines are traced, without
+//! tracing them again.
+//!
+//! A triangle is cut at the midpoint of its longest edge (Rivara's longest-edge bisection).
+//! To leave no T-junction, the triangles across that edge are cut there too; one whose own
+//! longest edge is another is first cut at that one (the longest-edge propagation path,
+//! LEPP), which keeps every triangle's angles bounded below however often it is cut. Edges
+//! are matched by their corners' positions, so a flat-shaded export that repeats a vertex per
+//! face is cut without cracks as well.
+//!
+//! Every cut is recorded: a crossing of a triangle before the cuts finds the triangle it lies
+//! in after them from its barycentric coordinates ([`Refinement::locate`]), which is how the
+//! intersection list follows the patches without a line traced again.
+
+use std::collections::HashMap;
+
+use glam::{DVec3, Vec3};
+
+use super::{Faces, Motion, Patch, Scene, TriangleMesh};
+
+/// A node of the cut tree of one traced triangle.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Node {
+    /// Not cut: the triangle's global index after the refinement.
+    Leaf(u32),
+    /// Cut at the midpoint of edge `edge` (from corner `edge` to corner `edge + 1`): `children`
+    /// are the half at corner `edge`, then the half at corner `edge + 1`.
+    Cut { edge: u8, children: [u32; 2] },
+}
+
+/// How the traced triangles of a scene map to those of its refinement.
+#[derive(Clone, Debug)]
+pub struct Refinement {
+    /// The cut trees; node `g` is the root of the old triangle with global index `g`.
+    nodes: Vec<Node>,
+}
+
+impl Refinement {
+    /// Whether old triangle `old` was cut.
+    #[must_use]
+    pub fn is_cut(&self, old: u32) -> bool {
+        matches!(self.nodes[old as usize], Node::Cut { .. })
+    }
+
+    /// The new global index of the triangle holding the point of old triangle `old` at
+    /// barycentric coordinates `bary` (of its corners in order; they need not be normalised).
+    /// A point on a cut goes to the half at the cut edge's first corner.
+    #[must_use]
+    pub fn locate(&self, old: u32, bary: [f64; 3]) -> u32 {
+        let mut node = old as usize;
+        let mut l = bary;
+        loop {
+            match self.nodes[node] {
+                Node::Leaf(id) => return id,
+                Node::Cut { edge, children } => {
+                    let k = usize::from(edge);
+                    let (a, b, c) = (l[k], l[(k + 1) % 3], l[(k + 2) % 3]);
+                    // A point of the triangle (a, b, c) in the half (a, m, c) or (m, b, c),
+                    // m = (a + b) / 2: its coordinates there follow from b = 2m − a
+                    // (respectively a = 2m − b).
+                    (node, l) = if a >= b {
+                        (children[0] as usize, [a - b, 2.0 * b, c])
+                    } else {
+                        (children[1] as usize, [2.0 * a, b - a, c])
+                    };
+                }
+            }
+        }
+    }
+}
+
+/// The corner index where a triangle's longest edge starts (the first one on ties): the edge
+/// bisection cuts.
+#[must_use]
+pub fn longest_edge(corners: [Vec3; 3]) -> usize {
+    let lengths = [0, 1, 2]
+        .map(|k| (corners[(k + 1) % 3].as_dvec3() - corners[k].as_dvec3()).length_squared());
+    (0..3).fold(
+        0,
+        |best, k| if lengths[k] > lengths[best] { k } else { best },
+    )
+}
+
+/// Barycentric coordinates of `p` in the triangle `corners` (projected on its plane), or
+/// `None` for a degenerate triangle.
+#[must_use]
+pub fn barycentric(corners: [DVec3; 3], p: DVec3) -> Option<[f64; 3]> {
+    let [a, b, c] = corners;
+    let n = (b - a).cross(c - a);
+    let area2 = n.length_squared();
+    if area2 <= 0.0 || !area2.is_finite() {
+        return None;
+    }
+    let la = (c - b).cross(p - b).dot(n) / area2;
+    let lb = (a - c).cross(p - c).dot(n) / area2;
+    Some([la, lb, 1.0 - la - lb])
+}
+
+/// Edge key: its corners' position bits, in order.
+type EdgeKey = ([u32; 3], [u32; 3]);
+
+/// One mesh being cut.
+struct MeshCutter {
+    positions: Vec<Vec3>,
+    /// Triangles by leaf id: a cut triangle's first half keeps its id, the second is appended.
+    triangles: Vec<[u32; 3]>,
+    /// The cut-tree node of each leaf (local node ids).
+    leaf_node: Vec<u32>,
+    /// Local cut-tree nodes; `Leaf` holds a leaf id here. Roots are `0..triangles`.
+    nodes: Vec<Node>,
+    /// The leaves on each edge.
+    edges: HashMap<EdgeKey, Vec<u32>>,
+    /// The midpoint vertex of each cut edge, by its corners' indices.
+    midpoints: HashMap<(u32, u32), u32>,
+}
+
+/// Propagation paths longer than this cut the neighbours at the shared edge instead (still
+/// without T-junctions; only the shape guarantee is lost). Never reached in practice: a path
+/// ends where the longest edges stop growing.
+const MAX_PATH: usize = 64;
+
+impl MeshCutter {
+    fn new(mesh: &TriangleMesh) -> Self {
+        let mut cutter = Self {
+            positions: mesh.positions.clone(),
+            triangles: mesh.triangles.clone(),
+            leaf_node: (0..mesh.triangles.len() as u32).collect(),
+            nodes: (0..mesh.triangles.len() as u32).map(Node::Leaf).collect(),
+            edges: HashMap::new(),
+            midpoints: HashMap::new(),
+        };
+        for t in 0..cutter.triangles.len() as u32 {
+            cutter.link(t);
+        }
+        cutter
+    }
+
+    fn key(&self, a: u32, b: u32) -> EdgeKey {
+        let bits = |v: u32| self.positions[v as usize].to_array().map(f32::to_bits);
+        let (pa, pb) = (bits(a), bits(b));
+        if pa <= pb { (pa, pb) } else { (pb, pa) }
+    }
+
+    fn edge_key(&self, t: u32, k: usize) -> EdgeKey {
+        let tri = self.triangles[t as usize];
+        self.key(tri[k], tri[(k + 1) % 3])
+    }
+
+    fn longest(&self, t: u32) -> usize {
+        longest_edge(self.triangles[t as usize].map(|v| self.positions[v as usize]))
+    }
+
+    fn link(&mut self, t: u32) {
+        for k in 0..3 {
+            let key = self.edge_key(t, k);
+            self.edges.entry(key).or_default().push(t);
+        }
+    }
+
+    fn unlink(&mut self, t: u32) {
+        for k in 0..3 {
+            let key = self.edge_key(t, k);
+            if let Some(list) = self.edges.get_mut(&key) {
+                list.retain(|&o| o != t);
+            }
+        }
+    }
+
+    /// Cuts leaf `t` at its longest edge, and whatever the propagation path needs.
+    fn bisect(&mut self, t: u32, depth: usize) {
+        let k = self.longest(t);
+        let key = self.edge_key(t, k);
+        loop {
+            let others: Vec<u32> = self.edges[&key]
+                .iter()
+                .copied()
+                .filter(|&o| o != t)
+                .collect();
+            let off_path: Vec<u32> = others
+                .iter()
+                .copied()
+                .filter(|&o| self.edge_key(o, self.longest(o)) != key)
+                .collect();
+            if off_path.is_empty() || depth >= MAX_PATH {
+                self.cut(t, k);
+                for o in others {
+                    let edge = (0..3)
+                        .find(|&e| self.edge_key(o, e) == key)
+                        .expect("a leaf on an edge has it");
+                    self.cut(o, edge);
+                }
+                return;
+            }
+            for o in off_path {
+                // Cutting `o` at its longer edge leaves `key` on one of its halves; that half
+                // may still have another longest edge: the loop looks again.
+                self.bisect(o, depth + 1);
+            }
+        }
+    }
+
+    /// Cuts leaf `t` at the midpoint of its edge `k`.
+    fn cut(&mut self, t: u32, k: usize) {
+        self.unlink(t);
+        let tri = self.triangles[t as usize];
+        let (a, b, c) = (tri[k], tri[(k + 1) % 3], tri[(k + 2) % 3]);
+        let positions = &mut self.positions;
+        let m = *self
+            .midpoints
+            .entry((a.min(b), a.max(b)))
+            .or_insert_with(|| {
+                let p = super::midpoint(
+                    positions[a as usize].as_dvec3(),
+                    positions[b as usize].as_dvec3(),
+                );
+                positions.push(p.as_vec3());
+                (positions.len() - 1) as u32
+            });
+        let second = self.triangles.len() as u32;
+        self.triangles[t as usize] = [a, m, c];
+        self.triangles.push([m, b, c]);
+        let parent = self.leaf_node[t as usize] as usize;
+        let children = [self.nodes.len() as u32, self.nodes.len() as u32 + 1];
+        self.nodes[parent] = Node::Cut {
+            edge: k as u8,
+            children,
+        };
+        self.nodes.push(Node::Leaf(t));
+        self.nodes.push(Node::Leaf(second));
+        self.leaf_node[t as usize] = children[0];
+        self.leaf_node.push(children[1]);
+        self.link(t);
+        self.link(second);
+    }
+}
+
+/// Cuts the traced triangles of `scene` marked in `marked` (by global index: the static
+/// triangles, then each moving object's), with the cuts their neighbours need. The triangles
+/// of deforming objects are kept as they are (their marks are ignored): their crossings at
+/// each frame would need the pose of every frame to be placed.
+///
+/// Returns the new scene, whose patches are those of the cut triangles' faces numbered in the
+/// order of their triangles (a cut triangle's pieces in place of it, each with its share of
+/// the area), and the map from old triangles to new.
+#[must_use]
+pub fn cut(scene: &Scene, marked: &[bool]) -> (Scene, Refinement) {
+    let mut meshes: Vec<&TriangleMesh> = vec![&scene.statics];
+    meshes.extend(scene.objects.iter().map(|o| &o.mesh));
+    let mut first = 0;
+    let mut new_first = 0u32;
+    let mut patches: Vec<Patch> = Vec::with_capacity(scene.patches.len());
+    let mut nodes: Vec<Node> = Vec::new();
+    let mut extra: Vec<Node> = Vec::new();
+    let mut new_meshes = Vec::with_capacity(meshes.len());
+    for (m, mesh) in meshes.into_iter().enumerate() {
+        let count = mesh.triangles.len();
+        let deforming = m > 0 && !scene.objects[m - 1].is_rigid();
+        let mut cutter = MeshCutter::new(mesh);
+        if !deforming {
+            for t in 0..count {
+                if marked[first + t] && matches!(cutter.nodes[t], Node::Leaf(_)) {
+                    cutter.bisect(t as u32, 0);
+                }
+            }
+        }
+        // The leaves depth first from each root, with their depth: a triangle's pieces stay
+        // together, in the source's order.
+        let mut order = Vec::with_capacity(cutter.triangles.len());
+        for root in 0..count as u32 {
+            let mut stack = vec![(root, 0u32)];
+            while let Some((node, depth)) = stack.pop() {
+                match cutter.nodes[node as usize] {
+                    Node::Leaf(leaf) => order.push((leaf, depth)),
+                    Node::Cut { children, .. } => {
+                        stack.push((children[1], depth + 1));
+                        stack.push((children[0], depth + 1));
+                    }
+                }
+            }
+        }
+        // Leaf id → new global index.
+        let mut global = vec![0u32; cutter.triangles.len()];
+        let mut out = TriangleMesh {
+            positions: cutter.positions.clone(),
+            triangles: Vec::with_capacity(order.len()),
+            faces: Vec::with_capacity(order.len()),
+        };
+        let mut root_of = vec![0u32; cutter.triangles.len()];
+        for root in 0..count as u32 {
+            let mut stack = vec![root];
+            while let Some(node) = stack.pop() {
+                match cutter.nodes[node as usize] {
+                    Node::Leaf(leaf) => root_of[leaf as usize] = root,
+                    Node::Cut { children, .. } => stack.extend(children),
+                }
+            }
+        }
+        for (i, &(leaf, depth)) in order.iter().enumerate() {
+            global[leaf as usize] = new_first + i as u32;
+            let faces = mesh.faces[root_of[leaf as usize] as usize];
+            let mut piece = |id: u32| {
+                let mut patch = scene.patches[id as usize].clone();
+                patch.area /= f64::from(1u32 << depth.min(31));
+                patches.push(patch);
+                (patches.len() - 1) as u32
+            };
+            let front = piece(faces.front);
+            let back = faces.back.map(&mut piece);
+            out.triangles.push(cutter.triangles[leaf as usize]);
+            out.faces.push(Faces { front, back });
+        }
+        // This mesh's nodes in global numbering: roots at `first..first + count`, the rest
+        // appended after every root.
+        let offset = |local: u32, extra_base: usize| -> u32 {
+            if (local as usize) < count {
+                (first + local as usize) as u32
+            } else {
+                (scene_triangles(scene) + extra_base + local as usize - count) as u32
+            }
+        };
+        let extra_base = extra.len();
+        let translate = |node: Node| match node {
+            Node::Leaf(leaf) => Node::Leaf(global[leaf as usize]),
+            Node::Cut { edge, children } => Node::Cut {
+                edge,
+                children: children.map(|c| offset(c, extra_base)),
+            },
+        };
+        nodes.extend(cutter.nodes[..count].iter().map(|&n| translate(n)));
+        extra.extend(cutter.nodes[count..].iter().map(|&n| translate(n)));
+        first += count;
+        new_first += order.len() as u32;
+        new_meshes.push(out);
+    }
+    nodes.extend(extra);
+    let mut refined = scene.clone();
+    let mut new_meshes = new_meshes.into_iter();
+    refined.statics = new_meshes.next().expect("the static mesh");
+    for (object, mesh) in refined.objects.iter_mut().zip(new_meshes) {
+        if let Motion::Rigid { .. } = object.motion {
+            object.mesh = mesh;
+        } else {
+            object.mesh.faces = mesh.faces;
+        }
+    }
+    refined.patches = patches;
+    (refined, Refinement { nodes })
+}
+
+/// Traced triangles of a scene.
+fn scene_triangles(scene: &Scene) -> usize {
+    scene.statics.triangles.len()
+        + scene
+            .objects
+            .iter()
+            .map(|o| o.mesh.triangles.len())
+            .sum::<usize>()
+}
+
+/// The corners of a scene's traced triangles by global index (the static triangles, then each
+/// moving object's), as the intersection list numbers them.
+pub struct Corners<'a> {
+    scene: &'a Scene,
+    /// First global index of each mesh: the static one, then each object's.
+    firsts: Vec<usize>,
+}
+
+impl<'a> Corners<'a> {
+    /// The corners of `scene`'s triangles.
+    #[must_use]
+    pub fn new(scene: &'a Scene) -> Self {
+        let mut firsts = vec![0, scene.statics.triangles.len()];
+        for o in &scene.objects {
+            firsts.push(firsts.last().copied().unwrap_or(0) + o.mesh.triangles.len());
+        }
+        firsts.pop();
+        Self { scene, firsts }
+    }
+
+    /// The mesh (0: static, `1 + k`: object k) and index within it of triangle `global`.
+    fn find(&self, global: u32) -> (usize, usize) {
+        let m = self.firsts.partition_point(|&f| f <= global as usize) - 1;
+        (m, global as usize - self.firsts[m])
+    }
+
+    /// Triangle `global`'s corners in its mesh's own space (normalised space for static
+    /// geometry, object space for a rigid object, frame 0 for a deforming one): the space
+    /// its cuts are decided in.
+    #[must_use]
+    pub fn own(&self, global: u32) -> [Vec3; 3] {
+        let (m, t) = self.find(global);
+        let mesh = if m == 0 {
+            &self.scene.statics
+        } else {
+            &self.scene.objects[m - 1].mesh
+        };
+        mesh.triangles[t].map(|v| mesh.positions[v as usize])
+    }
+
+    /// Triangle `global`'s corners in normalised space at `frame` (`None`: a static triangle),
+    /// or `None` for a deforming object's (posing one costs the whole mesh).
+    #[must_use]
+    pub fn posed(&self, global: u32, frame: Option<usize>) -> Option<[DVec3; 3]> {
+        let (m, _) = self.find(global);
+        let own = self.own(global).map(Vec3::as_dvec3);
+        if m == 0 {
+            return Some(own);
+        }
+        match (&self.scene.objects[m - 1].motion, frame) {
+            (Motion::Rigid { poses }, Some(f)) => Some(own.map(|p| poses[f].transform_point3(p))),
+            _ => None,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::collections::HashMap;
+
+    /// An n × n grid of squares, each two triangles, on z = 0 over [0, 1]²: one static mesh.
+    fn grid(n: u32) -> TriangleMesh {
+        let mut mesh = TriangleMesh::default();
+        for j in 0..=n {
+            for i in 0..=n {
+                mesh.positions
+                    .push(Vec3::new(i as f32 / n as f32, j as f32 / n as f32, 0.0));
+            }
+        }
+        let v = |i: u32, j: u32| j * (n + 1) + i;
+        for j in 0..n {
+            for i in 0..n {
+                mesh.triangles.push([v(i, j), v(i + 1, j), v(i + 1, j + 1)]);
+                mesh.triangles.push([v(i, j), v(i + 1, j + 1), v(i, j + 1)]);
+            }
+        }
+        mesh
+    }
+
+    fn cutter_with(mesh: &TriangleMesh, marked: impl Fn(usize) -> bool) -> MeshCutter {
+        let mut cutter = MeshCutter::new(mesh);
+        for t in 0..mesh.triangles.len() {
+            if marked(t) && matches!(cutter.nodes[t], Node::Leaf(_)) {
+                cutter.bisect(t as u32, 0);
+            }
+        }
+        cutter
+    }
+
+    fn area(c: [Vec3; 3]) -> f64 {
+        let [a, b, c] = c.map(Vec3::as_dvec3);
+        0.5 * (b - a).cross(c - a).length()
+    }
+
+    #[test]
+    fn cuts_leave_no_t_junction_and_keep_the_area() {
+        let mesh = grid(4);
+        // Cut some triangles, then some of the pieces again (deeper cuts propagate further).
+        let mut cutter = cutter_with(&mesh, |t| t % 3 == 0);
+        for t in 0..cutter.triangles.len() as u32 {
+            if t % 5 == 0 {
+                cutter.bisect(t, 0);
+            }
+        }
+        let corners = |t: &[u32; 3]| t.map(|v| cutter.positions[v as usize]);
+        let total: f64 = cutter.triangles.iter().map(|t| area(corners(t))).sum();
+        assert!((total - 1.0).abs() < 1e-9, "{total}");
+        assert!(cutter.triangles.len() > 2 * mesh.triangles.len());
+        // Every edge is shared by two triangles, except on the grid's outline: a T-junction
+        // would leave an edge with one triangle inside the square.
+        let mut uses: HashMap<EdgeKey, (u32, [Vec3; 2])> = HashMap::new();
+        for t in &cutter.triangles {
+            for k in 0..3 {
+                let (a, b) = (t[k], t[(k + 1) % 3]);
+                let e = uses.entry(cutter.key(a, b)).or_insert((
+                    0,
+                    [cutter.positions[a as usize], cutter.positions[b as usize]],
+                ));
+                e.0 += 1;
+            }
+        }
+        for (n, [a, b]) in uses.values() {
+            let outline = [0, 1]
+                .iter()
+                .any(|&c| (a[c] == 0.0 && b[c] == 0.0) || (a[c] == 1.0 && b[c] == 1.0));
+            assert_eq!(*n, if outline { 1 } else { 2 }, "edge {a} {b}");
+        }
+        // Longest-edge bisection keeps shapes: no angle below half the smallest one before
+        // (45° here; Rivara's bound).
+        for t in &cutter.triangles {
+            let c = corners(t).map(Vec3::as_dvec3);
+            for k in 0..3 {
+                let (u, v) = (c[(k + 1) % 3] - c[k], c[(k + 2) % 3] - c[k]);
+                let angle = u.angle_between(v).to_degrees();
+                assert!(angle > 22.0, "{angle}° in {c:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn a_point_is_located_in_the_piece_that_holds_it() {
+        let mesh = grid(2);
+        let cutter = cutter_with(&mesh, |t| t != 5);
+        // Leaves keep their leaf ids: locate names the cutter's triangles.
+        let refinement = Refinement {
+            nodes: cutter.nodes.clone(),
+        };
+        let mut state = 12345u64;
+        let mut uniform = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        for old in 0..mesh.triangles.len() {
+            let c = mesh.triangles[old].map(|v| mesh.positions[v as usize].as_dvec3());
+            for _ in 0..200 {
+                let (mut u, mut v) = (uniform(), uniform());
+                if u + v > 1.0 {
+                    (u, v) = (1.0 - u, 1.0 - v);
+                }
+                let p = c[0] + (c[1] - c[0]) * u + (c[2] - c[0]) * v;
+                let bary = barycentric(c, p).unwrap();
+                let leaf = refinement.locate(old as u32, bary);
+                let piece = cutter.triangles[leaf as usize]
+                    .map(|v| cutter.positions[v as usize].as_dvec3());
+                let inside = barycentric(piece, p).unwrap();
+                assert!(
+                    inside.iter().all(|&l| l > -1e-6),
+                    "{p} of {old} located in {leaf}: {inside:?}"
+                );
+            }
+        }
+    }
+}
