@@ -22,6 +22,8 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::bake::Bake;
+use glam::{DVec3, Vec3};
+
 use crate::scene::refine::{Corners, barycentric, longest_edge};
 use crate::solve::SolveParams;
 use crate::solve::tally::{ABSORBED, SKY, walk_from};
@@ -60,6 +62,17 @@ impl Adaptive {
     }
 }
 
+impl Adaptive {
+    /// The same with the budget at most `max_patches` (a server's or a load's limit).
+    #[must_use]
+    pub fn within(self, max_patches: usize) -> Self {
+        Self {
+            budget: self.budget.min(max_patches),
+            ..self
+        }
+    }
+}
+
 /// Lines per patch of the standard budget ([`Adaptive::for_lines`]).
 pub const LINES_PER_PATCH: u64 = 100;
 
@@ -68,7 +81,8 @@ pub const LINES_PER_PATCH: u64 = 100;
 pub struct Round {
     /// Patches before the round.
     pub patches: usize,
-    /// Patches whose halves differed beyond their noise.
+    /// Cuts decided (at most [`DEPTH`] levels per patch), those whose halves differ beyond
+    /// their noise, within the budget.
     pub significant: usize,
     /// Patches added by the round's cuts.
     pub added: usize,
@@ -97,7 +111,7 @@ pub fn adapt(
             break;
         }
         let marked = mark(bake, auto, solve);
-        let significant = marked.iter().filter(|&&m| m).count();
+        let significant = marked.iter().map(|m| m.count_ones() as usize).sum();
         let added = if significant == 0 {
             0
         } else {
@@ -130,8 +144,15 @@ fn scored_frames(bake: &Bake) -> Vec<usize> {
     frames
 }
 
-/// The traced triangles to cut this round (by global index), within the budget.
-fn mark(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<bool> {
+/// Levels of cuts one round may decide for a patch: it is scored on the bisection tree of
+/// this depth (2^DEPTH pieces), all from one solve.
+pub const DEPTH: u32 = 3;
+/// Pieces of a patch's scoring tree.
+const LEAVES: usize = 1 << DEPTH;
+
+/// Each traced triangle's cuts this round (a heap-ordered bisection tree per triangle,
+/// [`crate::scene::refine::cut`]), within the budget.
+fn mark(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<u32> {
     let scene = &bake.scene;
     let faces = bake.tracer().faces();
     let mut triangle_of = vec![0u32; scene.patches.len()];
@@ -141,52 +162,99 @@ fn mark(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<bool> {
             triangle_of[b as usize] = g as u32;
         }
     }
-    // The reflected power each patch would misplace, if significant, most over the frames.
-    let mut priority = vec![0.0f64; scene.patches.len()];
+    // The reflected power each node of each patch's tree would misplace if left whole, when
+    // its halves differ significantly (most over the frames); 0 otherwise.
+    let nodes = LEAVES;
+    let mut priority = vec![0.0f64; scene.patches.len() * nodes];
     for frame in scored_frames(bake) {
         let solution = bake.solve_frame(frame, &scene.materials, solve);
-        let halves = halves(bake, frame, &solution.radiance, solve.sky);
-        for (i, h) in halves.iter().enumerate() {
-            let Some(difference) = significant_difference(h, auto) else {
-                continue;
-            };
-            let patch = &scene.patches[i];
-            let rho = luminance(scene.materials[patch.material as usize].reflectance);
-            priority[i] = priority[i].max(rho * patch.area * difference);
-        }
+        let stats = leaf_stats(bake, frame, &solution.radiance, solve.sky);
+        priority
+            .par_chunks_mut(nodes)
+            .zip(stats.par_chunks(3 * LEAVES))
+            .enumerate()
+            .for_each(|(i, (priority, leaves))| {
+                let patch = &scene.patches[i];
+                let rho = luminance(scene.materials[patch.material as usize].reflectance);
+                let leaves: Vec<[f64; 3]> =
+                    leaves.chunks_exact(3).map(|l| [l[0], l[1], l[2]]).collect();
+                for (heap, priority) in priority.iter_mut().enumerate().skip(1) {
+                    let level = heap.ilog2();
+                    let span = LEAVES >> level;
+                    let first = (heap << (DEPTH - level)) - LEAVES;
+                    let Some(gain) = variation(&leaves[first..first + span], auto) else {
+                        continue;
+                    };
+                    let area = patch.area / f64::from(1u32 << level);
+                    *priority = priority.max(rho * rho * area * gain);
+                }
+            });
     }
-    let mut order: Vec<usize> = (0..priority.len()).filter(|&i| priority[i] > 0.0).collect();
+    // Node cuts by priority, each only below a cut parent, within the budget.
+    let mut order: Vec<usize> = (0..priority.len()).filter(|&n| priority[n] > 0.0).collect();
     order.sort_by(|&a, &b| priority[b].total_cmp(&priority[a]));
-    let mut marked = vec![false; faces.len()];
+    let mut cuts = vec![0u32; faces.len()];
     let mut patches = scene.patches.len();
-    for i in order {
+    for n in order {
+        let (i, heap) = (n / nodes, n % nodes);
         let t = triangle_of[i] as usize;
-        if marked[t] {
+        if cuts[t] & (1 << heap) != 0 || (heap > 1 && cuts[t] & (1 << (heap / 2)) == 0) {
             continue;
         }
         let adds = 1 + usize::from(faces[t].back.is_some());
         if patches + adds > auto.budget {
             break;
         }
-        marked[t] = true;
+        cuts[t] |= 1 << heap;
         patches += adds;
     }
-    marked
+    cuts
 }
 
-/// |μ₀ − μ₁| of a patch's halves if it exceeds their noise ([`Adaptive::significance`]) and
-/// both halves have enough crossings.
-fn significant_difference(h: &[f64; 6], auto: &Adaptive) -> Option<f64> {
-    let [n0, s0, q0, n1, s1, q1] = *h;
-    if n0 < auto.min_crossings || n1 < auto.min_crossings {
+/// How much the light a node gathers varies over its pieces (`[n, Σ, Σ²]` of the radiance
+/// each gathers, the node's leaves of the scoring tree), in squared radiance: the
+/// crossing-weighted variance of the pieces' true means, estimated without bias as
+/// Σ w_k ((m_k − m̄)² − v_k), v_k the variance of piece k's mean. A node left whole shows m̄
+/// over all its pieces; cut down to them, each shows its own. Looking at every piece, not
+/// only the two halves, finds light that a first cut would split evenly (a lamp centred on
+/// the cut).
+///
+/// `None` unless each half of the node has [`Adaptive::min_crossings`] and the pieces differ
+/// beyond their noise: Σ (m_k − m̄)² / v_k, χ² with K − 1 degrees of freedom when they do
+/// not, above its mean by [`Adaptive::significance`] standard deviations.
+fn variation(pieces: &[[f64; 3]], auto: &Adaptive) -> Option<f64> {
+    let (h0, h1) = pieces.split_at(pieces.len() / 2);
+    let crossings = |h: &[[f64; 3]]| h.iter().map(|p| p[0]).sum::<f64>();
+    if crossings(h0) < auto.min_crossings || crossings(h1) < auto.min_crossings {
         return None;
     }
-    let (m0, m1) = (s0 / n0, s1 / n1);
-    // Variance of each half's mean (crossings taken as independent: the lines' stratification
-    // only makes it smaller, so the test errs towards not cutting).
-    let variance = (q0 / n0 - m0 * m0).max(0.0) / n0 + (q1 / n1 - m1 * m1).max(0.0) / n1;
-    let difference = (m0 - m1).abs();
-    (difference > auto.significance * variance.sqrt()).then_some(difference)
+    // (n, mean, variance of the mean) of the pieces with a variance to speak of.
+    let stats: Vec<(f64, f64, f64)> = pieces
+        .iter()
+        .filter(|p| p[0] >= 2.0)
+        .map(|&[n, sum, square]| {
+            let mean = sum / n;
+            (n, mean, ((square / n - mean * mean).max(0.0) / (n - 1.0)))
+        })
+        .collect();
+    let total: f64 = stats.iter().map(|s| s.0).sum();
+    let mean = stats.iter().map(|s| s.0 * s.1).sum::<f64>() / total;
+    // A piece whose every crossing gathered the same radiance has no noise: keep the test's
+    // denominators positive.
+    let floor = f64::EPSILON * mean * mean + f64::MIN_POSITIVE;
+    let chi2: f64 = stats
+        .iter()
+        .map(|&(_, m, v)| (m - mean).powi(2) / v.max(floor))
+        .sum();
+    let freedom = stats.len() as f64 - 1.0;
+    if freedom < 1.0 || chi2 <= freedom + auto.significance * (2.0 * freedom).sqrt() {
+        return None;
+    }
+    let gain: f64 = stats
+        .iter()
+        .map(|&(n, m, v)| n / total * ((m - mean).powi(2) - v))
+        .sum();
+    (gain > 0.0).then_some(gain)
 }
 
 /// Rec. 709 luminance.
@@ -194,47 +262,45 @@ fn luminance(c: [f64; 3]) -> f64 {
     0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2]
 }
 
-/// Per patch, for each of its two halves (the longest-edge bisection of its triangle): the
-/// crossings whose segment leaves the patch from that half, and the sum and sum of squares of
-/// the luminance at the segments' other ends, at `frame` with `radiance`:
-/// `[n₀, Σ₀, Σ²₀, n₁, Σ₁, Σ²₁]`.
-fn halves(bake: &Bake, frame: usize, radiance: &[[f64; 3]], sky: [f64; 3]) -> Vec<[f64; 6]> {
+/// Per patch, for each piece of its bisection tree of depth [`DEPTH`] (heap order of the
+/// leaves): the crossings whose segment leaves the patch from that piece, and the sum and sum
+/// of squares of the luminance at the segments' other ends, at `frame` with `radiance`
+/// (`3 × LEAVES` numbers per patch).
+fn leaf_stats(bake: &Bake, frame: usize, radiance: &[[f64; 3]], sky: [f64; 3]) -> Vec<f64> {
     let scene = &bake.scene;
     let list = bake.list();
     let surfaces = bake.tracer().surfaces();
     let corners = Corners::new(scene);
-    let edges: Vec<u8> = (0..bake.tracer().triangles() as u32)
-        .into_par_iter()
-        .map(|g| longest_edge(corners.own(g)) as u8)
-        .collect();
     let sky = luminance(sky);
     let value = |to: u32| match to {
         SKY => sky,
         ABSORBED => 0.0,
         j => luminance(radiance[j as usize]),
     };
-    let patches = scene.patches.len();
+    let size = scene.patches.len() * 3 * LEAVES;
     list.bundles(scene)
         .fold(
-            || (vec![[0.0; 6]; patches], Vec::new()),
+            || (vec![0.0; size], Vec::new()),
             |(mut acc, mut hits), (first, bundle)| {
                 let surfaces = surfaces.along(bundle.direction);
                 let direction = bundle.direction.as_dvec3();
                 for (i, origin) in bundle.origins.iter().enumerate() {
                     list.frame_hits(first + i, frame, &mut hits);
                     walk_from(&hits, &surfaces, |from, to, at| {
-                        let Some(c) = corners.posed(at.surface(), Some(frame)) else {
+                        let Some(posed) = corners.posed(at.surface(), Some(frame)) else {
                             return;
                         };
                         let p = origin.as_dvec3() + direction * f64::from(at.t);
-                        let Some(l) = barycentric(c, p) else { return };
-                        let k = usize::from(edges[at.surface() as usize]);
-                        let half = if l[k] >= l[(k + 1) % 3] { 0 } else { 3 };
+                        let Some(bary) = barycentric(posed, p) else {
+                            return;
+                        };
+                        let own = corners.own(at.surface()).map(Vec3::as_dvec3);
+                        let leaf = piece(own, bary);
                         let g = value(to);
-                        let a = &mut acc[from as usize];
-                        a[half] += 1.0;
-                        a[half + 1] += g;
-                        a[half + 2] += g * g;
+                        let a = &mut acc[(from as usize * LEAVES + leaf) * 3..][..3];
+                        a[0] += 1.0;
+                        a[1] += g;
+                        a[2] += g * g;
                     });
                 }
                 (acc, hits)
@@ -242,14 +308,34 @@ fn halves(bake: &Bake, frame: usize, radiance: &[[f64; 3]], sky: [f64; 3]) -> Ve
         )
         .map(|(acc, _)| acc)
         .reduce(
-            || vec![[0.0; 6]; patches],
+            || vec![0.0; size],
             |mut a, b| {
-                for (x, y) in a.iter_mut().zip(&b) {
-                    for k in 0..6 {
-                        x[k] += y[k];
-                    }
-                }
+                a.iter_mut().zip(&b).for_each(|(x, y)| *x += y);
                 a
             },
         )
+}
+
+/// The leaf of the bisection tree of depth [`DEPTH`] of the triangle `corners` (its own space)
+/// holding the point at barycentric coordinates `bary`: the cuts
+/// [`crate::scene::refine::cut`] makes, each at the piece's longest edge.
+fn piece(corners: [DVec3; 3], bary: [f64; 3]) -> usize {
+    let (mut c, mut l) = (corners, bary);
+    let mut heap = 1;
+    for _ in 0..DEPTH {
+        let k = longest_edge(c.map(DVec3::as_vec3));
+        let (i, j, o) = (k, (k + 1) % 3, (k + 2) % 3);
+        let m = crate::scene::midpoint(c[i], c[j]);
+        // As in `Refinement::locate`: the half at corner i, or the one at corner j.
+        (c, l, heap) = if l[i] >= l[j] {
+            ([c[i], m, c[o]], [l[i] - l[j], 2.0 * l[j], l[o]], 2 * heap)
+        } else {
+            (
+                [m, c[j], c[o]],
+                [2.0 * l[i], l[j] - l[i], l[o]],
+                2 * heap + 1,
+            )
+        };
+    }
+    heap - LEAVES
 }

@@ -89,13 +89,14 @@ impl Bake {
         Ok(())
     }
 
-    /// Cuts the traced triangles marked in `marked` (by global index), with the cuts their
-    /// neighbours need ([`crate::scene::refine::cut`]), and moves every crossing of the list to
+    /// Cuts the traced triangles as `cuts` says (a bisection tree per triangle by global index,
+    /// [`crate::scene::refine::cut`]), with the cuts their neighbours need, and moves every
+    /// crossing of the list to
     /// the piece it lies on: the same lines through finer patches, without tracing them again.
     /// The direct light is sampled again for the new patches. Returns the patches added.
-    pub fn cut(&mut self, marked: &[bool], control: &Control) -> Result<usize, TraceError> {
+    pub fn cut(&mut self, cuts: &[u32], control: &Control) -> Result<usize, TraceError> {
         use crate::scene::refine::{self, Corners};
-        let (scene, refinement) = refine::cut(&self.scene, marked);
+        let (scene, refinement) = refine::cut(&self.scene, cuts);
         let added = scene.patches.len() - self.scene.patches.len();
         if added == 0 {
             return Ok(0);

@@ -26,9 +26,11 @@ use std::time::Instant;
 use rayon::prelude::*;
 use serde::Serialize;
 
+use crate::adaptive::{self, Adaptive};
 use crate::bake::Bake;
 use crate::loader::{self, LoadOptions};
 use crate::output::{self, FrameSpec, ToneMap};
+use crate::params::PatchSize;
 use crate::scene::Scene;
 use crate::solve::{FrameSolution, SolveParams};
 use crate::timeline::{Control, LineParams, TraceError};
@@ -38,6 +40,9 @@ use crate::timeline::{Control, LineParams, TraceError};
 pub struct BatchParams {
     /// What to load from each scene.
     pub load: LoadOptions,
+    /// Cut the patches after tracing where the light needs them (`patch_size=auto`,
+    /// [`crate::adaptive`]), starting from those `load` gives.
+    pub auto: bool,
     /// Lines and seed.
     pub lines: LineParams,
     /// Radiance of the sky.
@@ -49,6 +54,18 @@ pub struct BatchParams {
     /// Iteration cap of each frame's solve ([`SolveParams::max_iterations`]): a frame that
     /// reaches it fails the scene.
     pub max_iterations: usize,
+}
+
+impl BatchParams {
+    /// The `patch_size` asked for.
+    #[must_use]
+    pub fn patch_size(&self) -> PatchSize {
+        match (self.auto, self.load.patch_size) {
+            (true, _) => PatchSize::Auto,
+            (false, Some(length)) => PatchSize::Length(length),
+            (false, None) => PatchSize::Source,
+        }
+    }
 }
 
 /// Which baked glTF files and previews to write besides `radiance.bin` and `summary.json`.
@@ -117,7 +134,10 @@ struct Summary<'a> {
     lines: usize,
     seed: u64,
     fps: f64,
-    patch_size: Option<f64>,
+    /// `auto`, `source` or the length asked for.
+    patch_size: PatchSize,
+    /// What each round of `auto` did (empty otherwise).
+    adaptive: Vec<crate::adaptive::Round>,
     animation: Option<&'a str>,
     sky: [f64; 3],
     /// Worst relative residual of the solver over frames and channels.
@@ -185,8 +205,9 @@ fn content_hash(bytes: &[u8], params: &BatchParams) -> String {
     let mut h = Fnv(0xcbf2_9ce4_8422_2325);
     h.write(bytes);
     let described = format!(
-        "{:?}|{:?}|{:?}|{:?}|{}",
+        "{:?}|{}|{:?}|{:?}|{:?}|{}",
         params.load,
+        params.auto,
         params.lines,
         params.sky,
         params.outputs,
@@ -383,23 +404,40 @@ pub fn bake_one(
         scene.patches.len()
     ));
     let started = Instant::now();
-    let bake = match Bake::trace_with(scene, &params.lines, control) {
+    let mut bake = match Bake::trace_with(scene, &params.lines, control) {
         Ok(b) => b,
         Err(TraceError::Cancelled) => return Outcome::Cancelled,
         Err(e) => return Outcome::Failed(e.to_string()),
     };
     let trace_seconds = started.elapsed().as_secs_f64();
+    let solve = SolveParams {
+        sky: params.sky,
+        max_iterations: params.max_iterations,
+        ..SolveParams::default()
+    };
+    let started = Instant::now();
+    let rounds = if params.auto {
+        let auto = Adaptive::for_lines(params.lines.lines, bake.scene.patches.len())
+            .within(params.load.max_patches);
+        log(&format!(
+            "{name}: cutting patches where the light needs them (at most {})",
+            auto.budget
+        ));
+        match adaptive::adapt(&mut bake, &auto, &solve, control) {
+            Ok(rounds) => rounds,
+            Err(TraceError::Cancelled) => return Outcome::Cancelled,
+            Err(e) => return Outcome::Failed(e.to_string()),
+        }
+    } else {
+        Vec::new()
+    };
+    let adapt_seconds = started.elapsed().as_secs_f64();
     control.start_stage(0);
     log(&format!(
         "{name}: solving {} frames",
         bake.scene.frames.count
     ));
     let started = Instant::now();
-    let solve = SolveParams {
-        sky: params.sky,
-        max_iterations: params.max_iterations,
-        ..SolveParams::default()
-    };
     let frames = bake.solve_all_with(&bake.scene.materials, &solve, control);
     if control.is_cancelled() {
         return Outcome::Cancelled;
@@ -455,7 +493,8 @@ pub fn bake_one(
         lines: bake.list().lines(),
         seed: params.lines.seed,
         fps: params.load.fps,
-        patch_size: params.load.patch_size,
+        patch_size: params.patch_size(),
+        adaptive: rounds,
         animation: params.load.animation.as_deref(),
         sky: params.sky,
         worst_residual: frames.iter().map(|f| f.residual).fold(0.0, f64::max),
@@ -480,6 +519,7 @@ pub fn bake_one(
     let timings = serde_json::json!({
         "load": load_seconds,
         "trace": trace_seconds,
+        "adapt": adapt_seconds,
         "solve": solve_seconds,
         "outputs": started.elapsed().as_secs_f64(),
     });

@@ -28,9 +28,10 @@ struct SceneArgs {
     /// Time of the last frame (seconds); defaults to the last keyframe.
     #[arg(long)]
     end: Option<f64>,
-    /// Subdivide triangles until every edge is at most this long (scene units).
-    #[arg(long)]
-    patch_size: Option<f64>,
+    /// How patches are made: auto (cut after tracing where the light needs them), source (one
+    /// per side of each source triangle) or a length (every edge at most that long, scene units).
+    #[arg(long, default_value_t)]
+    patch_size: radiosity::params::PatchSize,
     /// Largest diffuse reflectance, in (0, 1]: higher ones are lowered to it, with a warning.
     #[arg(long, default_value_t = loader::MAX_REFLECTANCE)]
     max_reflectance: f64,
@@ -46,7 +47,7 @@ impl TryFrom<SceneArgs> for LoadOptions {
             animation: a.animation,
             start: a.start,
             end: a.end,
-            patch_size: a.patch_size,
+            patch_size: a.patch_size.length(),
             max_reflectance: a.max_reflectance,
             ..Self::default()
         };
@@ -209,7 +210,9 @@ fn run(cli: Cli) -> Result<(), String> {
                     .unwrap_or(radiosity::timeline::Preset::Default)
                     .lines()
             });
+            let auto = args.patch_size == radiosity::params::PatchSize::Auto;
             let params = radiosity::batch::BatchParams {
+                auto,
                 load: args.try_into()?,
                 lines: radiosity::timeline::LineParams {
                     lines,

@@ -18,6 +18,9 @@ pub enum ParamError {
     /// '--sky'`, the service's `sky: ...`).
     #[error("{0:?} is not r,g,b: three finite numbers ≥ 0 separated by commas, such as 1,1,1")]
     Sky(String),
+    /// `patch_size` is neither `auto`, `source` nor a positive length.
+    #[error("{0:?} is not auto, source or a positive length in scene units, such as 0.25")]
+    PatchSize(String),
     /// `start` is after `end`.
     #[error("start ({start} s) is after end ({end} s): the timeline would end before it starts")]
     StartAfterEnd {
@@ -26,6 +29,68 @@ pub enum ParamError {
         /// The requested time of the last frame, seconds.
         end: f64,
     },
+}
+
+/// How a scene is cut into patches, written `auto`, `source` or a length (the `patch_size`
+/// parameter of both front ends).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub enum PatchSize {
+    /// Patches cut after tracing where the light needs them, from the lines
+    /// ([`crate::adaptive`]), starting from the source's triangles.
+    Auto,
+    /// One patch per side of each of the source's triangles.
+    #[default]
+    Source,
+    /// Triangles subdivided until every edge is at most this long (scene units, > 0).
+    Length(f64),
+}
+
+impl PatchSize {
+    /// The longest edge the loader subdivides to, if any ([`LoadOptions::patch_size`]).
+    #[must_use]
+    pub fn length(self) -> Option<f64> {
+        match self {
+            Self::Length(l) => Some(l),
+            Self::Auto | Self::Source => None,
+        }
+    }
+}
+
+impl FromStr for PatchSize {
+    type Err = ParamError;
+
+    fn from_str(text: &str) -> Result<Self, Self::Err> {
+        match text.trim() {
+            "auto" => Ok(Self::Auto),
+            "source" => Ok(Self::Source),
+            number => number
+                .parse::<f64>()
+                .ok()
+                .filter(|l| l.is_finite() && *l > 0.0)
+                .map(Self::Length)
+                .ok_or_else(|| ParamError::PatchSize(text.to_string())),
+        }
+    }
+}
+
+impl std::fmt::Display for PatchSize {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Auto => f.write_str("auto"),
+            Self::Source => f.write_str("source"),
+            Self::Length(l) => write!(f, "{l}"),
+        }
+    }
+}
+
+/// `auto` and `source` as strings, a length as a number.
+impl serde::Serialize for PatchSize {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        match self {
+            Self::Length(l) => s.serialize_f64(*l),
+            other => s.collect_str(other),
+        }
+    }
 }
 
 /// The radiance of the sky, in the units of the scene's emission, written `r,g,b`: exactly
@@ -106,6 +171,29 @@ mod tests {
         assert!(
             message.contains("\"1,x,2,3\"") && message.contains("r,g,b"),
             "{message}"
+        );
+    }
+
+    #[test]
+    fn a_patch_size_is_auto_source_or_a_positive_length() {
+        for (text, size) in [
+            ("auto", PatchSize::Auto),
+            ("source", PatchSize::Source),
+            ("0.25", PatchSize::Length(0.25)),
+            (" 2 ", PatchSize::Length(2.0)),
+        ] {
+            assert_eq!(text.parse::<PatchSize>(), Ok(size), "{text}");
+        }
+        for text in ["", "0", "-1", "inf", "NaN", "Auto", "0.25m", "1e999"] {
+            assert_eq!(
+                text.parse::<PatchSize>(),
+                Err(ParamError::PatchSize(text.to_string())),
+                "{text}"
+            );
+        }
+        assert_eq!(
+            serde_json::to_string(&[PatchSize::Auto, PatchSize::Length(0.5)]).unwrap(),
+            r#"["auto",0.5]"#
         );
     }
 

@@ -34,9 +34,10 @@ fn cut_patches_hold_the_crossings_a_fresh_trace_finds() {
     let params = lines(20_000);
     let mut bake = Bake::trace(scene, &params).unwrap();
     let triangles = bake.tracer().triangles();
-    let marked: Vec<bool> = (0..triangles).map(|t| t % 3 != 1).collect();
+    // Some triangles cut once, some into four, some left whole.
+    let cuts: Vec<u32> = (0..triangles).map(|t| [0b10, 0, 0b1110][t % 3]).collect();
     let before = bake.scene.patches.len();
-    let added = bake.cut(&marked, &Control::default()).unwrap();
+    let added = bake.cut(&cuts, &Control::default()).unwrap();
     assert_eq!(bake.scene.patches.len(), before + added);
     assert!(added > triangles / 2, "{added} patches added");
     let fresh = Bake::trace(bake.scene.clone(), &params).unwrap();

@@ -109,6 +109,7 @@ fn scratch(name: &str) -> PathBuf {
 /// Batch parameters writing `radiance.bin`, `summary.json`, one `.glb` and one small preview.
 fn batch(load: LoadOptions, n: u64) -> BatchParams {
     BatchParams {
+        auto: false,
         load,
         lines: lines(n),
         sky: [0.0; 3],

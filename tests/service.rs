@@ -1066,3 +1066,29 @@ async fn overlapping_faces_are_named_in_the_status_document() {
         "{warnings:?}"
     );
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn auto_patches_are_cut_after_tracing_and_served_with_their_table() {
+    let base = start(Config::default()).await;
+    let client = reqwest::Client::new();
+    let (id, created) = create(
+        &client,
+        &base,
+        "lines=100000&patch_size=auto",
+        "panel_room.gltf",
+    )
+    .await;
+    let loaded = created["patches"].as_u64().unwrap();
+    let status = wait(&client, &base, &id, Duration::from_secs(120)).await;
+    assert_eq!(status["status"], "done", "{status}");
+    let patches = status["patches"].as_u64().unwrap();
+    // The panel's light behind it, 1 cm from the ceiling, is where the cuts go.
+    assert!(
+        patches > 2 * loaded,
+        "{loaded} patches loaded, {patches} after"
+    );
+    let table = get_json(&client, format!("{base}/v1/timelines/{id}/patches")).await;
+    assert_eq!(table["patches"].as_array().unwrap().len() as u64, patches);
+    let frame = get_json(&client, format!("{base}/v1/timelines/{id}/frames/0")).await;
+    assert_eq!(radiance(frame).len() as u64, patches);
+}

@@ -37,6 +37,10 @@ pub struct Estimate {
     pub radiance: [f64; 3],
     /// Its standard error.
     pub stderr: [f64; 3],
+    /// The variance of the true radiance over the patch's points (an unbiased estimate, which
+    /// may come out below zero when the patch is nearly uniform): what one radiance per patch
+    /// cannot show, however exact.
+    pub spread: [f64; 3],
 }
 
 /// Why there is no reference.
@@ -83,7 +87,8 @@ struct Place {
     normal: DVec3,
 }
 
-/// The path-traced reference of every patch at `frame`, from `paths` points per patch, with
+/// The path-traced reference of every patch at `frame`, from `paths` paths per patch (in pairs
+/// from `paths / 2` uniform points, see [`Estimate::spread`]), with
 /// `sky` the radiance of everything outside the scene. Deterministic for a seed.
 pub fn path_traced(
     scene: &Scene,
@@ -221,7 +226,7 @@ struct Tracer<'a> {
 }
 
 impl Tracer<'_> {
-    /// Patch i's estimate from `paths` points.
+    /// Patch i's estimate from `paths` paths.
     fn patch(&self, i: usize, paths: usize, rng: &mut Xoshiro256PlusPlus) -> Estimate {
         let material = &self.scene.materials[self.scene.patches[i].material as usize];
         let place = &self.places[i];
@@ -229,27 +234,39 @@ impl Tracer<'_> {
             return Estimate {
                 radiance: material.emission,
                 stderr: [0.0; 3],
+                spread: [0.0; 3],
             };
         }
         let corners = inset(&place.corners);
         let mut hits = Vec::new();
-        let (mut sum, mut sum_sq) = ([0.0; 3], [0.0; 3]);
-        for _ in 0..paths {
+        // Paths in pairs from one point: the pairs' means are independent samples of the
+        // area mean, and the two paths of a pair differ only by the paths' own noise, which
+        // tells the spread of the true radiance over the patch from the noise.
+        let pairs = (paths / 2).max(2);
+        let (mut sum, mut sum_sq, mut apart) = ([0.0; 3], [0.0; 3], [0.0; 3]);
+        for _ in 0..pairs {
             let x = triangle_point(&corners, rng.random(), rng.random());
-            let e = self.irradiance(x, place, rng, &mut hits);
+            let e = [0, 1].map(|_| self.irradiance(x, place, rng, &mut hits));
             for c in 0..3 {
-                let l = material.reflectance[c] * e[c] * std::f64::consts::FRAC_1_PI;
-                sum[c] += l;
-                sum_sq[c] += l * l;
+                let l = e.map(|e| material.reflectance[c] * e[c] * std::f64::consts::FRAC_1_PI);
+                let mean = 0.5 * (l[0] + l[1]);
+                sum[c] += mean;
+                sum_sq[c] += mean * mean;
+                apart[c] += (l[0] - l[1]) * (l[0] - l[1]);
             }
         }
-        let n = paths as f64;
+        let n = pairs as f64;
+        // Variance of a pair's mean over points and paths (unbiased).
+        let variance: [f64; 3] = std::array::from_fn(|c| {
+            let mean = sum[c] / n;
+            (sum_sq[c] - n * mean * mean).max(0.0) / (n - 1.0)
+        });
         Estimate {
             radiance: std::array::from_fn(|c| material.emission[c] + sum[c] / n),
-            stderr: std::array::from_fn(|c| {
-                let mean = sum[c] / n;
-                ((sum_sq[c] / n - mean * mean).max(0.0) / (n - 1.0)).sqrt()
-            }),
+            stderr: variance.map(|v| (v / n).sqrt()),
+            // Var(pair mean) = W + σ²/2 and E[(l₀ − l₁)²] = 2σ², σ² the paths' noise at a
+            // point: W = Var(pair mean) − E[(l₀ − l₁)²] / 4.
+            spread: std::array::from_fn(|c| variance[c] - apart[c] / n / 4.0),
         }
     }
 

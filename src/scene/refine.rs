@@ -199,6 +199,23 @@ impl MeshCutter {
         }
     }
 
+    /// Cuts root `root` as the heap-ordered tree `cuts` says ([`cut`]).
+    fn cut_tree(&mut self, root: u32, cuts: u32) {
+        let mut stack = vec![(root, 1u32)];
+        while let Some((node, heap)) = stack.pop() {
+            if heap >= 32 || cuts & (1 << heap) == 0 {
+                continue;
+            }
+            if let Node::Leaf(leaf) = self.nodes[node as usize] {
+                self.bisect(leaf, 0);
+            }
+            if let Node::Cut { children, .. } = self.nodes[node as usize] {
+                stack.push((children[0], 2 * heap));
+                stack.push((children[1], 2 * heap + 1));
+            }
+        }
+    }
+
     /// Cuts leaf `t` at the midpoint of its edge `k`.
     fn cut(&mut self, t: u32, k: usize) {
         self.unlink(t);
@@ -234,16 +251,18 @@ impl MeshCutter {
     }
 }
 
-/// Cuts the traced triangles of `scene` marked in `marked` (by global index: the static
-/// triangles, then each moving object's), with the cuts their neighbours need. The triangles
-/// of deforming objects are kept as they are (their marks are ignored): their crossings at
-/// each frame would need the pose of every frame to be placed.
+/// Cuts the traced triangles of `scene` as `cuts` says (by global index: the static
+/// triangles, then each moving object's), with the cuts their neighbours need. A triangle's
+/// cuts are a bisection tree in heap order: bit 1 cuts the triangle, bits `2n` and `2n + 1`
+/// the two halves of node `n` (the half at the cut edge's first corner, then the other), so
+/// `0b10` cuts it once and `0b1110` into four. A half already cut for a neighbour is not cut
+/// again. The triangles of deforming objects are kept as they are (their cuts are ignored):
+/// their crossings at each frame would need the pose of every frame to be placed.
 ///
 /// Returns the new scene, whose patches are those of the cut triangles' faces numbered in the
 /// order of their triangles (a cut triangle's pieces in place of it, each with its share of
 /// the area), and the map from old triangles to new.
-#[must_use]
-pub fn cut(scene: &Scene, marked: &[bool]) -> (Scene, Refinement) {
+pub fn cut(scene: &Scene, cuts: &[u32]) -> (Scene, Refinement) {
     let mut meshes: Vec<&TriangleMesh> = vec![&scene.statics];
     meshes.extend(scene.objects.iter().map(|o| &o.mesh));
     let mut first = 0;
@@ -258,9 +277,7 @@ pub fn cut(scene: &Scene, marked: &[bool]) -> (Scene, Refinement) {
         let mut cutter = MeshCutter::new(mesh);
         if !deforming {
             for t in 0..count {
-                if marked[first + t] && matches!(cutter.nodes[t], Node::Leaf(_)) {
-                    cutter.bisect(t as u32, 0);
-                }
+                cutter.cut_tree(t as u32, cuts[first + t]);
             }
         }
         // The leaves depth first from each root, with their depth: a triangle's pieces stay

@@ -9,6 +9,7 @@ use serde::Serialize;
 use tokio::sync::{Semaphore, watch};
 
 use super::store::{Record, Store};
+use crate::adaptive::{self, Adaptive};
 use crate::bake::Bake;
 use crate::scene::{Material, Scene};
 use crate::solve::{FrameSolution, NotConverged, SolveParams};
@@ -80,12 +81,15 @@ pub struct Job {
     scene: Mutex<Option<Scene>>,
     /// Frame times and patch count (kept when the scene moves into the bake).
     pub frame_times: Vec<f64>,
-    /// Number of patches.
-    pub patches: usize,
+    /// Number of patches (those of the loaded scene until `auto` has cut them).
+    pub patches: AtomicUsize,
     /// Loader warnings.
     pub warnings: Vec<String>,
-    /// The patch table, as served.
-    pub patch_table: serde_json::Value,
+    /// The patch table, as served (replaced when `auto` cuts the patches, before any frame is
+    /// solved).
+    pub patch_table: RwLock<Arc<serde_json::Value>>,
+    /// Cut the patches after tracing where the light needs them (`patch_size=auto`).
+    pub auto: Option<Adaptive>,
     /// Lines and seed.
     pub lines: LineParams,
     /// How frames are solved: the sky's radiance, the tolerance and the iteration cap.
@@ -167,11 +171,12 @@ impl Job {
                     })
                     .collect(),
             ),
-            patches: scene.patches.len(),
+            patches: AtomicUsize::new(scene.patches.len()),
             warnings: scene.warnings.clone(),
             scene: Mutex::new(Some(scene)),
             frame_times,
-            patch_table,
+            patch_table: RwLock::new(Arc::new(patch_table)),
+            auto: None,
             lines,
             solve,
             max_reflectance,
@@ -219,9 +224,10 @@ impl Job {
             id: record.id,
             scene: Mutex::new(None),
             frame_times: record.frame_times,
-            patches: record.patches,
+            patches: AtomicUsize::new(record.patches),
             warnings: record.warnings,
-            patch_table: record.patch_table,
+            patch_table: RwLock::new(Arc::new(record.patch_table)),
+            auto: None,
             lines: LineParams {
                 lines: record.lines,
                 bundles: None,
@@ -272,14 +278,14 @@ impl Job {
                 .unwrap_or_default(),
             version: self.version.load(Ordering::Acquire),
             frame_times: self.frame_times.clone(),
-            patches: self.patches,
+            patches: self.patches.load(Ordering::Acquire),
             warnings: self.warnings(),
             lines: self.lines.lines,
             seed: self.lines.seed,
             sky: self.solve.sky,
             timings: [timings.load, timings.trace, timings.solve],
             memory,
-            patch_table: self.patch_table.clone(),
+            patch_table: self.table().as_ref().clone(),
         }
     }
 
@@ -328,6 +334,21 @@ impl Job {
         self.solved.send_modify(|_| {});
     }
 
+    /// The same job cutting its patches after tracing as `auto` says (`patch_size=auto`).
+    #[must_use]
+    pub fn with_auto(self, auto: Option<Adaptive>) -> Self {
+        Self { auto, ..self }
+    }
+
+    /// The patch table, as served.
+    #[must_use]
+    pub fn table(&self) -> Arc<serde_json::Value> {
+        self.patch_table
+            .read()
+            .map(|t| t.clone())
+            .unwrap_or_default()
+    }
+
     /// Asks a running job to stop; it ends `cancelled`.
     pub fn cancel(&self) {
         self.control.cancel();
@@ -365,14 +386,27 @@ impl Job {
                 };
                 self.set_status(Status::Tracing);
                 let started = Instant::now();
-                match Bake::trace_with(scene, &self.lines, &self.control) {
-                    Ok(bake) => {
-                        self.traced(&bake, started);
-                        bake
-                    }
+                let mut bake = match Bake::trace_with(scene, &self.lines, &self.control) {
+                    Ok(bake) => bake,
                     Err(TraceError::Cancelled) => return,
                     Err(e) => return self.fail(e.to_string()),
+                };
+                if let Some(auto) = &self.auto {
+                    match adaptive::adapt(&mut bake, auto, &self.solve, &self.control) {
+                        Ok(_) => {
+                            let table = super::patch_table(&bake.scene);
+                            if let Ok(mut t) = self.patch_table.write() {
+                                *t = Arc::new(table);
+                            }
+                            self.patches
+                                .store(bake.scene.patches.len(), Ordering::Release);
+                        }
+                        Err(TraceError::Cancelled) => return,
+                        Err(e) => return self.fail(e.to_string()),
+                    }
                 }
+                self.traced(&bake, started);
+                bake
             }
             Work::Refine(lines) => {
                 let Some(mut bake) = self.bake.lock().ok().and_then(|mut b| b.take()) else {

@@ -28,6 +28,7 @@ pub use error::ApiError;
 use jobs::{Job, Jobs, Status, Work};
 use query::{CreateQuery, NoParameters, PreviewQuery, RefineQuery, StatsQuery, StrictQuery};
 
+use crate::adaptive::Adaptive;
 use crate::loader;
 use crate::scene::Scene;
 use crate::solve::SolveParams;
@@ -204,7 +205,7 @@ fn estimate_bytes(scene: &Scene, lines: u64) -> u64 {
 }
 
 /// The patch table served by `GET /v1/timelines/{id}/patches`.
-fn patch_table(scene: &Scene) -> serde_json::Value {
+pub(crate) fn patch_table(scene: &Scene) -> serde_json::Value {
     let patches: Vec<serde_json::Value> = scene
         .patches
         .iter()
@@ -235,7 +236,7 @@ async fn create_timeline(
     body: Result<Bytes, BytesRejection>,
 ) -> Result<Response, ApiError> {
     let config = &state.0.config;
-    let (options, lines, sky) = query.validate(config)?;
+    let (options, lines, sky, auto) = query.validate(config)?;
     let content_type = headers
         .get(header::CONTENT_TYPE)
         .and_then(|v| v.to_str().ok())
@@ -255,7 +256,13 @@ async fn create_timeline(
     let scene = tokio::task::spawn_blocking(move || loader::load(&body, &options))
         .await
         .map_err(|e| ApiError::Internal(format!("loader task: {e}")))??;
-    let needed = estimate_bytes(&scene, lines.lines);
+    let auto = auto
+        .then(|| Adaptive::for_lines(lines.lines, scene.patches.len()).within(config.max_patches));
+    // The patches `auto` may add take their share too.
+    let needed = estimate_bytes(&scene, lines.lines)
+        + auto.map_or(0, |a| {
+            (a.budget.saturating_sub(scene.patches.len()) * 200) as u64
+        });
     if needed > config.memory_budget {
         return Err(ApiError::Budget(format!(
             "the job would need about {:.1} GiB with {} lines, over the budget of {:.1} GiB: use fewer lines, \
@@ -272,15 +279,18 @@ async fn create_timeline(
         max_iterations: config.max_iterations,
         ..SolveParams::default()
     };
-    let job = Arc::new(Job::new(
-        id.clone(),
-        scene,
-        lines,
-        solve,
-        max_reflectance,
-        table,
-        state.0.store.clone(),
-    ));
+    let job = Arc::new(
+        Job::new(
+            id.clone(),
+            scene,
+            lines,
+            solve,
+            max_reflectance,
+            table,
+            state.0.store.clone(),
+        )
+        .with_auto(auto),
+    );
     if let Ok(mut s) = job.state.lock() {
         s.timings.load = started.elapsed().as_secs_f64();
     }
@@ -288,7 +298,7 @@ async fn create_timeline(
         "id": id,
         "status": job.status(),
         "frames": job.frame_times.len(),
-        "patches": job.patches,
+        "patches": job.patches.load(Ordering::Acquire),
         "warnings": job.warnings(),
     });
     state.0.jobs.start(job);
@@ -363,7 +373,7 @@ fn status_json(job: &Job) -> serde_json::Value {
             "eta_seconds": eta,
         },
         "frames": frames,
-        "patches": job.patches,
+        "patches": job.patches.load(Ordering::Acquire),
         "iterations": iterations,
         "timings": timings,
         "memory": memory.map(|(hits, bytes)| json!({"hits": hits, "bytes": bytes})),
@@ -414,7 +424,7 @@ async fn timeline_patches(
     Path(id): Path<String>,
     _: StrictQuery<NoParameters>,
 ) -> Result<Json<serde_json::Value>, ApiError> {
-    Ok(Json(job(&state, &id)?.patch_table.clone()))
+    Ok(Json(job(&state, &id)?.table().as_ref().clone()))
 }
 
 /// Binary layout of a frame (`Accept: application/octet-stream`), little-endian: u32 frame,

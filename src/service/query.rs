@@ -17,7 +17,7 @@ use serde::{Deserialize, Deserializer};
 
 use super::{ApiError, Config};
 use crate::loader::LoadOptions;
-use crate::params::{self, Sky};
+use crate::params::{self, PatchSize, Sky};
 use crate::timeline::{LineParams, Preset};
 
 /// axum's [`Query`] with the API's errors: a parameter `T` does not take, or a value it cannot
@@ -116,9 +116,10 @@ pub(super) struct CreateQuery {
     /// Seed of the lines; 1 by default.
     #[serde(default, deserialize_with = "whole")]
     seed: Option<u64>,
-    /// Longest patch edge, scene units; one patch per triangle side by default.
-    #[serde(default, deserialize_with = "number")]
-    patch_size: Option<f64>,
+    /// How patches are made: `auto`, `source` or the longest edge in scene units
+    /// ([`PatchSize`]); `source` by default.
+    #[serde(default, deserialize_with = "parsed")]
+    patch_size: Option<PatchSize>,
     /// The animation to play, by name or index; all by default.
     animation: Option<String>,
     /// Radiance of the sky; black by default.
@@ -141,7 +142,7 @@ impl CreateQuery {
     pub(super) fn validate(
         self,
         config: &Config,
-    ) -> Result<(LoadOptions, LineParams, [f64; 3]), ApiError> {
+    ) -> Result<(LoadOptions, LineParams, [f64; 3], bool), ApiError> {
         let fps = self.fps.unwrap_or(24.0);
         if !(fps > 0.0 && fps <= 1000.0) {
             return Err(ApiError::Parameter(format!(
@@ -161,15 +162,13 @@ impl CreateQuery {
             }
             (None, preset) => preset.unwrap_or(Preset::Default).lines(),
         };
-        if self.patch_size.is_some_and(|p| p <= 0.0) {
-            return Err(ApiError::Parameter("patch_size must be positive".into()));
-        }
+        let patch_size = self.patch_size.unwrap_or_default();
         let options = LoadOptions {
             fps,
             animation: self.animation,
             start: self.start,
             end: self.end,
-            patch_size: self.patch_size,
+            patch_size: patch_size.length(),
             max_frames: config.max_frames,
             max_patches: config.max_patches,
             max_reflectance: self
@@ -183,7 +182,12 @@ impl CreateQuery {
             bundles: None,
             seed: self.seed.unwrap_or(1),
         };
-        Ok((options, lines, self.sky.unwrap_or_default().0))
+        Ok((
+            options,
+            lines,
+            self.sky.unwrap_or_default().0,
+            patch_size == PatchSize::Auto,
+        ))
     }
 }
 
@@ -318,6 +322,11 @@ mod tests {
                 "preset=ultra",
                 "preset: unknown preset \"ultra\": draft, default or final",
             ),
+            (
+                "patch_size=-1",
+                "patch_size: \"-1\" is not auto, source or a positive length in scene units, \
+                 such as 0.25",
+            ),
         ] {
             assert_eq!(read::<CreateQuery>(query).err().unwrap(), detail);
         }
@@ -337,22 +346,26 @@ mod tests {
     fn a_create_query_is_checked_against_the_limits_and_the_shared_rules() {
         let config = Config::default();
         let create = |query: &str| read::<CreateQuery>(query).unwrap().validate(&config);
-        let (options, lines, sky) =
+        let (options, lines, sky, auto) =
             create("fps=12&preset=draft&sky=1,0.5,0&start=0&end=1").unwrap();
+        assert!(!auto);
         assert_eq!(
             (options.fps, options.start, options.end),
             (12.0, Some(0.0), Some(1.0))
         );
         assert_eq!((lines.lines, lines.seed), (Preset::Draft.lines(), 1));
         assert_eq!(sky, [1.0, 0.5, 0.0]);
-        let (_, lines, sky) = create("").unwrap();
+        let (_, lines, sky, _) = create("").unwrap();
         assert_eq!((lines.lines, sky), (Preset::Default.lines(), [0.0; 3]));
+        let (options, _, _, auto) = create("patch_size=auto").unwrap();
+        assert!(auto && options.patch_size.is_none());
+        let (options, _, _, auto) = create("patch_size=0.5").unwrap();
+        assert!(!auto && options.patch_size == Some(0.5));
         for (query, needle) in [
             ("start=2&end=1", "start (2 s) is after end (1 s)"),
             ("lines=5", "lines must be"),
             ("lines=2000&preset=draft", "not both"),
             ("fps=0", "fps must be"),
-            ("patch_size=-1", "patch_size"),
         ] {
             let Err(ApiError::Parameter(detail)) = create(query) else {
                 panic!("{query} accepted");
