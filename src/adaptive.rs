@@ -3,14 +3,15 @@
 //!
 //! A patch holds one radiance; where the light arriving on it differs across it, the light it
 //! sends on is misplaced (a ceiling triangle lit in a 1 cm gap behind a lamp re-emits that
-//! light into the room). Every segment of a line gathers, at the crossing it leaves a patch
-//! from, the radiance of the patch (or sky) at its other end: split each patch in the two
-//! halves its longest-edge bisection would make, and the segments leaving each half estimate
-//! the radiance that half gathers, with their own standard error. A patch whose halves gather
-//! differently beyond their noise ([`Adaptive::significance`] standard errors) is cut, those
-//! that misplace the most reflected power (ρ · area · difference) first, up to the patch
-//! budget. Each round solves a few frames, scores, cuts, and moves the crossings to the new
-//! patches ([`Bake::cut`]): no line is traced again.
+//! light into the room) and its one value hides the difference. Every segment of a line
+//! gathers, at the crossing it leaves a patch from, the radiance of the patch (or sky) at its
+//! other end. Each patch is scored on the pieces its next [`DEPTH`] longest-edge bisections
+//! would make: the segments leaving each piece estimate the radiance that piece gathers, with
+//! their own standard error. A node of that tree whose pieces gather differently beyond their
+//! noise (a χ² test at [`Adaptive::significance`]) is cut, those whose pieces' relative
+//! variation times area is largest first, up to the patch budget. Each round solves a few
+//! frames, scores, cuts, and moves the crossings to the new patches ([`Bake::cut`]): no line
+//! is traced again; the direct light is sampled again for the new patches.
 //!
 //! One set of patches serves the whole timeline (patch ids are stable across frames): the
 //! scores are taken at up to [`FRAMES`] frames spread over it, and a patch is cut if any of
@@ -18,12 +19,11 @@
 
 use std::time::Instant;
 
+use glam::{DVec3, Vec3};
 use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::bake::Bake;
-use glam::{DVec3, Vec3};
-
 use crate::scene::refine::{Corners, barycentric, longest_edge};
 use crate::solve::SolveParams;
 use crate::solve::tally::{ABSORBED, SKY, walk_from};
@@ -35,22 +35,23 @@ pub const FRAMES: usize = 3;
 /// How adaptive patches are chosen.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Adaptive {
-    /// Most patches the cuts may reach (a cut's neighbours may take it a little beyond).
+    /// Most patches the cuts may reach (the cuts a round makes in neighbours, to leave no
+    /// T-junction, may take it beyond).
     pub budget: usize,
-    /// Rounds of solving, scoring and cutting at most; each can cut every patch once.
+    /// Rounds of solving, scoring and cutting at most; each can cut a patch [`DEPTH`] times.
     pub rounds: usize,
-    /// A patch is cut when the radiance its halves gather differs by more than this many
-    /// standard errors of the difference.
+    /// A node is cut when the radiance its pieces gather varies beyond their noise: the χ²
+    /// of their differences above its mean by this many of its standard deviations.
     pub significance: f64,
-    /// ... and each half has at least this many crossings (below it, a half's estimate is
-    /// too noisy to say anything and the halves would be noisier still).
+    /// ... and each of its halves has at least this many crossings (below it the estimates
+    /// say too little, and the halves would be noisier still).
     pub min_crossings: f64,
 }
 
 impl Adaptive {
     /// The standard choice for a bake of `lines` lines: a budget of one patch per
     /// [`LINES_PER_PATCH`] lines (at least the scene's own patches), six rounds, cuts beyond
-    /// 3σ with 32 crossings per half.
+    /// 3σ with 32 crossings per half (`bench-patches` measures the choice).
     #[must_use]
     pub fn for_lines(lines: u64, patches: usize) -> Self {
         Self {
@@ -63,6 +64,15 @@ impl Adaptive {
 }
 
 impl Adaptive {
+    /// The same with `budget` as the budget, if given (`patch_budget`).
+    #[must_use]
+    pub fn with_budget(self, budget: Option<usize>) -> Self {
+        Self {
+            budget: budget.unwrap_or(self.budget),
+            ..self
+        }
+    }
+
     /// The same with the budget at most `max_patches` (a server's or a load's limit).
     #[must_use]
     pub fn within(self, max_patches: usize) -> Self {
@@ -74,7 +84,7 @@ impl Adaptive {
 }
 
 /// Lines per patch of the standard budget ([`Adaptive::for_lines`]).
-pub const LINES_PER_PATCH: u64 = 100;
+pub const LINES_PER_PATCH: u64 = 200;
 
 /// What one round did.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
@@ -162,8 +172,9 @@ fn mark(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<u32> {
             triangle_of[b as usize] = g as u32;
         }
     }
-    // The reflected power each node of each patch's tree would misplace if left whole, when
-    // its halves differ significantly (most over the frames); 0 otherwise.
+    // Each node's area times the relative variance of its pieces' radiance, when they differ
+    // significantly (most over the frames); 0 otherwise. A black patch shows no light to
+    // misplace.
     let nodes = LEAVES;
     let mut priority = vec![0.0f64; scene.patches.len() * nodes];
     for frame in scored_frames(bake) {
@@ -186,7 +197,9 @@ fn mark(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<u32> {
                         continue;
                     };
                     let area = patch.area / f64::from(1u32 << level);
-                    *priority = priority.max(rho * rho * area * gain);
+                    if rho > 0.0 {
+                        *priority = priority.max(area * gain);
+                    }
                 }
             });
     }
@@ -212,10 +225,12 @@ fn mark(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<u32> {
 }
 
 /// How much the light a node gathers varies over its pieces (`[n, Σ, Σ²]` of the radiance
-/// each gathers, the node's leaves of the scoring tree), in squared radiance: the
+/// each gathers, the node's leaves of the scoring tree), relative to its mean: the
 /// crossing-weighted variance of the pieces' true means, estimated without bias as
-/// Σ w_k ((m_k − m̄)² − v_k), v_k the variance of piece k's mean. A node left whole shows m̄
-/// over all its pieces; cut down to them, each shows its own. Looking at every piece, not
+/// Σ w_k ((m_k − m̄)² − v_k), v_k the variance of piece k's mean, over m̄². A node left whole
+/// shows m̄ over all its pieces; cut down to them, each shows its own. Relative, as the eye
+/// and the per-patch error judge: a dark corner's variation counts as much as a bright
+/// wall's. Looking at every piece, not
 /// only the two halves, finds light that a first cut would split evenly (a lamp centred on
 /// the cut).
 ///
@@ -254,7 +269,8 @@ fn variation(pieces: &[[f64; 3]], auto: &Adaptive) -> Option<f64> {
         .iter()
         .map(|&(n, m, v)| n / total * ((m - mean).powi(2) - v))
         .sum();
-    (gain > 0.0).then_some(gain)
+    let relative = gain / (mean * mean).max(f64::MIN_POSITIVE);
+    (relative > 0.0).then_some(relative)
 }
 
 /// Rec. 709 luminance.
@@ -271,16 +287,29 @@ fn leaf_stats(bake: &Bake, frame: usize, radiance: &[[f64; 3]], sky: [f64; 3]) -
     let list = bake.list();
     let surfaces = bake.tracer().surfaces();
     let corners = Corners::new(scene);
+    // Sums in fixed point (a radiance is a whole number of 2^-31 of the brightest), so that
+    // they do not depend on the order the threads add them in: the cuts, and so the patch
+    // ids, are the same on any machine.
     let sky = luminance(sky);
-    let value = |to: u32| match to {
-        SKY => sky,
-        ABSORBED => 0.0,
-        j => luminance(radiance[j as usize]),
+    let brightest = radiance
+        .iter()
+        .map(|&l| luminance(l))
+        .fold(sky, f64::max)
+        .max(f64::MIN_POSITIVE);
+    let unit = brightest / f64::from(1u32 << 31);
+    let value = |to: u32| {
+        let g = match to {
+            SKY => sky,
+            ABSORBED => 0.0,
+            j => luminance(radiance[j as usize]),
+        };
+        (g / unit).round().max(0.0) as u64
     };
-    let size = scene.patches.len() * 3 * LEAVES;
-    list.bundles(scene)
+    let size = scene.patches.len() * LEAVES;
+    let sums = list
+        .bundles(scene)
         .fold(
-            || (vec![0.0; size], Vec::new()),
+            || (vec![Sums::default(); size], Vec::new()),
             |(mut acc, mut hits), (first, bundle)| {
                 let surfaces = surfaces.along(bundle.direction);
                 let direction = bundle.direction.as_dvec3();
@@ -295,12 +324,11 @@ fn leaf_stats(bake: &Bake, frame: usize, radiance: &[[f64; 3]], sky: [f64; 3]) -
                             return;
                         };
                         let own = corners.own(at.surface()).map(Vec3::as_dvec3);
-                        let leaf = piece(own, bary);
                         let g = value(to);
-                        let a = &mut acc[(from as usize * LEAVES + leaf) * 3..][..3];
-                        a[0] += 1.0;
-                        a[1] += g;
-                        a[2] += g * g;
+                        let a = &mut acc[from as usize * LEAVES + piece(own, bary)];
+                        a.count += 1;
+                        a.sum += g;
+                        a.square += u128::from(g) * u128::from(g);
                     });
                 }
                 (acc, hits)
@@ -308,12 +336,33 @@ fn leaf_stats(bake: &Bake, frame: usize, radiance: &[[f64; 3]], sky: [f64; 3]) -
         )
         .map(|(acc, _)| acc)
         .reduce(
-            || vec![0.0; size],
+            || vec![Sums::default(); size],
             |mut a, b| {
-                a.iter_mut().zip(&b).for_each(|(x, y)| *x += y);
+                for (x, y) in a.iter_mut().zip(&b) {
+                    x.count += y.count;
+                    x.sum += y.sum;
+                    x.square += y.square;
+                }
                 a
             },
-        )
+        );
+    sums.iter()
+        .flat_map(|s| {
+            [
+                s.count as f64,
+                s.sum as f64 * unit,
+                s.square as f64 * unit * unit,
+            ]
+        })
+        .collect()
+}
+
+/// A piece's crossings and the fixed-point sum and sum of squares of what they gather.
+#[derive(Clone, Copy, Default)]
+struct Sums {
+    count: u64,
+    sum: u64,
+    square: u128,
 }
 
 /// The leaf of the bisection tree of depth [`DEPTH`] of the triangle `corners` (its own space)

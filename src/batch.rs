@@ -43,6 +43,8 @@ pub struct BatchParams {
     /// Cut the patches after tracing where the light needs them (`patch_size=auto`,
     /// [`crate::adaptive`]), starting from those `load` gives.
     pub auto: bool,
+    /// Most patches `auto` may reach; [`Adaptive::for_lines`]'s by default.
+    pub patch_budget: Option<usize>,
     /// Lines and seed.
     pub lines: LineParams,
     /// Radiance of the sky.
@@ -205,9 +207,10 @@ fn content_hash(bytes: &[u8], params: &BatchParams) -> String {
     let mut h = Fnv(0xcbf2_9ce4_8422_2325);
     h.write(bytes);
     let described = format!(
-        "{:?}|{}|{:?}|{:?}|{:?}|{}",
+        "{:?}|{}|{:?}|{:?}|{:?}|{:?}|{}",
         params.load,
         params.auto,
+        params.patch_budget,
         params.lines,
         params.sky,
         params.outputs,
@@ -418,6 +421,7 @@ pub fn bake_one(
     let started = Instant::now();
     let rounds = if params.auto {
         let auto = Adaptive::for_lines(params.lines.lines, bake.scene.patches.len())
+            .with_budget(params.patch_budget)
             .within(params.load.max_patches);
         log(&format!(
             "{name}: cutting patches where the light needs them (at most {})",

@@ -32,6 +32,10 @@ struct SceneArgs {
     /// per side of each source triangle) or a length (every edge at most that long, scene units).
     #[arg(long, default_value_t)]
     patch_size: radiosity::params::PatchSize,
+    /// With --patch-size auto: most patches the cuts may reach (neighbours' cuts may take a
+    /// round a little beyond); one per 200 lines by default.
+    #[arg(long)]
+    patch_budget: Option<usize>,
     /// Largest diffuse reflectance, in (0, 1]: higher ones are lowered to it, with a warning.
     #[arg(long, default_value_t = loader::MAX_REFLECTANCE)]
     max_reflectance: f64,
@@ -211,8 +215,13 @@ fn run(cli: Cli) -> Result<(), String> {
                     .lines()
             });
             let auto = args.patch_size == radiosity::params::PatchSize::Auto;
+            let patch_budget = args.patch_budget;
+            if patch_budget.is_some() && !auto {
+                return Err("--patch-budget applies to --patch-size auto only".into());
+            }
             let params = radiosity::batch::BatchParams {
                 auto,
+                patch_budget,
                 load: args.try_into()?,
                 lines: radiosity::timeline::LineParams {
                     lines,

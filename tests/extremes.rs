@@ -110,6 +110,7 @@ fn scratch(name: &str) -> PathBuf {
 fn batch(load: LoadOptions, n: u64) -> BatchParams {
     BatchParams {
         auto: false,
+        patch_budget: None,
         load,
         lines: lines(n),
         sky: [0.0; 3],

@@ -256,8 +256,11 @@ async fn create_timeline(
     let scene = tokio::task::spawn_blocking(move || loader::load(&body, &options))
         .await
         .map_err(|e| ApiError::Internal(format!("loader task: {e}")))??;
-    let auto = auto
-        .then(|| Adaptive::for_lines(lines.lines, scene.patches.len()).within(config.max_patches));
+    // At least the scene's own patches (a budget below them cuts nothing).
+    let auto = auto.map(|a| Adaptive {
+        budget: a.budget.max(scene.patches.len()),
+        ..a
+    });
     // The patches `auto` may add take their share too.
     let needed = estimate_bytes(&scene, lines.lines)
         + auto.map_or(0, |a| {

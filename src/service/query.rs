@@ -16,6 +16,7 @@ use serde::de::{DeserializeOwned, Error as _};
 use serde::{Deserialize, Deserializer};
 
 use super::{ApiError, Config};
+use crate::adaptive::Adaptive;
 use crate::loader::LoadOptions;
 use crate::params::{self, PatchSize, Sky};
 use crate::timeline::{LineParams, Preset};
@@ -117,7 +118,7 @@ pub(super) struct CreateQuery {
     #[serde(default, deserialize_with = "whole")]
     seed: Option<u64>,
     /// How patches are made: `auto`, `source` or the longest edge in scene units
-    /// ([`PatchSize`]); `source` by default.
+    /// ([`PatchSize`]); `auto` by default.
     #[serde(default, deserialize_with = "parsed")]
     patch_size: Option<PatchSize>,
     /// The animation to play, by name or index; all by default.
@@ -134,6 +135,9 @@ pub(super) struct CreateQuery {
     /// Highest diffuse reflectance, in (0, 1]; [`crate::loader::MAX_REFLECTANCE`] by default.
     #[serde(default, deserialize_with = "number")]
     max_reflectance: Option<f64>,
+    /// With `patch_size=auto`: most patches the cuts may reach; one per 200 lines by default.
+    #[serde(default, deserialize_with = "whole")]
+    patch_budget: Option<u64>,
 }
 
 impl CreateQuery {
@@ -142,7 +146,7 @@ impl CreateQuery {
     pub(super) fn validate(
         self,
         config: &Config,
-    ) -> Result<(LoadOptions, LineParams, [f64; 3], bool), ApiError> {
+    ) -> Result<(LoadOptions, LineParams, [f64; 3], Option<Adaptive>), ApiError> {
         let fps = self.fps.unwrap_or(24.0);
         if !(fps > 0.0 && fps <= 1000.0) {
             return Err(ApiError::Parameter(format!(
@@ -163,6 +167,19 @@ impl CreateQuery {
             (None, preset) => preset.unwrap_or(Preset::Default).lines(),
         };
         let patch_size = self.patch_size.unwrap_or_default();
+        let auto = match (patch_size, self.patch_budget) {
+            (PatchSize::Auto, budget) => Some(
+                Adaptive::for_lines(lines, 0)
+                    .with_budget(budget.map(|b| b.min(usize::MAX as u64) as usize))
+                    .within(config.max_patches),
+            ),
+            (_, None) => None,
+            (_, Some(_)) => {
+                return Err(ApiError::Parameter(
+                    "patch_budget applies to patch_size=auto only".into(),
+                ));
+            }
+        };
         let options = LoadOptions {
             fps,
             animation: self.animation,
@@ -182,12 +199,7 @@ impl CreateQuery {
             bundles: None,
             seed: self.seed.unwrap_or(1),
         };
-        Ok((
-            options,
-            lines,
-            self.sky.unwrap_or_default().0,
-            patch_size == PatchSize::Auto,
-        ))
+        Ok((options, lines, self.sky.unwrap_or_default().0, auto))
     }
 }
 
@@ -348,7 +360,8 @@ mod tests {
         let create = |query: &str| read::<CreateQuery>(query).unwrap().validate(&config);
         let (options, lines, sky, auto) =
             create("fps=12&preset=draft&sky=1,0.5,0&start=0&end=1").unwrap();
-        assert!(!auto);
+        // Patches are cut where the light needs them unless asked otherwise.
+        assert_eq!(auto.map(|a| a.budget), Some(500));
         assert_eq!(
             (options.fps, options.start, options.end),
             (12.0, Some(0.0), Some(1.0))
@@ -357,15 +370,24 @@ mod tests {
         assert_eq!(sky, [1.0, 0.5, 0.0]);
         let (_, lines, sky, _) = create("").unwrap();
         assert_eq!((lines.lines, sky), (Preset::Default.lines(), [0.0; 3]));
-        let (options, _, _, auto) = create("patch_size=auto").unwrap();
-        assert!(auto && options.patch_size.is_none());
+        let (options, _, _, auto) = create("patch_size=auto&lines=200000").unwrap();
+        assert_eq!(auto.map(|a| a.budget), Some(1000));
+        assert!(options.patch_size.is_none());
+        let (options, _, _, auto) = create("patch_size=source").unwrap();
+        assert!(auto.is_none() && options.patch_size.is_none());
+        let (_, _, _, auto) = create("patch_size=auto&patch_budget=5000").unwrap();
+        assert_eq!(auto.map(|a| a.budget), Some(5000));
         let (options, _, _, auto) = create("patch_size=0.5").unwrap();
-        assert!(!auto && options.patch_size == Some(0.5));
+        assert!(auto.is_none() && options.patch_size == Some(0.5));
         for (query, needle) in [
             ("start=2&end=1", "start (2 s) is after end (1 s)"),
             ("lines=5", "lines must be"),
             ("lines=2000&preset=draft", "not both"),
             ("fps=0", "fps must be"),
+            (
+                "patch_size=source&patch_budget=100",
+                "patch_budget applies to patch_size=auto",
+            ),
         ] {
             let Err(ApiError::Parameter(detail)) = create(query) else {
                 panic!("{query} accepted");
