@@ -227,8 +227,9 @@ fn mark(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<u32> {
 /// How much the light a node gathers varies over its pieces (`[n, Σ, Σ²]` of the radiance
 /// each gathers, the node's leaves of the scoring tree), relative to its mean: the
 /// crossing-weighted variance of the pieces' true means, estimated without bias as
-/// Σ w_k ((m_k − m̄)² − v_k), v_k the variance of piece k's mean, over m̄². A node left whole
-/// shows m̄ over all its pieces; cut down to them, each shows its own. Relative, as the eye
+/// Σ w_k ((m_k − m̄)² − v_k), v_k the variance of piece k's mean, less the noise the pieces
+/// would show once cut (Σ w_k v_k), over m̄². A node left whole shows m̄ over all its pieces;
+/// cut down to them, each shows its own, noisier. Relative, as the eye
 /// and the per-patch error judge: a dark corner's variation counts as much as a bright
 /// wall's. Looking at every piece, not
 /// only the two halves, finds light that a first cut would split evenly (a lamp centred on
@@ -265,13 +266,19 @@ fn variation(pieces: &[[f64; 3]], auto: &Adaptive) -> Option<f64> {
     if freedom < 1.0 || chi2 <= freedom + auto.significance * (2.0 * freedom).sqrt() {
         return None;
     }
+    // What the pieces' own values would add: each shows its noise v_k instead of its share
+    // of the node's. Cut only where the variation removed is larger.
     let gain: f64 = stats
         .iter()
-        .map(|&(n, m, v)| n / total * ((m - mean).powi(2) - v))
+        .map(|&(n, m, v)| n / total * ((m - mean).powi(2) - NOISE_COST * v))
         .sum();
     let relative = gain / (mean * mean).max(f64::MIN_POSITIVE);
     (relative > 0.0).then_some(relative)
 }
+
+/// How many times its noise variance a piece's estimate costs in [`variation`]'s gain: 1 for
+/// the bias of (m_k − m̄)², and 1 for the noise the piece will show once cut.
+const NOISE_COST: f64 = 2.0;
 
 /// Rec. 709 luminance.
 fn luminance(c: [f64; 3]) -> f64 {

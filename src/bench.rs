@@ -663,3 +663,88 @@ mod tests {
         assert!(close(m.emitter_error, 0.0) && m.emitter_values == 3 * n);
     }
 }
+
+/// One bake of `bench-patches`: a way of making patches, against the path-traced reference.
+#[derive(Clone, Debug, Serialize)]
+pub struct PatchPoint {
+    /// Scene file name.
+    pub scene: String,
+    /// How the patches were made.
+    pub patch_size: crate::params::PatchSize,
+    /// Patches the bake solved.
+    pub patches: usize,
+    /// Seconds of the bake: tracing, cutting (`auto`) and the solve of frame 0.
+    pub seconds: f64,
+    /// The bake's per-patch error: area-weighted RMS of (bake − reference) / reference over
+    /// lit, non-emitting patches and channels, the reference's own noise taken out in
+    /// quadrature (the two are independent).
+    pub patch_error: f64,
+    /// The reference's own per-patch noise on the same patches, for scale.
+    pub reference_noise: f64,
+    /// The area-weighted mean of the bake over the reference's, minus 1, on the same patches.
+    pub bias: f64,
+}
+
+/// Bakes frame 0 of `scene` with `lines` lines, patches made as `patch_size` says (the scene
+/// must have been loaded with its length, if any; `auto` cut as `auto` says, or the standard
+/// choice), and compares every patch with the path-traced reference of `paths` paths
+/// ([`crate::direct::reference`]). The lit patches are those [`PatchClass::of`] calls lit on
+/// the reference's radiance (not black on screen), whatever the reference's noise.
+///
+/// # Errors
+/// When the scene cannot be traced, or has punctual lights (the reference does not model
+/// them).
+pub fn patch_point(
+    name: &str,
+    scene: Scene,
+    patch_size: crate::params::PatchSize,
+    lines: u64,
+    paths: usize,
+    auto: Option<crate::adaptive::Adaptive>,
+) -> Result<PatchPoint, String> {
+    use crate::adaptive::{Adaptive, adapt};
+    let started = Instant::now();
+    let params = LineParams {
+        lines,
+        bundles: None,
+        seed: 1,
+    };
+    let mut bake = crate::bake::Bake::trace(scene, &params).map_err(|e| e.to_string())?;
+    let solve = crate::solve::SolveParams::default();
+    if patch_size == crate::params::PatchSize::Auto {
+        let auto = auto.unwrap_or_else(|| Adaptive::for_lines(lines, bake.scene.patches.len()));
+        adapt(&mut bake, &auto, &solve, &Control::default()).map_err(|e| e.to_string())?;
+    }
+    let scene = &bake.scene;
+    let solved = bake.solve_frame(0, &scene.materials, &solve);
+    let seconds = started.elapsed().as_secs_f64();
+    let reference =
+        crate::direct::reference::path_traced(scene, bake.tracer(), 0, paths, [0.0; 3], 7)
+            .map_err(|e| e.to_string())?;
+    let radiance: Vec<[f64; 3]> = reference.iter().map(|r| r.radiance).collect();
+    let dark = dark_floor(scene, &radiance);
+    let (mut error, mut noise, mut weight, mut baked, mut traced) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    for (i, p) in scene.patches.iter().enumerate() {
+        let m = &scene.materials[p.material as usize];
+        for c in 0..3 {
+            let (r, se) = (reference[i].radiance[c], reference[i].stderr[c]);
+            if PatchClass::of(m, c, r, dark) != Some(PatchClass::Lit) {
+                continue;
+            }
+            error += p.area * (solved.radiance[i][c] / r - 1.0).powi(2);
+            noise += p.area * (se / r).powi(2);
+            weight += p.area;
+            baked += p.area * solved.radiance[i][c];
+            traced += p.area * r;
+        }
+    }
+    Ok(PatchPoint {
+        scene: name.to_string(),
+        patch_size,
+        patches: scene.patches.len(),
+        seconds,
+        patch_error: ((error - noise).max(0.0) / weight).sqrt(),
+        reference_noise: (noise / weight).sqrt(),
+        bias: baked / traced - 1.0,
+    })
+}

@@ -175,6 +175,32 @@ enum Command {
         #[arg(long, default_value = "level.gltf")]
         gain_scene: String,
     },
+    /// Measure how patches are made against a path-traced reference: per-patch error, bias,
+    /// patches and seconds of the source's triangles, uniform sizes and auto, on the Cornell
+    /// box, the panel room and the level (README, "Adaptive patches").
+    BenchPatches {
+        /// Directory of the sample scenes.
+        #[arg(long, default_value = "scenes")]
+        scenes: PathBuf,
+        /// Lines of every bake.
+        #[arg(long, default_value_t = 1_000_000)]
+        lines: u64,
+        /// Paths of each bake's reference, over all its patches (at least 64 per patch).
+        #[arg(long, default_value_t = 4_000_000)]
+        reference_paths: usize,
+        /// Where to write the points as JSON.
+        #[arg(long, default_value = "docs/patches.json")]
+        out: PathBuf,
+        /// Only this scene (file name).
+        #[arg(long)]
+        only: Option<String>,
+        /// Only these ways of making patches (auto, source, lengths), comma-separated.
+        #[arg(long, value_delimiter = ',')]
+        sizes: Vec<radiosity::params::PatchSize>,
+        /// With auto: the patch budget (default: one per 200 lines).
+        #[arg(long)]
+        patch_budget: Option<usize>,
+    },
     /// Write the sample scenes (deterministic) into a directory.
     Samples {
         /// Output directory.
@@ -288,6 +314,77 @@ fn run(cli: Cli) -> Result<(), String> {
             } else {
                 print!("{report}");
             }
+            Ok(())
+        }
+        Command::BenchPatches {
+            scenes,
+            lines,
+            reference_paths,
+            out,
+            only,
+            sizes: chosen,
+            patch_budget,
+        } => {
+            use radiosity::params::PatchSize::{Auto, Length, Source};
+            let mut points = Vec::new();
+            println!("scene\tpatch_size\tpatches\tseconds\tpatch error\treference noise\tbias");
+            for (name, sizes) in [
+                (
+                    "cornell_box.gltf",
+                    [Source, Length(0.2), Length(0.1), Length(0.05), Auto],
+                ),
+                (
+                    "panel_room.gltf",
+                    [Source, Length(1.0), Length(0.5), Length(0.25), Auto],
+                ),
+                (
+                    "level.gltf",
+                    [Source, Length(0.5), Length(0.25), Length(0.125), Auto],
+                ),
+            ] {
+                if only.as_ref().is_some_and(|o| o != name) {
+                    continue;
+                }
+                let path = scenes.join(name);
+                let bytes = std::fs::read(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+                let sizes = if chosen.is_empty() {
+                    sizes.to_vec()
+                } else {
+                    chosen.clone()
+                };
+                for size in sizes {
+                    let options = LoadOptions {
+                        patch_size: size.length(),
+                        ..LoadOptions::default()
+                    };
+                    let scene = loader::load(&bytes, &options)
+                        .map_err(|e| format!("{}: {e}", path.display()))?;
+                    // The auto bake's patches are known only once cut: size its reference
+                    // by the budget.
+                    let auto = radiosity::adaptive::Adaptive::for_lines(lines, scene.patches.len())
+                        .with_budget(patch_budget);
+                    let patches = match size {
+                        Auto => auto.budget,
+                        _ => scene.patches.len(),
+                    };
+                    let paths = (reference_paths / patches.max(1)).max(64);
+                    let p =
+                        radiosity::bench::patch_point(name, scene, size, lines, paths, Some(auto))?;
+                    println!(
+                        "{}\t{}\t{}\t{:.2}\t{:.4}\t{:.4}\t{:+.4}",
+                        p.scene,
+                        p.patch_size,
+                        p.patches,
+                        p.seconds,
+                        p.patch_error,
+                        p.reference_noise,
+                        p.bias
+                    );
+                    points.push(p);
+                }
+            }
+            let json = serde_json::to_string_pretty(&points).map_err(|e| e.to_string())?;
+            std::fs::write(&out, json + "\n").map_err(|e| format!("{}: {e}", out.display()))?;
             Ok(())
         }
         Command::BenchAccuracy {
