@@ -46,12 +46,18 @@ pub struct Adaptive {
     /// ... and each of its halves has at least this many crossings (below it the estimates
     /// say too little, and the halves would be noisier still).
     pub min_crossings: f64,
+    /// ... and each half's mean gathered radiance has a relative standard error of at most
+    /// this: where the lines cannot yet tell a half's light to this precision, its pieces
+    /// would show more noise than the variation they resolve (measured: 0.05 cuts too little
+    /// on the level, no limit too much on the Cornell box's dim corners).
+    pub precision: f64,
 }
 
 impl Adaptive {
     /// The standard choice for a bake of `lines` lines: a budget of one patch per
     /// [`LINES_PER_PATCH`] lines (at least the scene's own patches), six rounds, cuts beyond
-    /// 3σ with 32 crossings per half (`bench-patches` measures the choice).
+    /// 3σ with 32 crossings per half, each half known to 10% (`bench-patches` measures the
+    /// choice).
     #[must_use]
     pub fn for_lines(lines: u64, patches: usize) -> Self {
         Self {
@@ -59,6 +65,7 @@ impl Adaptive {
             rounds: 6,
             significance: 3.0,
             min_crossings: 32.0,
+            precision: 0.1,
         }
     }
 }
@@ -235,13 +242,26 @@ fn mark(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<u32> {
 /// only the two halves, finds light that a first cut would split evenly (a lamp centred on
 /// the cut).
 ///
-/// `None` unless each half of the node has [`Adaptive::min_crossings`] and the pieces differ
+/// `None` unless each half of the node has [`Adaptive::min_crossings`], is known to
+/// [`Adaptive::precision`], and the pieces differ
 /// beyond their noise: Σ (m_k − m̄)² / v_k, χ² with K − 1 degrees of freedom when they do
 /// not, above its mean by [`Adaptive::significance`] standard deviations.
 fn variation(pieces: &[[f64; 3]], auto: &Adaptive) -> Option<f64> {
     let (h0, h1) = pieces.split_at(pieces.len() / 2);
     let crossings = |h: &[[f64; 3]]| h.iter().map(|p| p[0]).sum::<f64>();
     if crossings(h0) < auto.min_crossings || crossings(h1) < auto.min_crossings {
+        return None;
+    }
+    // Each half's gathered light known to [`Adaptive::precision`]: a cut into halves whose
+    // light the lines cannot tell makes pieces noisier than what they fix (a dim corner).
+    let known = |h: &[[f64; 3]]| {
+        let [n, sum, square] = h
+            .iter()
+            .fold([0.0; 3], |a, p| [a[0] + p[0], a[1] + p[1], a[2] + p[2]]);
+        let mean = sum / n;
+        (square / n - mean * mean).max(0.0) / (n - 1.0) <= (auto.precision * mean).powi(2)
+    };
+    if !known(h0) || !known(h1) {
         return None;
     }
     // (n, mean, variance of the mean) of the pieces with a variance to speak of.

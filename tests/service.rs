@@ -117,7 +117,7 @@ async fn every_sample_scene_bakes_and_serves_every_frame() {
         let loaded = created["patches"].as_u64().unwrap() as usize;
         let status = wait(&client, &base, &id, Duration::from_secs(60)).await;
         assert_eq!(status["status"], "done", "{name}: {status}");
-        // The loaded patches (patch_size=auto would cut them).
+        // The loaded patches, cut where the light needs them (patch_size=auto by default).
         let patches = status["patches"].as_u64().unwrap() as usize;
         assert!(patches >= loaded, "{name}: {loaded} then {patches}");
         assert_eq!(status["progress"]["frames_solved"], frames);

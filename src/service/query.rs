@@ -118,7 +118,7 @@ pub(super) struct CreateQuery {
     #[serde(default, deserialize_with = "whole")]
     seed: Option<u64>,
     /// How patches are made: `auto`, `source` or the longest edge in scene units
-    /// ([`PatchSize`]); `source` by default.
+    /// ([`PatchSize`]); `auto` by default.
     #[serde(default, deserialize_with = "parsed")]
     patch_size: Option<PatchSize>,
     /// The animation to play, by name or index; all by default.
@@ -360,7 +360,8 @@ mod tests {
         let create = |query: &str| read::<CreateQuery>(query).unwrap().validate(&config);
         let (options, lines, sky, auto) =
             create("fps=12&preset=draft&sky=1,0.5,0&start=0&end=1").unwrap();
-        assert!(auto.is_none());
+        // Patches are cut where the light needs them unless asked otherwise.
+        assert_eq!(auto.map(|a| a.budget), Some(500));
         assert_eq!(
             (options.fps, options.start, options.end),
             (12.0, Some(0.0), Some(1.0))
@@ -384,7 +385,7 @@ mod tests {
             ("lines=2000&preset=draft", "not both"),
             ("fps=0", "fps must be"),
             (
-                "patch_budget=100",
+                "patch_size=source&patch_budget=100",
                 "patch_budget applies to patch_size=auto",
             ),
         ] {
