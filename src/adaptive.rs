@@ -98,7 +98,7 @@ pub const LINES_PER_PATCH: u64 = 200;
 pub struct Round {
     /// Patches before the round.
     pub patches: usize,
-    /// Cuts decided (at most [`DEPTH`] levels per patch), those whose halves differ beyond
+    /// Cuts decided (at most [`DEPTH`] levels per patch): nodes whose pieces differ beyond
     /// their noise, within the budget.
     pub significant: usize,
     /// Patches added by the round's cuts.
