@@ -46,6 +46,7 @@
 //! in expectation, never narrowed by a replica that did not move, and the pooled answer stands.
 
 pub mod analytic;
+pub mod information;
 pub mod tally;
 
 use rayon::prelude::*;
