@@ -15,7 +15,8 @@
 //! - [`timeline`]: the timeline's one intersection list (multiframe), frame extraction and the
 //!   scene statistics measured by the lines.
 //! - [`solve`]: tallies of the list per frame (`N_i`, `S_ij`, with per-frame changes only for
-//!   what moves) and the radiosity solve with per-patch error bars.
+//!   what moves), the radiosity solve with per-patch error bars, and the scene's visibility
+//!   information measured by the lines ([`solve::information`]).
 //! - [`direct`]: direct light from punctual lights (point, spot, directional) and, in
 //!   [`direct::area`], from small emitting surfaces sampled as area lights, with shadows and
 //!   their sampling error: the light the interreflection starts from. [`direct::reference`]

@@ -53,7 +53,7 @@ fn walk(hits: &[Hit], surfaces: &Surfaces<'_>, mut visit: impl FnMut(u32, u32)) 
     walk_from(hits, surfaces, |from, to, _| visit(from, to));
 }
 
-/// [`walk`], also giving the crossing the segment leaves `from` at.
+/// `walk`, also giving the crossing the segment leaves `from` at.
 pub fn walk_from(hits: &[Hit], surfaces: &Surfaces<'_>, mut visit: impl FnMut(u32, u32, Hit)) {
     let faces = surfaces.faces;
     let reordered = resolve(hits, surfaces);
