@@ -27,11 +27,11 @@
 //! 5% the answer moves by less than 0.05σ, by the bound, and in practice by 0.002σ to 0.01σ
 //! against a solve to 1e-10 (`tests/solve.rs`).
 //!
-//! The replicas stop at a relative residual of [`REPLICA_TOLERANCE`] alone: they start from
+//! The replicas stop at a relative residual of `REPLICA_TOLERANCE` alone: they start from
 //! the pooled answer, so a replica stopped early is too close to it and narrows the spread,
 //! and the rigorous bound, loose by a few iterations, would cost twice the iterations. At 1e-5
 //! the error bars are within 2.4% of those of replicas solved to 1e-6 on every patch of the
-//! spheres sample (median 0.01%), against 20% at 1e-4. Their vectors are `f32` ([`Real`]).
+//! spheres sample (median 0.01%), against 20% at 1e-4. Their vectors are `f32` (`Real`).
 //!
 //! The three channels share `S`: they are solved together, one pass over the rows updating
 //! three vectors, the rows split between threads when the system is large (a static scene is
