@@ -68,9 +68,7 @@ impl Adaptive {
             precision: 0.1,
         }
     }
-}
 
-impl Adaptive {
     /// The same with `budget` as the budget, if given (`patch_budget`).
     #[must_use]
     pub fn with_budget(self, budget: Option<usize>) -> Self {

@@ -5,28 +5,9 @@
 mod common;
 
 use radiosity::bake::Bake;
-use radiosity::loader::{LoadOptions, load};
 use radiosity::scene::Scene;
 use radiosity::solve::information::Information;
 use radiosity::timeline::LineParams;
-use serde_json::json;
-
-use common::Doc;
-
-fn scene_of(mesh: &(Vec<[f32; 3]>, Vec<u32>), patch_size: Option<f64>) -> Scene {
-    let mut d = Doc::new();
-    let m = d.mesh(&mesh.0, Some(&mesh.1), None);
-    let n = d.node(json!({"mesh": m}));
-    d.scene(&[n]);
-    load(
-        &d.glb(),
-        &LoadOptions {
-            patch_size,
-            ..LoadOptions::default()
-        },
-    )
-    .unwrap()
-}
 
 fn information(scene: Scene, lines: u64) -> Information {
     let bake = Bake::trace(
@@ -51,7 +32,10 @@ fn information(scene: Scene, lines: u64) -> Information {
 fn inside_a_sphere_every_point_sees_every_other_alike() {
     // F(x, y) = 1/A_T between any two points of a sphere's inside: I_c = 0. Measured 0.0025
     // ± 0.0002 on this faceted sphere (its facets' normals are not the sphere's).
-    let info = information(scene_of(&common::icosphere(4, 1.0, true), None), 200_000);
+    let info = information(
+        common::static_scene(&[common::icosphere(4, 1.0, true)], None),
+        200_000,
+    );
     assert!(
         info.continuous.abs() < 0.01 + 4.0 * info.continuous_stderr,
         "{}",
@@ -66,7 +50,10 @@ fn finer_patches_lose_less_of_a_room_s_visibility() {
     let room = common::cuboid([1.0, 1.0, 1.0], [0.0, 0.0, 0.0], true);
     let mut last = f64::NEG_INFINITY;
     for size in [1.0, 0.5, 0.25] {
-        let info = information(scene_of(&room, Some(size)), 400_000);
+        let info = information(
+            common::static_scene(std::slice::from_ref(&room), Some(size)),
+            400_000,
+        );
         assert!(info.discrete > last, "{size}: {}", info.discrete);
         assert!(info.discrete < info.continuous, "{size}");
         last = info.discrete;

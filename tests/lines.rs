@@ -30,27 +30,6 @@ fn sphere(r: f32) -> (Vec<[f32; 3]>, Vec<u32>) {
     common::icosphere(2, r, false)
 }
 
-/// A scene of closed meshes (one node each), static.
-fn scene_of(meshes: &[(Vec<[f32; 3]>, Vec<u32>)], patch_size: Option<f64>) -> Scene {
-    let mut d = Doc::new();
-    let nodes: Vec<usize> = meshes
-        .iter()
-        .map(|(v, i)| {
-            let m = d.mesh(v, Some(i), None);
-            d.node(json!({"mesh": m}))
-        })
-        .collect();
-    d.scene(&nodes);
-    load(
-        &d.glb(),
-        &LoadOptions {
-            patch_size,
-            ..LoadOptions::default()
-        },
-    )
-    .unwrap()
-}
-
 /// Lines from the correct generator: `bundles` bundles, about `lines` lines.
 fn good_lines(scene: &Scene, lines: u64, bundles: u32, seed: u64) -> Vec<Line> {
     let batch = Batch::for_budget(lines, Some(bundles), &scene.bounds, seed, 0);
@@ -164,7 +143,7 @@ fn hits_per_line_z(scene: &Scene, lines: &[Line], total_area: f64) -> f64 {
 #[test]
 fn mean_chord_of_a_convex_body_is_4v_over_a() {
     // A 1 × 2 × 0.5 box: V = 1, A = 7.
-    let scene = scene_of(&[cube([1.0, 2.0, 0.5], [0.3, 0.0, 0.0])], None);
+    let scene = common::static_scene(&[cube([1.0, 2.0, 0.5], [0.3, 0.0, 0.0])], None);
     let good = chord_z(&scene, &good_lines(&scene, 40_000, 200, 1), 1.0, 7.0);
     assert!(good.abs() < 4.0, "correct generator: z = {good}");
     let bad = chord_z(&scene, &wrong_lines(&scene, 40_000, 1), 1.0, 7.0);
@@ -183,7 +162,7 @@ fn nested_convex_bodies_follow_cauchy() {
             0.5 * (p(t[1]) - p(t[0])).cross(p(t[2]) - p(t[0])).length()
         })
         .sum();
-    let scene = scene_of(&[inner, cube([1.0; 3], [0.0; 3])], None);
+    let scene = common::static_scene(&[inner, cube([1.0; 3], [0.0; 3])], None);
     let ratio = a1 / 6.0;
     let good = cauchy_z(&scene, &good_lines(&scene, 40_000, 200, 2), ratio);
     assert!(good.abs() < 4.0, "correct generator: z = {good}");
@@ -193,7 +172,7 @@ fn nested_convex_bodies_follow_cauchy() {
 
 #[test]
 fn mean_crossings_per_line_is_2a_over_aw() {
-    let scene = scene_of(&[sphere(0.3), cube([1.0, 1.0, 1.0], [0.0; 3])], None);
+    let scene = common::static_scene(&[sphere(0.3), cube([1.0, 1.0, 1.0], [0.0; 3])], None);
     let area: f64 = scene.patches.iter().map(|p| p.area).sum();
     let good = hits_per_line_z(&scene, &good_lines(&scene, 40_000, 200, 3), area);
     assert!(good.abs() < 4.0, "correct generator: z = {good}");
@@ -203,7 +182,7 @@ fn mean_crossings_per_line_is_2a_over_aw() {
 
 #[test]
 fn each_patch_is_crossed_a_over_2_delta_times_per_bundle() {
-    let scene = scene_of(&[cube([1.0, 0.6, 0.8], [0.0; 3])], Some(0.25));
+    let scene = common::static_scene(&[cube([1.0, 0.6, 0.8], [0.0; 3])], Some(0.25));
     let tracer = SceneTracer::new(&scene);
     let bundles = 400;
     let batch = Batch::for_budget(200_000, Some(bundles), &scene.bounds, 4, 0);
@@ -248,7 +227,7 @@ fn each_patch_is_crossed_a_over_2_delta_times_per_bundle() {
 
 #[test]
 fn the_bvh_agrees_with_brute_force() {
-    let scene = scene_of(
+    let scene = common::static_scene(
         &[
             sphere(0.45),
             cube([1.0; 3], [0.0; 3]),
@@ -284,7 +263,7 @@ fn the_bvh_agrees_with_brute_force() {
 #[test]
 fn closed_meshes_are_watertight_even_at_shared_edges_and_vertices() {
     let (v, i) = sphere(0.5);
-    let scene = scene_of(
+    let scene = common::static_scene(
         &[(v.clone(), i.clone()), cube([1.2; 3], [0.0; 3])],
         Some(0.3),
     );
@@ -511,7 +490,7 @@ fn refinement_adds_lines_without_touching_the_old_ones() {
 
 #[test]
 fn scene_statistics_match_their_predictions() {
-    let scene = scene_of(&[cube([1.0, 2.0, 0.5], [0.0; 3])], None);
+    let scene = common::static_scene(&[cube([1.0, 2.0, 0.5], [0.0; 3])], None);
     let tracer = SceneTracer::new(&scene);
     let list = IntersectionList::build(
         &scene,

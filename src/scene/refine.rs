@@ -16,7 +16,7 @@ use std::collections::HashMap;
 
 use glam::{DVec3, Vec3};
 
-use super::{Faces, Motion, Patch, Scene, TriangleMesh};
+use super::{Faces, Motion, MovingObject, Patch, Scene, TriangleMesh};
 
 /// A node of the cut tree of one traced triangle.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -271,6 +271,8 @@ pub fn cut(scene: &Scene, cuts: &[u32]) -> (Scene, Refinement) {
     let mut nodes: Vec<Node> = Vec::new();
     let mut extra: Vec<Node> = Vec::new();
     let mut new_meshes = Vec::with_capacity(meshes.len());
+    // Every old triangle is a root; the cut nodes are numbered after them all.
+    let roots: usize = meshes.iter().map(|m| m.triangles.len()).sum();
     for (m, mesh) in meshes.into_iter().enumerate() {
         let count = mesh.triangles.len();
         let deforming = m > 0 && !scene.objects[m - 1].is_rigid();
@@ -280,14 +282,14 @@ pub fn cut(scene: &Scene, cuts: &[u32]) -> (Scene, Refinement) {
                 cutter.cut_tree(t as u32, cuts[first + t]);
             }
         }
-        // The leaves depth first from each root, with their depth: a triangle's pieces stay
-        // together, in the source's order.
+        // The leaves depth first from each root, with their depth and root: a triangle's
+        // pieces stay together, in the source's order.
         let mut order = Vec::with_capacity(cutter.triangles.len());
-        for root in 0..count as u32 {
-            let mut stack = vec![(root, 0u32)];
+        for root in 0..count {
+            let mut stack = vec![(root as u32, 0u32)];
             while let Some((node, depth)) = stack.pop() {
                 match cutter.nodes[node as usize] {
-                    Node::Leaf(leaf) => order.push((leaf, depth)),
+                    Node::Leaf(leaf) => order.push((leaf, depth, root)),
                     Node::Cut { children, .. } => {
                         stack.push((children[1], depth + 1));
                         stack.push((children[0], depth + 1));
@@ -302,19 +304,9 @@ pub fn cut(scene: &Scene, cuts: &[u32]) -> (Scene, Refinement) {
             triangles: Vec::with_capacity(order.len()),
             faces: Vec::with_capacity(order.len()),
         };
-        let mut root_of = vec![0u32; cutter.triangles.len()];
-        for root in 0..count as u32 {
-            let mut stack = vec![root];
-            while let Some(node) = stack.pop() {
-                match cutter.nodes[node as usize] {
-                    Node::Leaf(leaf) => root_of[leaf as usize] = root,
-                    Node::Cut { children, .. } => stack.extend(children),
-                }
-            }
-        }
-        for (i, &(leaf, depth)) in order.iter().enumerate() {
+        for (i, &(leaf, depth, root)) in order.iter().enumerate() {
             global[leaf as usize] = new_first + i as u32;
-            let faces = mesh.faces[root_of[leaf as usize] as usize];
+            let faces = mesh.faces[root];
             let mut piece = |id: u32| {
                 let mut patch = scene.patches[id as usize].clone();
                 patch.area /= f64::from(1u32 << depth.min(31));
@@ -332,7 +324,7 @@ pub fn cut(scene: &Scene, cuts: &[u32]) -> (Scene, Refinement) {
             if (local as usize) < count {
                 (first + local as usize) as u32
             } else {
-                (scene_triangles(scene) + extra_base + local as usize - count) as u32
+                (roots + extra_base + local as usize - count) as u32
             }
         };
         let extra_base = extra.len();
@@ -364,16 +356,6 @@ pub fn cut(scene: &Scene, cuts: &[u32]) -> (Scene, Refinement) {
     (refined, Refinement { nodes })
 }
 
-/// Traced triangles of a scene.
-fn scene_triangles(scene: &Scene) -> usize {
-    scene.statics.triangles.len()
-        + scene
-            .objects
-            .iter()
-            .map(|o| o.mesh.triangles.len())
-            .sum::<usize>()
-}
-
 /// The corners of a scene's traced triangles by global index (the static triangles, then each
 /// moving object's), as the intersection list numbers them.
 pub struct Corners<'a> {
@@ -386,18 +368,27 @@ impl<'a> Corners<'a> {
     /// The corners of `scene`'s triangles.
     #[must_use]
     pub fn new(scene: &'a Scene) -> Self {
-        let mut firsts = vec![0, scene.statics.triangles.len()];
-        for o in &scene.objects {
-            firsts.push(firsts.last().copied().unwrap_or(0) + o.mesh.triangles.len());
-        }
-        firsts.pop();
+        let sizes = std::iter::once(scene.statics.triangles.len())
+            .chain(scene.objects.iter().map(|o| o.mesh.triangles.len()));
+        let firsts = sizes
+            .scan(0, |first, n| {
+                let start = *first;
+                *first += n;
+                Some(start)
+            })
+            .collect();
         Self { scene, firsts }
     }
 
-    /// The mesh (0: static, `1 + k`: object k) and index within it of triangle `global`.
-    fn find(&self, global: u32) -> (usize, usize) {
+    /// The moving object (`None`: static geometry), its mesh and the index within it of
+    /// triangle `global`.
+    fn find(&self, global: u32) -> (Option<&'a MovingObject>, &'a TriangleMesh, usize) {
         let m = self.firsts.partition_point(|&f| f <= global as usize) - 1;
-        (m, global as usize - self.firsts[m])
+        let t = global as usize - self.firsts[m];
+        match m.checked_sub(1) {
+            None => (None, &self.scene.statics, t),
+            Some(k) => (Some(&self.scene.objects[k]), &self.scene.objects[k].mesh, t),
+        }
     }
 
     /// Triangle `global`'s corners in its mesh's own space (normalised space for static
@@ -405,12 +396,7 @@ impl<'a> Corners<'a> {
     /// its cuts are decided in.
     #[must_use]
     pub fn own(&self, global: u32) -> [Vec3; 3] {
-        let (m, t) = self.find(global);
-        let mesh = if m == 0 {
-            &self.scene.statics
-        } else {
-            &self.scene.objects[m - 1].mesh
-        };
+        let (_, mesh, t) = self.find(global);
         mesh.triangles[t].map(|v| mesh.positions[v as usize])
     }
 
@@ -418,13 +404,13 @@ impl<'a> Corners<'a> {
     /// or `None` for a deforming object's (posing one costs the whole mesh).
     #[must_use]
     pub fn posed(&self, global: u32, frame: Option<usize>) -> Option<[DVec3; 3]> {
-        let (m, _) = self.find(global);
-        let own = self.own(global).map(Vec3::as_dvec3);
-        if m == 0 {
-            return Some(own);
-        }
-        match (&self.scene.objects[m - 1].motion, frame) {
-            (Motion::Rigid { poses }, Some(f)) => Some(own.map(|p| poses[f].transform_point3(p))),
+        let (object, mesh, t) = self.find(global);
+        let own = mesh.triangles[t].map(|v| mesh.positions[v as usize].as_dvec3());
+        match (object.map(|o| &o.motion), frame) {
+            (None, _) => Some(own),
+            (Some(Motion::Rigid { poses }), Some(f)) => {
+                Some(own.map(|p| poses[f].transform_point3(p)))
+            }
             _ => None,
         }
     }

@@ -267,3 +267,27 @@ pub fn mean_over_triangle(t: [glam::DVec3; 3], level: u32, f: &dyn Fn(glam::DVec
         .sum::<f64>()
         / 4.0
 }
+
+/// A scene of closed meshes (one node each), static.
+pub fn static_scene(
+    meshes: &[(Vec<[f32; 3]>, Vec<u32>)],
+    patch_size: Option<f64>,
+) -> radiosity::scene::Scene {
+    let mut d = Doc::new();
+    let nodes: Vec<usize> = meshes
+        .iter()
+        .map(|(v, i)| {
+            let m = d.mesh(v, Some(i), None);
+            d.node(json!({"mesh": m}))
+        })
+        .collect();
+    d.scene(&nodes);
+    radiosity::loader::load(
+        &d.glb(),
+        &radiosity::loader::LoadOptions {
+            patch_size,
+            ..radiosity::loader::LoadOptions::default()
+        },
+    )
+    .unwrap()
+}
