@@ -8,8 +8,9 @@
 //! other end. Each patch is scored on the pieces its next [`DEPTH`] longest-edge bisections
 //! would make: the segments leaving each piece estimate the radiance that piece gathers, with
 //! their own standard error. A node of that tree whose pieces gather differently beyond their
-//! noise (a χ² test at [`Adaptive::significance`]) is cut, those whose pieces' relative
-//! variation times area is largest first, up to the patch budget. Each round solves a few
+//! noise (a χ² test at [`Adaptive::significance`]) is cut, those that would misplace the most
+//! reflected flux (area × reflectance × the spread of their pieces' light) first, up to the
+//! patch budget (the cuts neighbours need counted). Each round solves a few
 //! frames, scores, cuts, and moves the crossings to the new patches ([`Bake::cut`]): no line
 //! is traced again; the direct light is sampled again for the new patches.
 //!
@@ -24,7 +25,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::bake::Bake;
-use crate::scene::refine::{Corners, barycentric, longest_edge};
+use crate::scene::refine::{self, Corners, barycentric, longest_edge};
 use crate::solve::SolveParams;
 use crate::solve::tally::{ABSORBED, SKY, walk_from};
 use crate::timeline::{Control, TraceError};
@@ -35,8 +36,8 @@ pub const FRAMES: usize = 3;
 /// How adaptive patches are chosen.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Adaptive {
-    /// Most patches the cuts may reach (the cuts a round makes in neighbours, to leave no
-    /// T-junction, may take it beyond).
+    /// Most patches the cuts may reach, the cuts neighbours need to leave no T-junction
+    /// included.
     pub budget: usize,
     /// Rounds of solving, scoring and cutting at most; each can cut a patch [`DEPTH`] times.
     pub rounds: usize,
@@ -125,7 +126,7 @@ pub fn adapt(
         if patches >= auto.budget {
             break;
         }
-        let marked = mark(bake, auto, solve);
+        let marked = within_budget(bake, &mark(bake, auto, solve), auto.budget);
         let significant = marked.iter().map(|m| m.count_ones() as usize).sum();
         let added = if significant == 0 {
             0
@@ -165,9 +166,38 @@ pub const DEPTH: u32 = 3;
 /// Pieces of a patch's scoring tree.
 const LEAVES: usize = 1 << DEPTH;
 
-/// Each traced triangle's cuts this round (a heap-ordered bisection tree per triangle,
-/// [`crate::scene::refine::cut`]), within the budget.
-fn mark(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<u32> {
+/// Each traced triangle's cuts (a heap-ordered bisection tree per triangle,
+/// [`crate::scene::refine::cut`]) from the longest prefix of `order` whose patches, the cuts
+/// the neighbours need included, stay within `budget`.
+fn within_budget(bake: &Bake, order: &[(u32, u32)], budget: usize) -> Vec<u32> {
+    let masks = |k: usize| {
+        let mut cuts = vec![0u32; bake.tracer().triangles()];
+        for &(t, heap) in &order[..k] {
+            cuts[t as usize] |= 1 << heap;
+        }
+        cuts
+    };
+    // More cuts never make fewer patches: the longest prefix is found by bisection.
+    let fits = |k: usize| refine::patches_after(&bake.scene, &masks(k)) <= budget;
+    let (mut fit, mut over) = (0, order.len());
+    if fits(order.len()) {
+        fit = order.len();
+    } else {
+        while over - fit > 1 {
+            let mid = fit + (over - fit) / 2;
+            if fits(mid) {
+                fit = mid;
+            } else {
+                over = mid;
+            }
+        }
+    }
+    masks(fit)
+}
+
+/// The cuts worth making this round, as (traced triangle, heap-ordered node of its bisection
+/// tree), most worth first, each after its parent.
+fn mark(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<(u32, u32)> {
     let scene = &bake.scene;
     let faces = bake.tracer().faces();
     let mut triangle_of = vec![0u32; scene.patches.len()];
@@ -177,9 +207,12 @@ fn mark(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<u32> {
             triangle_of[b as usize] = g as u32;
         }
     }
-    // Each node's area times the relative variance of its pieces' radiance, when they differ
-    // significantly (most over the frames); 0 otherwise. A black patch shows no light to
-    // misplace.
+    // Each node's area times its reflectance times the spread of its pieces' gathered
+    // radiance (the flux it would send to the wrong places), when they differ significantly
+    // (most over the frames); 0 otherwise. A black patch has no light to misplace.
+    // Measured against the area times the relative variance (what the eye sees), at a
+    // third of the best uniform size's patches and three seeds: as good on the Cornell box,
+    // better on the panel room (`bench-patches --patch-budget`).
     let nodes = LEAVES;
     let mut priority = vec![0.0f64; scene.patches.len() * nodes];
     for frame in scored_frames(bake) {
@@ -198,45 +231,38 @@ fn mark(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<u32> {
                     let level = heap.ilog2();
                     let span = LEAVES >> level;
                     let first = (heap << (DEPTH - level)) - LEAVES;
-                    let Some(gain) = variation(&leaves[first..first + span], auto) else {
+                    let Some((gain, mean)) = variation(&leaves[first..first + span], auto) else {
                         continue;
                     };
+                    // The light the node misplaces: its reflected flux's spread.
                     let area = patch.area / f64::from(1u32 << level);
-                    if rho > 0.0 {
-                        *priority = priority.max(area * gain);
-                    }
+                    *priority = priority.max(area * rho * gain.sqrt() * mean);
                 }
             });
     }
-    // Node cuts by priority, each only below a cut parent, within the budget.
+    // Node cuts by priority, each only below a cut parent.
     let mut order: Vec<usize> = (0..priority.len()).filter(|&n| priority[n] > 0.0).collect();
     order.sort_by(|&a, &b| priority[b].total_cmp(&priority[a]));
     let mut cuts = vec![0u32; faces.len()];
-    let mut patches = scene.patches.len();
+    let mut marked = Vec::new();
     for n in order {
         let (i, heap) = (n / nodes, n % nodes);
         let t = triangle_of[i] as usize;
         if cuts[t] & (1 << heap) != 0 || (heap > 1 && cuts[t] & (1 << (heap / 2)) == 0) {
             continue;
         }
-        let adds = 1 + usize::from(faces[t].back.is_some());
-        if patches + adds > auto.budget {
-            break;
-        }
         cuts[t] |= 1 << heap;
-        patches += adds;
+        marked.push((t as u32, heap as u32));
     }
-    cuts
+    marked
 }
 
 /// How much the light a node gathers varies over its pieces (`[n, Σ, Σ²]` of the radiance
 /// each gathers, the node's leaves of the scoring tree), relative to its mean: the
 /// crossing-weighted variance of the pieces' true means, estimated without bias as
 /// Σ w_k ((m_k − m̄)² − v_k), v_k the variance of piece k's mean, less the noise the pieces
-/// would show once cut (Σ w_k v_k), over m̄². A node left whole shows m̄ over all its pieces;
-/// cut down to them, each shows its own, noisier. Relative, as the eye
-/// and the per-patch error judge: a dark corner's variation counts as much as a bright
-/// wall's. Looking at every piece, not
+/// would show once cut (Σ w_k v_k), over m̄²; and m̄. A node left whole shows m̄ over all its
+/// pieces; cut down to them, each shows its own, noisier. Looking at every piece, not
 /// only the two halves, finds light that a first cut would split evenly (a lamp centred on
 /// the cut).
 ///
@@ -244,7 +270,7 @@ fn mark(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<u32> {
 /// [`Adaptive::precision`], and the pieces differ
 /// beyond their noise: Σ (m_k − m̄)² / v_k, χ² with K − 1 degrees of freedom when they do
 /// not, above its mean by [`Adaptive::significance`] standard deviations.
-fn variation(pieces: &[[f64; 3]], auto: &Adaptive) -> Option<f64> {
+fn variation(pieces: &[[f64; 3]], auto: &Adaptive) -> Option<(f64, f64)> {
     let (h0, h1) = pieces.split_at(pieces.len() / 2);
     let crossings = |h: &[[f64; 3]]| h.iter().map(|p| p[0]).sum::<f64>();
     if crossings(h0) < auto.min_crossings || crossings(h1) < auto.min_crossings {
@@ -291,7 +317,7 @@ fn variation(pieces: &[[f64; 3]], auto: &Adaptive) -> Option<f64> {
         .map(|&(n, m, v)| n / total * ((m - mean).powi(2) - NOISE_COST * v))
         .sum();
     let relative = gain / (mean * mean).max(f64::MIN_POSITIVE);
-    (relative > 0.0).then_some(relative)
+    (relative > 0.0).then_some((relative, mean))
 }
 
 /// How many times its noise variance a piece's estimate costs in [`variation`]'s gain: 1 for

@@ -173,6 +173,19 @@ impl Bake {
             .frame(&self.list, &self.tracer.surfaces(), frame)
     }
 
+    /// The visibility information the lines measure at `frame`
+    /// ([`crate::solve::information`]).
+    #[must_use]
+    pub fn information(&self, frame: usize) -> crate::solve::information::Information {
+        crate::solve::information::Information::measure(
+            &self.scene,
+            &self.list,
+            &self.tracer.surfaces(),
+            &self.frame_tally(frame),
+            frame,
+        )
+    }
+
     /// Frames that share their solution: `representatives()[f]` is the first frame with the
     /// same tallies and the same direct light as f.
     #[must_use]

@@ -124,6 +124,9 @@ pub enum Outcome {
     Cancelled,
 }
 
+/// Patches listed in the summary with the largest shares of the information gap.
+const LARGEST_GAPS: usize = 10;
+
 /// The deterministic summary of a bake.
 #[derive(Serialize)]
 struct Summary<'a> {
@@ -169,6 +172,18 @@ struct Summary<'a> {
     /// Frames shown in `preview.gif` (empty when there is none).
     gif_frames: Vec<usize>,
     warnings: &'a [String],
+    /// The visibility information the lines measure at frame 0 (`I_c`, `I_d`, their gap),
+    /// with the patches that lose the most of it (`solve::information`).
+    information: Information,
+}
+
+/// The visibility information of a summary: the scene's, and the patches with the largest
+/// shares of the gap (none when `I_d` is unresolved).
+#[derive(Serialize)]
+struct Information {
+    #[serde(flatten)]
+    measured: crate::solve::information::Information,
+    largest_gaps: Vec<crate::solve::information::GapShare>,
 }
 
 /// The scenes named by `inputs`: files as given, directories searched (not recursively) for
@@ -488,6 +503,15 @@ pub fn bake_one(
         log(&format!("{name}: warning: {w}"));
     }
     let warnings: Vec<String> = scene.warnings.iter().cloned().chain(found).collect();
+    let information = {
+        let mut measured = bake.information(0);
+        let largest_gaps = measured.largest_gaps(LARGEST_GAPS);
+        measured.patch_gap = None;
+        Information {
+            measured,
+            largest_gaps,
+        }
+    };
     let summary = Summary {
         scene: &name,
         content_hash: hash,
@@ -519,6 +543,7 @@ pub fn bake_one(
         preview_frames: params.outputs.preview_frames.frames(count),
         gif_frames: gif,
         warnings: &warnings,
+        information,
     };
     let timings = serde_json::json!({
         "load": load_seconds,

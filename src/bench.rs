@@ -685,7 +685,7 @@ pub struct PatchPoint {
     pub bias: f64,
 }
 
-/// Bakes frame 0 of `scene` with `lines` lines, patches made as `patch_size` says (the scene
+/// Bakes frame 0 of `scene` with `lines` lines from `seed`, patches made as `patch_size` says (the scene
 /// must have been loaded with its length, if any; `auto` cut as `auto` says, or the standard
 /// choice), and compares every patch with the path-traced reference of `paths` paths
 /// ([`crate::direct::reference`]). The lit patches are those [`PatchClass::of`] calls lit on
@@ -698,7 +698,7 @@ pub fn patch_point(
     name: &str,
     scene: Scene,
     patch_size: crate::params::PatchSize,
-    lines: u64,
+    (lines, seed): (u64, u64),
     paths: usize,
     auto: Option<crate::adaptive::Adaptive>,
 ) -> Result<PatchPoint, String> {
@@ -707,7 +707,7 @@ pub fn patch_point(
     let params = LineParams {
         lines,
         bundles: None,
-        seed: 1,
+        seed,
     };
     let mut bake = crate::bake::Bake::trace(scene, &params).map_err(|e| e.to_string())?;
     let solve = crate::solve::SolveParams::default();
@@ -719,7 +719,7 @@ pub fn patch_point(
     let solved = bake.solve_frame(0, &scene.materials, &solve);
     let seconds = started.elapsed().as_secs_f64();
     let reference =
-        crate::direct::reference::path_traced(scene, bake.tracer(), 0, paths, [0.0; 3], 7)
+        crate::direct::reference::path_traced(scene, bake.tracer(), 0, paths, [0.0; 3], seed + 6)
             .map_err(|e| e.to_string())?;
     let radiance: Vec<[f64; 3]> = reference.iter().map(|r| r.radiance).collect();
     let dark = dark_floor(scene, &radiance);

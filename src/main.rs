@@ -200,6 +200,10 @@ enum Command {
         /// With auto: the patch budget (default: one per 200 lines).
         #[arg(long)]
         patch_budget: Option<usize>,
+        /// Seed of the bakes' lines (the reference's paths take another from it): repeat
+        /// with other seeds to see how much the figures themselves vary.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
     },
     /// Write the sample scenes (deterministic) into a directory.
     Samples {
@@ -324,6 +328,7 @@ fn run(cli: Cli) -> Result<(), String> {
             only,
             sizes: chosen,
             patch_budget,
+            seed,
         } => {
             use radiosity::params::PatchSize::{Auto, Length, Source};
             let mut points = Vec::new();
@@ -368,8 +373,14 @@ fn run(cli: Cli) -> Result<(), String> {
                         _ => scene.patches.len(),
                     };
                     let paths = (reference_paths / patches.max(1)).max(64);
-                    let p =
-                        radiosity::bench::patch_point(name, scene, size, lines, paths, Some(auto))?;
+                    let p = radiosity::bench::patch_point(
+                        name,
+                        scene,
+                        size,
+                        (lines, seed),
+                        paths,
+                        Some(auto),
+                    )?;
                     println!(
                         "{}\t{}\t{}\t{:.2}\t{:.4}\t{:.4}\t{:+.4}",
                         p.scene,

@@ -455,6 +455,29 @@ async fn refine_lowers_the_error_and_relight_needs_no_tracing() {
         (measured / predicted - 1.0).abs() < 0.02,
         "{measured} vs {predicted}"
     );
+    // The visibility information, every patch's share of its gap only when asked for.
+    let information = &stats["information"];
+    assert!(information["continuous"].as_f64().unwrap().is_finite());
+    assert!(information.get("patch_gap").is_none());
+    let with_patches: Value = get_json(
+        &client,
+        format!("{base}/v1/timelines/{id}/stats?frame=1&patches=true"),
+    )
+    .await;
+    let information = &with_patches["information"];
+    if let Some(gap) = information["gap"].as_f64() {
+        let shares = information["patch_gap"].as_array().unwrap();
+        let sum: f64 = shares.iter().map(|s| s.as_f64().unwrap()).sum();
+        assert!((sum - gap).abs() < 1e-6, "{sum} vs {gap}");
+    } else {
+        assert!(information["discrete"].is_null());
+    }
+    let response = client
+        .get(format!("{base}/v1/timelines/{id}/stats?patches=maybe"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(response.status(), 400);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

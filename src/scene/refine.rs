@@ -251,6 +251,43 @@ impl MeshCutter {
     }
 }
 
+/// How many patches [`cut`] would make of `scene` with `cuts`, the cuts the neighbours need
+/// included, without building the scene (to keep a budget).
+#[must_use]
+pub fn patches_after(scene: &Scene, cuts: &[u32]) -> usize {
+    let mut meshes: Vec<&TriangleMesh> = vec![&scene.statics];
+    meshes.extend(scene.objects.iter().map(|o| &o.mesh));
+    let mut first = 0;
+    let mut patches = 0;
+    for (m, mesh) in meshes.into_iter().enumerate() {
+        let count = mesh.triangles.len();
+        let faces = |t: usize| 1 + usize::from(mesh.faces[t].back.is_some());
+        let deforming = m > 0 && !scene.objects[m - 1].is_rigid();
+        let mine = &cuts[first..first + count];
+        if deforming || mine.iter().all(|&c| c & !1 == 0) {
+            patches += (0..count).map(faces).sum::<usize>();
+        } else {
+            let mut cutter = MeshCutter::new(mesh);
+            for (t, &c) in mine.iter().enumerate() {
+                cutter.cut_tree(t as u32, c);
+            }
+            for root in 0..count {
+                let mut leaves = 0;
+                let mut stack = vec![root as u32];
+                while let Some(node) = stack.pop() {
+                    match cutter.nodes[node as usize] {
+                        Node::Leaf(_) => leaves += 1,
+                        Node::Cut { children, .. } => stack.extend(children),
+                    }
+                }
+                patches += leaves * faces(root);
+            }
+        }
+        first += count;
+    }
+    patches
+}
+
 /// Cuts the traced triangles of `scene` as `cuts` says (by global index: the static
 /// triangles, then each moving object's), with the cuts their neighbours need. A triangle's
 /// cuts are a bisection tree in heap order: bit 1 cuts the triangle, bits `2n` and `2n + 1`

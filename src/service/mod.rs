@@ -836,15 +836,20 @@ async fn timeline_stats(
     StrictQuery(query): StrictQuery<StatsQuery>,
 ) -> Result<Json<serde_json::Value>, ApiError> {
     let job = job(&state, &id)?;
-    let frame = query.validate(job.frame_times.len())?;
+    let (frame, patches) = query.validate(job.frame_times.len())?;
     let stats = tokio::task::spawn_blocking(move || {
         let bake = job.bake.lock().ok()?;
         let bake = bake.as_ref()?;
-        Some(crate::timeline::stats::SceneStats::measure(
-            &bake.scene,
-            bake.list(),
-            frame,
-        ))
+        let stats = crate::timeline::stats::SceneStats::measure(&bake.scene, bake.list(), frame);
+        let mut information = bake.information(frame);
+        let largest = information.largest_gaps(LARGEST_GAPS);
+        if !patches {
+            information.patch_gap = None;
+        }
+        let mut stats = serde_json::to_value(stats).ok()?;
+        stats["information"] = serde_json::to_value(information).ok()?;
+        stats["information"]["largest_gaps"] = serde_json::to_value(largest).ok()?;
+        Some(stats)
     })
     .await
     .map_err(|e| ApiError::Internal(format!("stats task: {e}")))?
@@ -853,10 +858,11 @@ async fn timeline_stats(
             "the timeline is not traced yet, or busy: try again when it is done".into(),
         )
     })?;
-    Ok(Json(
-        serde_json::to_value(stats).map_err(|e| ApiError::Internal(e.to_string()))?,
-    ))
+    Ok(Json(stats))
 }
+
+/// Patches listed by `/stats` with the largest shares of the information gap.
+const LARGEST_GAPS: usize = 10;
 
 /// `GET /v1/timelines/{id}/events`: Server-Sent Events, a `status` event with the status
 /// document whenever a frame is solved or the job changes stage, and at least every second;

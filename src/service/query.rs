@@ -229,14 +229,20 @@ pub(super) struct StatsQuery {
     /// The frame whose crossings are measured; the first by default.
     #[serde(default, deserialize_with = "whole")]
     frame: Option<usize>,
+    /// Whether to list every patch's share of the information gap (off by default: one
+    /// number per patch).
+    #[serde(default)]
+    patches: bool,
 }
 
 impl StatsQuery {
-    /// The frame, checked against the timeline's `frames`.
-    pub(super) fn validate(self, frames: usize) -> Result<usize, ApiError> {
+    /// The frame, checked against the timeline's `frames`, and whether every patch's share
+    /// of the gap is wanted.
+    pub(super) fn validate(self, frames: usize) -> Result<(usize, bool), ApiError> {
+        let patches = self.patches;
         match self.frame {
-            None => Ok(0),
-            Some(f) if f < frames => Ok(f),
+            None => Ok((0, patches)),
+            Some(f) if f < frames => Ok((f, patches)),
             Some(f) => Err(ApiError::Parameter(format!(
                 "frame must be in 0..{frames}, not {f}"
             ))),
