@@ -32,6 +32,19 @@ pub struct Bake {
     seed: u64,
     /// What the lines found that the user should know (see [`Bake::warnings`]).
     warnings: Vec<String>,
+    /// Whether the last cut's pieces inherited their direct light ([`Lights::Inherit`]).
+    inherited: bool,
+}
+
+/// How [`Bake::cut`] gives the new patches their direct light.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Lights {
+    /// Sampled again for the new patches.
+    Sample,
+    /// Each piece takes its patch's (the average over the patch) until [`Bake::sample_lights`]:
+    /// for rounds of cuts that sample once at the end. The light then drawn is the coarser
+    /// one.
+    Inherit,
 }
 
 impl Bake {
@@ -67,6 +80,7 @@ impl Bake {
             area,
             seed: params.seed,
             warnings,
+            inherited: false,
         })
     }
 
@@ -93,8 +107,17 @@ impl Bake {
     /// [`crate::scene::refine::cut`]), with the cuts their neighbours need, and moves every
     /// crossing of the list to
     /// the piece it lies on: the same lines through finer patches, without tracing them again.
-    /// The direct light is sampled again for the new patches. Returns the patches added.
-    pub fn cut(&mut self, cuts: &[u32], control: &Control) -> Result<usize, TraceError> {
+    /// The new patches' direct light is as `lights` says. Returns the patches added.
+    ///
+    /// # Errors
+    /// [`TraceError::Cancelled`] if `control` is cancelled while the light is sampled (the
+    /// bake is then left as it was).
+    pub fn cut(
+        &mut self,
+        cuts: &[u32],
+        lights: Lights,
+        control: &Control,
+    ) -> Result<usize, TraceError> {
         use crate::scene::refine::{self, Corners};
         let (scene, refinement) = refine::cut(&self.scene, cuts);
         let added = scene.patches.len() - self.scene.patches.len();
@@ -103,13 +126,14 @@ impl Bake {
         }
         // What can fail (cancellation) first: the bake is left as it was.
         let tracer = SceneTracer::new(&scene);
-        let direct = DirectLight::compute(&scene, &tracer, control)?;
-        let area = AreaLights::compute(
-            &scene,
-            &tracer,
-            Sampling::for_lines(self.list.lines() as u64, scene.patches.len(), self.seed),
-            control,
-        )?;
+        let (direct, area) = match lights {
+            Lights::Sample => self.sampled_lights(&scene, &tracer, control)?,
+            Lights::Inherit => (
+                self.direct.inherit(refinement.parents()),
+                self.area.inherit(refinement.parents()),
+            ),
+        };
+        self.inherited = lights == Lights::Inherit;
         let corners = Corners::new(&self.scene);
         self.list.relabel(&self.scene, |hit, frame, point| {
             let old = hit.surface();
@@ -128,6 +152,36 @@ impl Bake {
         (self.scene, self.tracer, self.tallies) = (scene, tracer, tallies);
         (self.direct, self.area) = (direct, area);
         Ok(added)
+    }
+
+    /// The direct light of the punctual lights and the area lights, sampled for `scene`.
+    fn sampled_lights(
+        &self,
+        scene: &Scene,
+        tracer: &SceneTracer,
+        control: &Control,
+    ) -> Result<(DirectLight, AreaLights), TraceError> {
+        let direct = DirectLight::compute(scene, tracer, control)?;
+        let area = AreaLights::compute(
+            scene,
+            tracer,
+            Sampling::for_lines(self.list.lines() as u64, scene.patches.len(), self.seed),
+            control,
+        )?;
+        Ok((direct, area))
+    }
+
+    /// Samples the direct light again for the patches as they are, if the last cut let the
+    /// pieces inherit theirs ([`Lights::Inherit`]); nothing otherwise.
+    ///
+    /// # Errors
+    /// [`TraceError::Cancelled`] if `control` is cancelled (the light is then left as it was).
+    pub fn sample_lights(&mut self, control: &Control) -> Result<(), TraceError> {
+        if self.inherited {
+            (self.direct, self.area) = self.sampled_lights(&self.scene, &self.tracer, control)?;
+            self.inherited = false;
+        }
+        Ok(())
     }
 
     /// What the lines found that the user should know: nodes with coplanar overlapping faces

@@ -673,13 +673,17 @@ pub struct PatchPoint {
     pub patch_size: crate::params::PatchSize,
     /// Patches the bake solved.
     pub patches: usize,
+    /// With auto: the patch budget.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub budget: Option<usize>,
     /// Seconds of the bake: tracing, cutting (`auto`) and the solve of frame 0.
     pub seconds: f64,
     /// The bake's per-patch error: area-weighted RMS of (bake − reference) / reference over
     /// lit, non-emitting patches and channels, the reference's own noise taken out in
     /// quadrature (the two are independent).
     pub patch_error: f64,
-    /// The reference's own per-patch noise on the same patches, for scale.
+    /// The reference's own per-patch noise on the same patches (half the difference of its two
+    /// independent halves, RMS), for scale.
     pub reference_noise: f64,
     /// The area-weighted mean of the bake over the reference's, minus 1, on the same patches.
     pub bias: f64,
@@ -687,7 +691,8 @@ pub struct PatchPoint {
 
 /// Bakes frame 0 of `scene` with `lines` lines from `seed`, patches made as `patch_size` says (the scene
 /// must have been loaded with its length, if any; `auto` cut as `auto` says, or the standard
-/// choice), and compares every patch with the path-traced reference of `paths` paths
+/// choice), and compares every patch with the path-traced reference of `reference_paths`
+/// paths over all its patches (at least 64 per patch)
 /// ([`crate::direct::reference`]). The lit patches are those [`PatchClass::of`] calls lit on
 /// the reference's radiance (not black on screen), whatever the reference's noise.
 ///
@@ -699,7 +704,7 @@ pub fn patch_point(
     scene: Scene,
     patch_size: crate::params::PatchSize,
     (lines, seed): (u64, u64),
-    paths: usize,
+    reference_paths: usize,
     auto: Option<crate::adaptive::Adaptive>,
 ) -> Result<PatchPoint, String> {
     use crate::adaptive::{Adaptive, adapt};
@@ -711,28 +716,40 @@ pub fn patch_point(
     };
     let mut bake = crate::bake::Bake::trace(scene, &params).map_err(|e| e.to_string())?;
     let solve = crate::solve::SolveParams::default();
+    let mut budget = None;
     if patch_size == crate::params::PatchSize::Auto {
         let auto = auto.unwrap_or_else(|| Adaptive::for_lines(lines, bake.scene.patches.len()));
         adapt(&mut bake, &auto, &solve, &Control::default()).map_err(|e| e.to_string())?;
+        budget = Some(auto.budget);
     }
     let scene = &bake.scene;
     let solved = bake.solve_frame(0, &scene.materials, &solve);
     let seconds = started.elapsed().as_secs_f64();
-    let reference =
-        crate::direct::reference::path_traced(scene, bake.tracer(), 0, paths, [0.0; 3], seed + 6)
-            .map_err(|e| e.to_string())?;
-    let radiance: Vec<[f64; 3]> = reference.iter().map(|r| r.radiance).collect();
+    // Two independent references of half the paths each: their mean is the reference, and
+    // their difference measures its noise without trusting its own error estimate (which is
+    // conservative: taken out of the error, it would flatter the bakes it is noisiest for).
+    let paths = (reference_paths / 2 / scene.patches.len().max(1)).max(32);
+    let traced = |seed| {
+        crate::direct::reference::path_traced(scene, bake.tracer(), 0, paths, [0.0; 3], seed)
+            .map_err(|e| e.to_string())
+    };
+    let (first, second) = (traced(seed + 6)?, traced(seed + 1006)?);
+    let radiance: Vec<[f64; 3]> = first
+        .iter()
+        .zip(&second)
+        .map(|(a, b)| std::array::from_fn(|c| 0.5 * (a.radiance[c] + b.radiance[c])))
+        .collect();
     let dark = dark_floor(scene, &radiance);
     let (mut error, mut noise, mut weight, mut baked, mut traced) = (0.0, 0.0, 0.0, 0.0, 0.0);
-    for (i, p) in scene.patches.iter().enumerate() {
+    for (i, (p, reference)) in scene.patches.iter().zip(&radiance).enumerate() {
         let m = &scene.materials[p.material as usize];
-        for c in 0..3 {
-            let (r, se) = (reference[i].radiance[c], reference[i].stderr[c]);
+        for (c, &r) in reference.iter().enumerate() {
             if PatchClass::of(m, c, r, dark) != Some(PatchClass::Lit) {
                 continue;
             }
+            let half_difference = 0.5 * (first[i].radiance[c] - second[i].radiance[c]);
             error += p.area * (solved.radiance[i][c] / r - 1.0).powi(2);
-            noise += p.area * (se / r).powi(2);
+            noise += p.area * (half_difference / r).powi(2);
             weight += p.area;
             baked += p.area * solved.radiance[i][c];
             traced += p.area * r;
@@ -742,6 +759,7 @@ pub fn patch_point(
         scene: name.to_string(),
         patch_size,
         patches: scene.patches.len(),
+        budget,
         seconds,
         patch_error: ((error - noise).max(0.0) / weight).sqrt(),
         reference_noise: (noise / weight).sqrt(),

@@ -32,8 +32,8 @@ struct SceneArgs {
     /// per side of each source triangle) or a length (every edge at most that long, scene units).
     #[arg(long, default_value_t)]
     patch_size: radiosity::params::PatchSize,
-    /// With --patch-size auto: most patches the cuts may reach (neighbours' cuts may take a
-    /// round a little beyond); one per 200 lines by default.
+    /// With --patch-size auto: most patches the cuts may reach (the cuts neighbours need
+    /// included); one per 200 lines by default.
     #[arg(long)]
     patch_budget: Option<usize>,
     /// Largest diffuse reflectance, in (0, 1]: higher ones are lowered to it, with a warning.
@@ -186,7 +186,7 @@ enum Command {
         #[arg(long, default_value_t = 1_000_000)]
         lines: u64,
         /// Paths of each bake's reference, over all its patches (at least 64 per patch).
-        #[arg(long, default_value_t = 4_000_000)]
+        #[arg(long, default_value_t = 8_000_000)]
         reference_paths: usize,
         /// Where to write the points as JSON.
         #[arg(long, default_value = "docs/patches.json")]
@@ -357,28 +357,24 @@ fn run(cli: Cli) -> Result<(), String> {
                 } else {
                     chosen.clone()
                 };
-                for size in sizes {
+                let first = points.len();
+                let run = |size: radiosity::params::PatchSize,
+                           budget: Option<usize>|
+                 -> Result<radiosity::bench::PatchPoint, String> {
                     let options = LoadOptions {
                         patch_size: size.length(),
                         ..LoadOptions::default()
                     };
                     let scene = loader::load(&bytes, &options)
                         .map_err(|e| format!("{}: {e}", path.display()))?;
-                    // The auto bake's patches are known only once cut: size its reference
-                    // by the budget.
                     let auto = radiosity::adaptive::Adaptive::for_lines(lines, scene.patches.len())
-                        .with_budget(patch_budget);
-                    let patches = match size {
-                        Auto => auto.budget,
-                        _ => scene.patches.len(),
-                    };
-                    let paths = (reference_paths / patches.max(1)).max(64);
+                        .with_budget(budget);
                     let p = radiosity::bench::patch_point(
                         name,
                         scene,
                         size,
                         (lines, seed),
-                        paths,
+                        reference_paths,
                         Some(auto),
                     )?;
                     println!(
@@ -391,7 +387,22 @@ fn run(cli: Cli) -> Result<(), String> {
                         p.reference_noise,
                         p.bias
                     );
-                    points.push(p);
+                    Ok(p)
+                };
+                for size in sizes {
+                    points.push(run(size, patch_budget)?);
+                }
+                // The yardstick: auto with a third of the patches of the best uniform
+                // way (the source's triangles or a length).
+                if chosen.is_empty() {
+                    let best = points[first..]
+                        .iter()
+                        .filter(|p| p.patch_size != Auto)
+                        .min_by(|a, b| a.patch_error.total_cmp(&b.patch_error))
+                        .map(|p| p.patches);
+                    if let Some(best) = best {
+                        points.push(run(Auto, Some(best / 3))?);
+                    }
                 }
             }
             let json = serde_json::to_string_pretty(&points).map_err(|e| e.to_string())?;

@@ -289,6 +289,45 @@ impl AreaLights {
         Ok(out)
     }
 
+    /// The same lights for patches cut from these: new patch `k` takes the form factors of
+    /// patch `parents[k]` (its average over the parent, not its own), until sampled again.
+    #[must_use]
+    pub fn inherit(&self, parents: &[u32]) -> Self {
+        if self.is_empty() {
+            return self.clone();
+        }
+        let row = |p: usize| &self.pairs[self.offsets[p] as usize..self.offsets[p + 1] as usize];
+        let mut offsets = Vec::with_capacity(parents.len() + 1);
+        let mut pairs = Vec::new();
+        offsets.push(0);
+        for &p in parents {
+            pairs.extend_from_slice(row(p as usize));
+            offsets.push(pairs.len() as u32);
+        }
+        let mut children = vec![Vec::new(); self.offsets.len() - 1];
+        for (k, &p) in parents.iter().enumerate() {
+            children[p as usize].push(k as u32);
+        }
+        let states = self
+            .states
+            .iter()
+            .map(|changed| {
+                let mut out: Vec<(u32, Pair)> = changed
+                    .iter()
+                    .flat_map(|&(p, pair)| children[p as usize].iter().map(move |&k| (k, pair)))
+                    .collect();
+                out.sort_by_key(|e| e.0);
+                out
+            })
+            .collect();
+        Self {
+            offsets,
+            pairs,
+            states,
+            ..self.clone()
+        }
+    }
+
     /// The static result of the pair (`patch`, `cluster`), if not dark.
     fn static_pair(&self, patch: u32, cluster: usize) -> Option<&Pair> {
         let p = patch as usize;

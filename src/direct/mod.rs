@@ -177,6 +177,29 @@ impl DirectLight {
         self.sum(frame, &self.variances, power, |p| p * p)
     }
 
+    /// The same lights for patches cut from these: new patch `k` takes the irradiance of patch
+    /// `parents[k]` (its average over the parent, not its own), until computed again.
+    #[must_use]
+    pub fn inherit(&self, parents: &[u32]) -> Self {
+        let map = |per_light: &[Vec<Vec<f32>>]| -> Vec<Vec<Vec<f32>>> {
+            per_light
+                .iter()
+                .map(|states| {
+                    states
+                        .iter()
+                        .map(|unit| parents.iter().map(|&p| unit[p as usize]).collect())
+                        .collect()
+                })
+                .collect()
+        };
+        Self {
+            frame_term: self.frame_term.clone(),
+            terms: map(&self.terms),
+            variances: map(&self.variances),
+            frame_state: self.frame_state.clone(),
+        }
+    }
+
     /// Σ over lights of `weight(power)` times the light's unit value per patch in `per_light`
     /// (its terms or their variances) at `frame`; `None` without lights.
     fn sum(

@@ -33,9 +33,17 @@ enum Node {
 pub struct Refinement {
     /// The cut trees; node `g` is the root of the old triangle with global index `g`.
     nodes: Vec<Node>,
+    /// The old patch each new patch was cut from (or is).
+    parents: Vec<u32>,
 }
 
 impl Refinement {
+    /// The old patch each new patch was cut from (or is, when not cut), by new patch.
+    #[must_use]
+    pub fn parents(&self) -> &[u32] {
+        &self.parents
+    }
+
     /// Whether old triangle `old` was cut.
     #[must_use]
     pub fn is_cut(&self, old: u32) -> bool {
@@ -305,6 +313,7 @@ pub fn cut(scene: &Scene, cuts: &[u32]) -> (Scene, Refinement) {
     let mut first = 0;
     let mut new_first = 0u32;
     let mut patches: Vec<Patch> = Vec::with_capacity(scene.patches.len());
+    let mut parents: Vec<u32> = Vec::with_capacity(scene.patches.len());
     let mut nodes: Vec<Node> = Vec::new();
     let mut extra: Vec<Node> = Vec::new();
     let mut new_meshes = Vec::with_capacity(meshes.len());
@@ -348,6 +357,7 @@ pub fn cut(scene: &Scene, cuts: &[u32]) -> (Scene, Refinement) {
                 let mut patch = scene.patches[id as usize].clone();
                 patch.area /= f64::from(1u32 << depth.min(31));
                 patches.push(patch);
+                parents.push(id);
                 (patches.len() - 1) as u32
             };
             let front = piece(faces.front);
@@ -390,7 +400,7 @@ pub fn cut(scene: &Scene, cuts: &[u32]) -> (Scene, Refinement) {
         }
     }
     refined.patches = patches;
-    (refined, Refinement { nodes })
+    (refined, Refinement { nodes, parents })
 }
 
 /// The corners of a scene's traced triangles by global index (the static triangles, then each
@@ -544,6 +554,7 @@ mod tests {
         // Leaves keep their leaf ids: locate names the cutter's triangles.
         let refinement = Refinement {
             nodes: cutter.nodes.clone(),
+            parents: Vec::new(),
         };
         let mut state = 12345u64;
         let mut uniform = || {

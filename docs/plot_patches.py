@@ -1,0 +1,75 @@
+#!/usr/bin/env python3
+"""Plots per-patch error against patches from `radiosity bench-patches` output, one panel per
+scene: uniform sizes (and the source's triangles) as a line, `auto` as stars (the standard
+budget, and a third of the best uniform way's patches).
+
+    for s in 1 2 3; do
+        ./target/release/radiosity bench-patches --seed $s --out docs/patches-seed$s.json
+    done
+    pip install matplotlib
+    python3 docs/plot_patches.py docs/patches.png docs/patches-seed*.json
+
+With several files (seeds), each point is their mean, with a bar from the lowest to the
+highest: how much the figure itself moves with the lines and the reference's paths.
+"""
+import json
+import sys
+from statistics import mean
+
+import matplotlib
+import matplotlib.ticker
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+
+def key(p):
+    return (p["scene"], str(p["patch_size"]), p.get("budget"))
+
+
+def main(target, sources):
+    runs = {}
+    for source in sources:
+        with open(source) as f:
+            for p in json.load(f):
+                runs.setdefault(key(p), []).append(p)
+    scenes = sorted({k[0] for k in runs})
+    fig, axes = plt.subplots(1, len(scenes), figsize=(5 * len(scenes), 4), squeeze=False)
+    for ax, scene in zip(axes[0], scenes):
+        uniform, auto = [], []
+        for k, ps in runs.items():
+            if k[0] != scene:
+                continue
+            errors = [100 * p["patch_error"] for p in ps]
+            point = (mean(p["patches"] for p in ps), mean(errors), min(errors), max(errors), k)
+            (auto if k[1] == "auto" else uniform).append(point)
+        uniform.sort()
+        xs = [u[0] for u in uniform]
+        ys = [u[1] for u in uniform]
+        low = [u[1] - u[2] for u in uniform]
+        high = [u[3] - u[1] for u in uniform]
+        ax.errorbar(xs, ys, yerr=[low, high], marker="o", capsize=3, label="uniform / source")
+        for u in uniform:
+            ax.annotate(u[4][1], (u[0], u[1]), textcoords="offset points", xytext=(4, 4),
+                        fontsize=8)
+        for a in sorted(auto):
+            ax.errorbar([a[0]], [a[1]], yerr=[[a[1] - a[2]], [a[3] - a[1]]], marker="*",
+                        markersize=12, capsize=3, linestyle="none",
+                        label=f"auto, budget {a[4][2]}")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+        ax.yaxis.set_major_locator(matplotlib.ticker.LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+        ax.yaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+        ax.yaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+        ax.set_xlabel("patches")
+        ax.set_ylabel("per-patch error against the path tracer (%)")
+        ax.set_title(scene)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(target, dpi=110)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1], sys.argv[2:])
