@@ -697,8 +697,7 @@ pub struct PatchPoint {
 /// the reference's radiance (not black on screen), whatever the reference's noise.
 ///
 /// # Errors
-/// When the scene cannot be traced, or has punctual lights (the reference does not model
-/// them).
+/// When the scene cannot be traced or cut.
 pub fn patch_point(
     name: &str,
     scene: Scene,
@@ -731,9 +730,8 @@ pub fn patch_point(
     let paths = (reference_paths / 2 / scene.patches.len().max(1)).max(32);
     let traced = |seed| {
         crate::direct::reference::path_traced(scene, bake.tracer(), 0, paths, [0.0; 3], seed)
-            .map_err(|e| e.to_string())
     };
-    let (first, second) = (traced(seed + 6)?, traced(seed + 1006)?);
+    let (first, second) = (traced(seed + 6), traced(seed + 1006));
     let radiance: Vec<[f64; 3]> = first
         .iter()
         .zip(&second)

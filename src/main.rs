@@ -177,7 +177,7 @@ enum Command {
     },
     /// Measure how patches are made against a path-traced reference: per-patch error, bias,
     /// patches and seconds of the source's triangles, uniform sizes and auto, on the Cornell
-    /// box, the panel room and the level (README, "Adaptive patches").
+    /// box, the panel room, the level and the level lit by lamps (README, "Adaptive patches").
     BenchPatches {
         /// Directory of the sample scenes.
         #[arg(long, default_value = "scenes")]
@@ -344,6 +344,10 @@ fn run(cli: Cli) -> Result<(), String> {
                 ),
                 (
                     "level.gltf",
+                    [Source, Length(0.5), Length(0.25), Length(0.125), Auto],
+                ),
+                (
+                    "level_lamps.gltf",
                     [Source, Length(0.5), Length(0.25), Length(0.125), Auto],
                 ),
             ] {

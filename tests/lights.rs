@@ -7,6 +7,7 @@ mod common;
 use common::Doc;
 use glam::DVec3;
 use radiosity::bake::Bake;
+use radiosity::direct::reference::path_traced;
 use radiosity::loader::{LoadOptions, load};
 use radiosity::scene::Scene;
 use radiosity::solve::SolveParams;
@@ -384,4 +385,75 @@ fn bad_lights_are_refused_with_their_name() {
         let named = error.contains("light 0") || error.contains("lights[0]");
         assert!(named && error.contains(why), "{error}");
     }
+}
+
+#[test]
+fn the_path_traced_reference_sees_point_and_directional_lights_as_the_closed_forms_do() {
+    // The point light above the floor: each patch's reference is ρ/π times its mean of
+    // I·cos/d², from random points (its only noise); nothing interreflects.
+    let intensity = 50.0;
+    let height = 3.0;
+    let doc = floor_scene(
+        json!([{"type": "point", "intensity": intensity}]),
+        &[light_node(0, [0.0, height, 0.0], [0.0, 0.0, 0.0, 1.0])],
+        &[],
+    );
+    let baked = bake(load_with(&doc, 1.0, 1.0));
+    let reference = path_traced(&baked.scene, baked.tracer(), 0, 16, [0.0; 3], 5);
+    let (mut z2, mut covered, mut checked) = (0.0, 0, 0);
+    for (patch, t) in floor_triangles(&baked.scene) {
+        let expected = RHO / std::f64::consts::PI
+            * mean_over(t, &|p| {
+                let d2 = p.x * p.x + p.z * p.z + height * height;
+                intensity * height / d2.sqrt() / d2
+            });
+        let (l, sigma) = (reference[patch].radiance[0], reference[patch].stderr[0]);
+        assert!(sigma > 0.0 && sigma < 0.1 * expected, "σ {sigma} of {expected}");
+        let z = (l - expected) / sigma;
+        z2 += z * z;
+        covered += usize::from(z.abs() <= 2.0);
+        checked += 1;
+    }
+    // 8 point pairs per patch: z follows a Student t with 7 degrees of freedom (variance 1.4).
+    let z2 = z2 / f64::from(checked);
+    assert!(checked >= 800, "{checked}");
+    assert!((0.9..1.9).contains(&z2), "mean z² {z2}");
+    assert!(
+        covered as f64 >= 0.85 * f64::from(checked),
+        "{covered} of {checked} within 2σ"
+    );
+
+    // The sun 30° from the vertical over a plate 1 m above the floor: exact where it is lit,
+    // black in the plate's shadow.
+    let lux = 1000.0;
+    let theta = 30f64.to_radians();
+    let tilt = glam::DQuat::from_rotation_z(theta) * glam::DQuat::from_array(DOWN);
+    let plate = vec![
+        [-1.0, 1.0, -1.0],
+        [1.0, 1.0, -1.0],
+        [1.0, 1.0, 1.0],
+        [-1.0, 1.0, 1.0],
+    ];
+    let doc = floor_scene(
+        json!([{"type": "directional", "intensity": lux}]),
+        &[light_node(0, [0.0, 50.0, 0.0], tilt.to_array())],
+        &[(plate, vec![0, 3, 2, 0, 2, 1])],
+    );
+    let baked = bake(load_with(&doc, 0.5, 1.0));
+    let reference = path_traced(&baked.scene, baked.tracer(), 0, 8, [0.0; 3], 6);
+    let expected = RHO / std::f64::consts::PI * lux * theta.cos();
+    let (mut lit, mut dark) = (0, 0);
+    for (patch, centre) in floor_centroids(&baked.scene) {
+        let l = reference[patch].radiance[0];
+        let outside = (centre.x - theta.tan()).abs().max(centre.z.abs()) - 1.0;
+        if outside > 0.4 {
+            // Exact to the f32 geometry.
+            assert!((l - expected).abs() < 1e-6 * expected, "{l} against {expected}");
+            lit += 1;
+        } else if outside < -0.4 {
+            assert_eq!(l, 0.0, "lit in the shadow at {centre}");
+            dark += 1;
+        }
+    }
+    assert!(lit > 1000 && dark >= 4, "{lit} lit, {dark} dark");
 }

@@ -17,16 +17,22 @@
 //!
 //! Every estimate is unbiased for the radiance of the continuous scene, not of a discretisation
 //! of it, which is the point: no patch-constant model, no contact or leak the solver's tallies
-//! share. Each patch's standard error is its samples' spread. Punctual lights are not modelled:
-//! a scene with lights is refused.
+//! share. Each patch's standard error is its samples' spread.
+//!
+//! Punctual lights (`KHR_lights_punctual`) cannot be hit by a path: at every vertex of a path
+//! each adds its exact irradiance there (`I·cos θ / d²` with the spot's cone and the range's
+//! window for point and spot lights, `E⊥·cos θ` for directional ones), behind one shadow ray;
+//! the same per-point value [`super::DirectLight`] averages over its sample points.
 
 use glam::DVec3;
 use rand::rngs::Xoshiro256PlusPlus;
 use rand::{RngExt, SeedableRng};
 use rayon::prelude::*;
 
-use super::{Frame, Occluders, Posed, inset, into_inset, triangle_point};
-use crate::scene::Scene;
+use super::{
+    Frame, Occluders, Posed, inset, into_inset, range_window, spot_attenuation, triangle_point,
+};
+use crate::scene::{LightKind, Scene};
 use crate::trace::coincident::COINCIDENT;
 use crate::trace::{Hit, Line, SceneTracer};
 
@@ -41,14 +47,6 @@ pub struct Estimate {
     /// may come out below zero when the patch is nearly uniform): what one radiance per patch
     /// cannot show, however exact.
     pub spread: [f64; 3],
-}
-
-/// Why there is no reference.
-#[derive(Clone, Debug, PartialEq, thiserror::Error)]
-pub enum ReferenceError {
-    /// The path tracer does not model punctual lights.
-    #[error("the path-traced reference does not model punctual lights ({0} in the scene)")]
-    Lights(usize),
 }
 
 /// One emitting patch, for next-event estimation.
@@ -97,10 +95,7 @@ pub fn path_traced(
     paths: usize,
     sky: [f64; 3],
     seed: u64,
-) -> Result<Vec<Estimate>, ReferenceError> {
-    if !scene.lights.is_empty() {
-        return Err(ReferenceError::Lights(scene.lights.len()));
-    }
+) -> Vec<Estimate> {
     let posed = Posed::at(scene, tracer, frame);
     let view = posed.frame(scene, tracer, Occluders::All);
     let places = places(scene, &view);
@@ -115,9 +110,20 @@ pub fn path_traced(
         places: &places,
         emitters: &emitters,
         emitter_of,
+        punctual: scene
+            .lights
+            .iter()
+            .map(|light| Punctual {
+                kind: light.kind,
+                position: light.position(frame),
+                direction: light.direction(frame),
+                power: light.power(),
+                range: light.range,
+            })
+            .collect(),
         sky,
     };
-    Ok((0..scene.patches.len())
+    (0..scene.patches.len())
         .into_par_iter()
         .map(|i| {
             let mut rng = Xoshiro256PlusPlus::seed_from_u64(
@@ -125,7 +131,19 @@ pub fn path_traced(
             );
             tracer.patch(i, paths.max(2), &mut rng)
         })
-        .collect())
+        .collect()
+}
+
+/// A punctual light as posed at the frame.
+struct Punctual {
+    kind: LightKind,
+    position: DVec3,
+    /// Unit direction it travels in (spot's axis, directional's rays).
+    direction: DVec3,
+    /// Colour × intensity.
+    power: [f64; 3],
+    /// Range, normalised units.
+    range: Option<f64>,
 }
 
 /// Every patch's place at the frame.
@@ -222,6 +240,8 @@ struct Tracer<'a> {
     emitters: &'a [Emitter],
     /// Per patch, its index among the emitters.
     emitter_of: Vec<Option<usize>>,
+    /// The punctual lights.
+    punctual: Vec<Punctual>,
     sky: [f64; 3],
 }
 
@@ -283,7 +303,8 @@ impl Tracer<'_> {
         let mut throughput = [1.0; 3];
         for bounce in 0..MAX_BOUNCES {
             let direct = self.next_event(x, place, rng, hits);
-            (0..3).for_each(|c| total[c] += throughput[c] * direct[c]);
+            let punctual = self.punctual(x, place, hits);
+            (0..3).for_each(|c| total[c] += throughput[c] * (direct[c] + punctual[c]));
             // A cosine-weighted direction: the irradiance is π times the mean radiance coming
             // in along it.
             let w = cosine_direction(place.normal, rng);
@@ -360,6 +381,50 @@ impl Tracer<'_> {
         }
         let g = light.weight(cos_x, cos_y, r2);
         light.emission.map(|le| le * g)
+    }
+
+    /// The irradiance at `x` (on `place`) from the punctual lights, shadows included.
+    fn punctual(&self, x: DVec3, place: &Place, hits: &mut Vec<Hit>) -> [f64; 3] {
+        let mut total = [0.0; 3];
+        // Point and spot lights' intensities are per square metre at a metre: distances in
+        // normalised units are `radius` metres each.
+        let radius = self.scene.normalisation.radius;
+        for light in &self.punctual {
+            let e = match light.kind {
+                LightKind::Directional => {
+                    let cos = -place.normal.dot(light.direction);
+                    if cos <= 0.0 {
+                        continue;
+                    }
+                    match self.first_hit(x, -light.direction, place, hits) {
+                        Met::Sky => cos,
+                        _ => continue,
+                    }
+                }
+                LightKind::Point | LightKind::Spot { .. } => {
+                    let to_light = light.position - x;
+                    let d = to_light.length();
+                    let cos = place.normal.dot(to_light) / d;
+                    if d <= 0.0 || cos <= 0.0 {
+                        continue;
+                    }
+                    let mut e = cos / (d * d) * range_window(d, light.range);
+                    if let LightKind::Spot { inner, outer } = light.kind {
+                        e *= spot_attenuation(light.direction.dot(-to_light / d), inner, outer);
+                    }
+                    if e <= 0.0
+                        || self
+                            .view
+                            .blocked(x, light.position, place.triangle, place.back, hits)
+                    {
+                        continue;
+                    }
+                    e / (radius * radius)
+                }
+            };
+            (0..3).for_each(|c| total[c] += e * light.power[c]);
+        }
+        total
     }
 
     /// What the ray from `x` (on `place`) along unit `w` meets first.
