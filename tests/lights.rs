@@ -408,7 +408,10 @@ fn the_path_traced_reference_sees_point_and_directional_lights_as_the_closed_for
                 intensity * height / d2.sqrt() / d2
             });
         let (l, sigma) = (reference[patch].radiance[0], reference[patch].stderr[0]);
-        assert!(sigma > 0.0 && sigma < 0.1 * expected, "σ {sigma} of {expected}");
+        assert!(
+            sigma > 0.0 && sigma < 0.1 * expected,
+            "σ {sigma} of {expected}"
+        );
         let z = (l - expected) / sigma;
         z2 += z * z;
         covered += usize::from(z.abs() <= 2.0);
@@ -448,7 +451,10 @@ fn the_path_traced_reference_sees_point_and_directional_lights_as_the_closed_for
         let outside = (centre.x - theta.tan()).abs().max(centre.z.abs()) - 1.0;
         if outside > 0.4 {
             // Exact to the f32 geometry.
-            assert!((l - expected).abs() < 1e-6 * expected, "{l} against {expected}");
+            assert!(
+                (l - expected).abs() < 1e-6 * expected,
+                "{l} against {expected}"
+            );
             lit += 1;
         } else if outside < -0.4 {
             assert_eq!(l, 0.0, "lit in the shadow at {centre}");
