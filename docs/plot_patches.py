@@ -34,8 +34,12 @@ def main(target, sources):
             for p in json.load(f):
                 runs.setdefault(key(p), []).append(p)
     scenes = sorted({k[0] for k in runs})
-    fig, axes = plt.subplots(1, len(scenes), figsize=(5 * len(scenes), 4), squeeze=False)
-    for ax, scene in zip(axes[0], scenes):
+    columns = min(2, len(scenes))
+    rows = (len(scenes) + columns - 1) // columns
+    fig, axes = plt.subplots(rows, columns, figsize=(6 * columns, 4.5 * rows), squeeze=False)
+    for ax in axes.flat[len(scenes):]:
+        ax.set_visible(False)
+    for ax, scene in zip(axes.flat, scenes):
         uniform, auto = [], []
         for k, ps in runs.items():
             if k[0] != scene:
