@@ -111,11 +111,11 @@ enum Command {
         /// Jobs traced or solved at once; the others wait `queued`.
         #[arg(long, default_value_t = 1)]
         max_running: usize,
-        /// Largest accepted scene, MiB.
-        #[arg(long, default_value_t = 64)]
+        /// Largest accepted scene, MiB (1 to 1,048,576).
+        #[arg(long, default_value_t = 64, value_parser = parse_body_mib)]
         max_body_mib: usize,
-        /// Memory budget of one job, GiB (estimated before tracing).
-        #[arg(long, default_value_t = 8.0)]
+        /// Memory budget of one job, GiB (estimated before tracing; above 0).
+        #[arg(long, default_value_t = 8.0, value_parser = parse_budget_gib)]
         memory_budget_gib: f64,
         /// Where finished results are kept across restarts.
         #[arg(long, default_value = "./data")]
@@ -539,7 +539,6 @@ async fn shutdown_signal() {
     tracing::info!("shutting down");
 }
 
-/// Bakes every scene, logging progress, and fails if any scene failed or was cancelled.
 /// `WIDTHxHEIGHT`, each side from 1 to [`radiosity::batch::MAX_PREVIEW_SIDE`].
 fn parse_size(s: &str) -> Result<(u32, u32), String> {
     let max = radiosity::batch::MAX_PREVIEW_SIDE;
@@ -556,6 +555,29 @@ fn parse_size(s: &str) -> Result<(u32, u32), String> {
     Ok((side(w)?, side(h)?))
 }
 
+/// Largest `--max-body-mib`: 1 TiB (a larger value would overflow the byte count on 32-bit
+/// targets, and no scene is that large).
+const MAX_BODY_MIB: usize = 1 << 20;
+
+/// `--max-body-mib`: whole MiB from 1 to [`MAX_BODY_MIB`].
+fn parse_body_mib(s: &str) -> Result<usize, String> {
+    s.trim()
+        .parse::<usize>()
+        .ok()
+        .filter(|v| (1..=MAX_BODY_MIB).contains(v))
+        .ok_or_else(|| format!("{s:?} is not a whole number of MiB from 1 to {MAX_BODY_MIB}"))
+}
+
+/// `--memory-budget-gib`: a finite number of GiB above 0, at most 2^30 (an exabyte).
+fn parse_budget_gib(s: &str) -> Result<f64, String> {
+    s.trim()
+        .parse::<f64>()
+        .ok()
+        .filter(|v| v.is_finite() && *v > 0.0 && *v <= f64::from(1u32 << 30))
+        .ok_or_else(|| format!("{s:?} is not a number of GiB above 0 and at most 2^30"))
+}
+
+/// Bakes every scene, logging progress, and fails if any scene failed or was cancelled.
 fn bake(
     inputs: &[PathBuf],
     out: &std::path::Path,

@@ -253,6 +253,39 @@ fn bad_output_options_are_refused_before_baking() {
 }
 
 #[test]
+fn bad_server_limits_are_refused_before_serving() {
+    // A body limit whose byte count would wrap, and budgets that would refuse every job (NaN
+    // compares false with every estimate) or none: refused with the flag named, not served.
+    for (flag, value) in [
+        ("--max-body-mib", "17592186044416"),
+        ("--max-body-mib", "0"),
+        ("--memory-budget-gib", "NaN"),
+        ("--memory-budget-gib", "inf"),
+        ("--memory-budget-gib", "0"),
+    ] {
+        let mut child = radiosity()
+            .args(["serve", "--addr", "127.0.0.1:0", flag, value])
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        // A server that took the value would run until killed: give it 10 s.
+        let started = std::time::Instant::now();
+        while child.try_wait().unwrap().is_none() {
+            if started.elapsed() > std::time::Duration::from_secs(10) {
+                child.kill().unwrap();
+                panic!("{flag} {value}: the server started");
+            }
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+        let output = child.wait_with_output().unwrap();
+        assert!(!output.status.success(), "{flag} {value} served");
+        let log = String::from_utf8_lossy(&output.stderr);
+        assert!(log.contains(flag), "{flag} {value}: {log}");
+    }
+}
+
+#[test]
 fn ctrl_c_stops_a_bake_and_keeps_the_previous_outputs_whole() {
     let out = scratch("interrupt");
     let bake = |lines: &str| {

@@ -401,6 +401,9 @@ async fn refine_lowers_the_error_and_relight_needs_no_tracing() {
     assert_eq!(response.status(), 202);
     let refined = wait(&client, &base, &id, Duration::from_secs(60)).await;
     assert_eq!(refined["status"], "done");
+    // The progress counts the added lines.
+    assert_eq!(refined["progress"]["lines_total"], 80_000);
+    assert_eq!(refined["progress"]["lines_traced"], 80_000);
     let after = frame(2).await;
     assert!(
         mean_error(&after) < 0.7 * mean_error(&before),
@@ -587,6 +590,9 @@ async fn finished_results_survive_a_restart_and_unfinished_jobs_report_interrupt
     let second = start(config).await;
     let status = wait(&client, &second, &done, Duration::from_secs(5)).await;
     assert_eq!(status["status"], "done");
+    // Its lines were all traced before the restart.
+    assert_eq!(status["progress"]["lines_traced"], 20_000);
+    assert_eq!(status["progress"]["lines_total"], 20_000);
     let after: Value = get_json(&client, format!("{second}/v1/timelines/{done}/frames/5")).await;
     assert_eq!(before, after);
     let patches_after: Value =

@@ -90,8 +90,10 @@ pub struct Job {
     pub patch_table: RwLock<Arc<serde_json::Value>>,
     /// Cut the patches after tracing where the light needs them (`patch_size=auto`).
     pub auto: Option<Adaptive>,
-    /// Lines and seed.
+    /// Lines and seed asked for at creation.
     pub lines: LineParams,
+    /// Lines asked for in all: at creation, and by every refinement since.
+    pub lines_total: AtomicU64,
     /// How frames are solved: the sky's radiance, the tolerance and the iteration cap.
     pub solve: SolveParams,
     /// Largest reflectance the scene was loaded with; relighting may not go above it.
@@ -177,6 +179,7 @@ impl Job {
             frame_times,
             patch_table: RwLock::new(Arc::new(patch_table)),
             auto: None,
+            lines_total: AtomicU64::new(lines.lines),
             lines,
             solve,
             max_reflectance,
@@ -233,6 +236,7 @@ impl Job {
                 bundles: None,
                 seed: record.seed,
             },
+            lines_total: AtomicU64::new(record.lines),
             solve: SolveParams {
                 sky: record.sky,
                 ..SolveParams::default()
@@ -280,7 +284,7 @@ impl Job {
             frame_times: self.frame_times.clone(),
             patches: self.patches.load(Ordering::Acquire),
             warnings: self.warnings(),
-            lines: self.lines.lines,
+            lines: self.lines_total.load(Ordering::Acquire),
             seed: self.lines.seed,
             sky: self.solve.sky,
             timings: [timings.load, timings.trace, timings.solve],
@@ -412,6 +416,7 @@ impl Job {
                 let Some(mut bake) = self.bake.lock().ok().and_then(|mut b| b.take()) else {
                     return self.fail("the job has no traced scene to refine".into());
                 };
+                self.lines_total.fetch_add(lines, Ordering::AcqRel);
                 self.set_status(Status::Tracing);
                 let started = Instant::now();
                 match bake.refine(lines, &self.control) {

@@ -343,6 +343,13 @@ fn status_json(job: &Job) -> serde_json::Value {
     let frames = job.frame_times.len();
     let solved = job.frames_solved.load(Ordering::Acquire);
     let fraction = job.control.fraction();
+    // The control counts the work of the first trace and of every refinement since, in
+    // proportion to their lines; a job read back from disk has traced all of its own.
+    let lines_total = job.lines_total.load(Ordering::Acquire);
+    let lines_traced = match status {
+        Status::Done => lines_total,
+        _ => (fraction * lines_total as f64).round() as u64,
+    };
     let eta = match status {
         Status::Tracing if fraction > 0.0 => Some(stage_seconds * (1.0 - fraction) / fraction),
         Status::Solving if solved > 0 => {
@@ -369,8 +376,8 @@ fn status_json(job: &Job) -> serde_json::Value {
         "id": job.id,
         "status": status,
         "progress": {
-            "lines_traced": (fraction * job.lines.lines as f64).round() as u64,
-            "lines_total": job.lines.lines,
+            "lines_traced": lines_traced,
+            "lines_total": lines_total,
             "frames_solved": solved,
             "frames_total": frames,
             "eta_seconds": eta,
