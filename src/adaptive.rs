@@ -224,7 +224,8 @@ fn mark(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<(u32, u32)> {
     // matters only when the budget binds: at a third of the best uniform size's patches it
     // did as well as area × relative variance on the Cornell box and better on the panel
     // room (2.5% against 2.6% and 3.3% against 4.0% for two seeds, `bench-patches
-    // --patch-budget 1034`).
+    // --patch-budget 1034`, measured with the reference's own noise estimate, before the
+    // bench measured it from two references).
     let nodes = LEAVES;
     let mut priority = vec![0.0f64; scene.patches.len() * nodes];
     for frame in scored_frames(bake) {
