@@ -416,9 +416,10 @@ pub fn bake_one(
     };
     let load_seconds = started.elapsed().as_secs_f64();
     log(&format!(
-        "{name}: tracing {} lines through {} frames, {} patches",
+        "{name}: tracing {} lines through {} frame{}, {} patches",
         params.lines.lines,
         scene.frames.count,
+        if scene.frames.count == 1 { "" } else { "s" },
         scene.patches.len()
     ));
     let started = Instant::now();

@@ -499,7 +499,11 @@ fn run(cli: Cli) -> Result<(), String> {
 
 /// Runs the service until ctrl-c or SIGTERM.
 fn serve(addr: &str, config: radiosity::service::Config) -> Result<(), String> {
-    tracing_subscriber::fmt().with_target(false).init();
+    // Colours for a terminal only: a log written to a file or a pipe stays plain text.
+    tracing_subscriber::fmt()
+        .with_target(false)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stdout()))
+        .init();
     let runtime = tokio::runtime::Runtime::new().map_err(|e| e.to_string())?;
     runtime.block_on(async {
         let listener = tokio::net::TcpListener::bind(addr)

@@ -286,6 +286,26 @@ fn bad_server_limits_are_refused_before_serving() {
 }
 
 #[test]
+fn the_server_log_to_a_pipe_has_no_colour_codes() {
+    use std::io::BufRead;
+    let data = scratch("log");
+    let mut child = radiosity()
+        .args(["serve", "--addr", "127.0.0.1:0", "--data-dir"])
+        .arg(&data)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    let read = std::io::BufReader::new(child.stdout.take().unwrap()).read_line(&mut line);
+    child.kill().unwrap();
+    child.wait().unwrap();
+    read.unwrap();
+    assert!(line.contains("listening on"), "{line:?}");
+    assert!(!line.contains('\u{1b}'), "{line:?}");
+}
+
+#[test]
 fn ctrl_c_stops_a_bake_and_keeps_the_previous_outputs_whole() {
     let out = scratch("interrupt");
     let bake = |lines: &str| {

@@ -21,6 +21,49 @@ const GLB_MAGIC: &[u8; 4] = b"glTF";
 const CHUNK_JSON: u32 = 0x4E4F_534A;
 const CHUNK_BIN: u32 = 0x004E_4942;
 
+/// What a file that is neither GLB nor JSON looks like, if it is not: `None` when it starts
+/// (after a byte-order mark and white space) with `{`, as a `.gltf` does.
+fn not_gltf(bytes: &[u8]) -> Option<String> {
+    let text = bytes.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(bytes);
+    let start = text.iter().position(|b| !b.is_ascii_whitespace());
+    let Some(start) = start else {
+        return Some("it is empty".into());
+    };
+    let text = &text[start..];
+    if text.starts_with(b"{") {
+        return None;
+    }
+    let known: [(&[u8], &str); 9] = [
+        (b"\x89PNG", "a PNG image"),
+        (b"\xFF\xD8\xFF", "a JPEG image"),
+        (b"PK\x03\x04", "a zip archive"),
+        (b"\x1F\x8B", "a gzip file"),
+        (b"Kaydara FBX Binary", "a binary FBX file"),
+        (b"BLENDER", "a Blender .blend file"),
+        (b"ply", "a PLY file"),
+        (b"solid", "an ASCII STL file"),
+        (b"<?xml", "an XML file (COLLADA .dae?)"),
+    ];
+    if let Some((_, what)) = known.iter().find(|(magic, _)| text.starts_with(magic)) {
+        return Some(format!("it looks like {what}"));
+    }
+    let obj = text.split(|&b| b == b'\n').take(64).any(|line| {
+        ["v ", "vn ", "vt ", "f ", "o ", "mtllib "]
+            .iter()
+            .any(|k| line.starts_with(k.as_bytes()))
+    });
+    if obj {
+        return Some("it looks like a Wavefront OBJ file".into());
+    }
+    let head: String = text
+        .iter()
+        .take(16)
+        .flat_map(|&b| std::ascii::escape_default(b))
+        .map(char::from)
+        .collect();
+    Some(format!("it starts with \"{head}\""))
+}
+
 /// Parses a `.glb` or `.gltf` file from memory.
 pub fn parse(bytes: &[u8]) -> Result<Container, LoadError> {
     let (json, blob) = if bytes.starts_with(GLB_MAGIC) {
@@ -28,6 +71,13 @@ pub fn parse(bytes: &[u8]) -> Result<Container, LoadError> {
     } else {
         (bytes, None)
     };
+    if blob.is_none()
+        && let Some(what) = not_gltf(json)
+    {
+        return Err(LoadError::Container(format!(
+            "not a glTF file (a .gltf is JSON, a .glb starts with \"glTF\"): {what}"
+        )));
+    }
     let root = gltf::json::Root::from_slice(json)
         .map_err(|e| LoadError::Container(format!("invalid JSON: {e}")))?;
     precheck(&root)?;
@@ -188,6 +238,31 @@ fn describe_gltf_error(error: gltf::Error) -> LoadError {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn a_file_that_is_not_gltf_is_named_for_what_it_looks_like() {
+        for (bytes, says) in [
+            (
+                &b"# Blender 4.2\nmtllib room.mtl\no Cube\nv 1 1 1\n"[..],
+                "Wavefront OBJ",
+            ),
+            (b"\x89PNG\r\n\x1a\n", "PNG image"),
+            (b"   \n", "empty"),
+            (b"hello", "starts with \"hello\""),
+        ] {
+            let error = super::parse(bytes).err().expect("refused").to_string();
+            assert!(
+                error.contains("not a glTF file") && error.contains(says),
+                "{error}"
+            );
+        }
+        // JSON that is not glTF keeps the parser's own message.
+        let error = super::parse(b"{\"a\": 1}")
+            .err()
+            .expect("refused")
+            .to_string();
+        assert!(!error.contains("not a glTF file"), "{error}");
+    }
+
     use super::*;
 
     fn glb(json: &[u8], bin: Option<&[u8]>) -> Vec<u8> {

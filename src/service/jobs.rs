@@ -33,6 +33,20 @@ pub enum Status {
     Cancelled,
 }
 
+impl std::fmt::Display for Status {
+    /// As the API writes it (`solving`), in messages as in documents.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Queued => "queued",
+            Self::Tracing => "tracing",
+            Self::Solving => "solving",
+            Self::Done => "done",
+            Self::Failed => "failed",
+            Self::Cancelled => "cancelled",
+        })
+    }
+}
+
 impl Status {
     /// Whether the job will change no more.
     #[must_use]
@@ -674,5 +688,27 @@ impl Jobs {
     pub fn all(&self) -> Vec<Arc<Job>> {
         let order = self.order.lock().map(|o| o.clone()).unwrap_or_default();
         order.iter().filter_map(|id| self.get(id)).collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Status;
+
+    #[test]
+    fn a_status_reads_in_messages_as_in_documents() {
+        for status in [
+            Status::Queued,
+            Status::Tracing,
+            Status::Solving,
+            Status::Done,
+            Status::Failed,
+            Status::Cancelled,
+        ] {
+            assert_eq!(
+                serde_json::to_value(status).unwrap(),
+                serde_json::Value::String(status.to_string())
+            );
+        }
     }
 }

@@ -468,7 +468,7 @@ fn solved_frame(
         })?;
     let (version, solution) = job.frame(f).ok_or_else(|| {
         ApiError::NotReady(format!(
-            "frame {f} is not solved yet (status {:?})",
+            "frame {f} is not solved yet (status {})",
             job.status()
         ))
     })?;
