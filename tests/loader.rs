@@ -103,6 +103,32 @@ fn rigid_poses_follow_the_interpolated_animation() {
 }
 
 #[test]
+fn a_channel_without_a_target_node_is_ignored_with_a_warning() {
+    // The specification allows a channel whose target has no node (an extension animates
+    // something else): the rest of the animation plays, and the warning names the channel.
+    let mut doc = three_quads();
+    doc.json["animations"][0]["channels"][1]["target"]
+        .as_object_mut()
+        .unwrap()
+        .remove("node");
+    let scene = load_ok(&doc);
+    assert!(
+        scene
+            .warnings
+            .iter()
+            .any(|w| w.contains("animations[0].channels[1]") && w.contains("no target node")),
+        "{:?}",
+        scene.warnings
+    );
+    let reference = load_ok(&three_quads());
+    assert_eq!(scene.frames.count, reference.frames.count);
+    assert_eq!(
+        scene.objects[0].positions_at(24),
+        reference.objects[0].positions_at(24)
+    );
+}
+
+#[test]
 fn frames_follow_fps_and_overrides_and_animation_choice() {
     let doc = three_quads();
     let bytes = doc.gltf();

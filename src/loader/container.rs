@@ -15,6 +15,8 @@ pub struct Container {
     pub document: Document,
     /// Bytes of each buffer, exactly `byteLength` long.
     pub buffers: Vec<Vec<u8>>,
+    /// What was read past: animation channels without a target node.
+    pub warnings: Vec<String>,
 }
 
 const GLB_MAGIC: &[u8; 4] = b"glTF";
@@ -78,7 +80,8 @@ pub fn parse(bytes: &[u8]) -> Result<Container, LoadError> {
             "not a glTF file (a .gltf is JSON, a .glb starts with \"glTF\"): {what}"
         )));
     }
-    let root = gltf::json::Root::from_slice(json)
+    let (json, warnings) = without_untargeted_channels(json)?;
+    let root = gltf::json::Root::from_slice(&json)
         .map_err(|e| LoadError::Container(format!("invalid JSON: {e}")))?;
     precheck(&root)?;
     let document = Document::from_json(root).map_err(describe_gltf_error)?;
@@ -107,7 +110,65 @@ pub fn parse(bytes: &[u8]) -> Result<Container, LoadError> {
         data.truncate(length);
         buffers.push(data);
     }
-    Ok(Container { document, buffers })
+    Ok(Container {
+        document,
+        buffers,
+        warnings,
+    })
+}
+
+/// The JSON without the animation channels that have no `target.node` (the specification
+/// allows them, for extensions to target something else; they animate no node here), and a
+/// warning naming them. The JSON as it is when there are none.
+fn without_untargeted_channels(
+    json: &[u8],
+) -> Result<(std::borrow::Cow<'_, [u8]>, Vec<String>), LoadError> {
+    let needle = b"\"channels\"";
+    if !json.windows(needle.len()).any(|w| w == needle) {
+        return Ok((json.into(), Vec::new()));
+    }
+    let mut value: serde_json::Value = serde_json::from_slice(json)
+        .map_err(|e| LoadError::Container(format!("invalid JSON: {e}")))?;
+    let mut dropped = Vec::new();
+    if let Some(animations) = value
+        .get_mut("animations")
+        .and_then(serde_json::Value::as_array_mut)
+    {
+        for (a, animation) in animations.iter_mut().enumerate() {
+            let Some(channels) = animation
+                .get_mut("channels")
+                .and_then(serde_json::Value::as_array_mut)
+            else {
+                continue;
+            };
+            let mut c = 0;
+            channels.retain(|channel| {
+                let keep = channel
+                    .get("target")
+                    .is_none_or(|t| t.get("node").is_some());
+                if !keep {
+                    dropped.push(format!("animations[{a}].channels[{c}]"));
+                }
+                c += 1;
+                keep
+            });
+        }
+    }
+    if dropped.is_empty() {
+        return Ok((json.into(), Vec::new()));
+    }
+    let warning = format!(
+        "{} ignored: {} no target node",
+        dropped.join(", "),
+        if dropped.len() == 1 {
+            "it has"
+        } else {
+            "they have"
+        }
+    );
+    let json = serde_json::to_vec(&value)
+        .map_err(|e| LoadError::Container(format!("invalid JSON: {e}")))?;
+    Ok((json.into(), vec![warning]))
 }
 
 /// Checks what the `gltf` crate's validation (gltf-json 1.4.1) gets wrong: it indexes the

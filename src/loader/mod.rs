@@ -172,8 +172,12 @@ impl LoadError {
 /// Loads a `.glb` or `.gltf` (with embedded data) from memory.
 pub fn load(bytes: &[u8], options: &LoadOptions) -> Result<Scene, LoadError> {
     options.check()?;
-    let container::Container { document, buffers } = container::parse(bytes)?;
-    let mut warnings = Vec::new();
+    let container::Container {
+        document,
+        buffers,
+        warnings,
+    } = container::parse(bytes)?;
+    let mut warnings = warnings;
     let roots: Vec<usize> = match document
         .default_scene()
         .or_else(|| document.scenes().next())
