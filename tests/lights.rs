@@ -206,26 +206,29 @@ fn a_spot_light_is_dark_outside_its_outer_cone() {
     assert!(dark > 1000 && full > 20, "{dark} dark, {full} fully lit");
 }
 
-#[test]
-fn a_directional_light_gives_its_intensity_times_cos_theta_and_shadows() {
-    let intensity = 1000.0;
-    // The sun 30° from the vertical: −Z turned down, then tilted about +Z, so the light
-    // travels along w = (sin θ, −cos θ, 0).
-    let theta = 30f64.to_radians();
+/// The floor under a sun of `lux` at `theta` from the vertical (−Z turned down, then tilted
+/// about +Z, so the light travels along w = (sin θ, −cos θ, 0)), with a 2 m plate 1 m above
+/// the floor: its shadow is the plate moved by tan θ along +x.
+fn sun_over_a_plate(lux: f64, theta: f64) -> Doc {
     let tilt = glam::DQuat::from_rotation_z(theta) * glam::DQuat::from_array(DOWN);
-    // A 2 m plate 1 m above the floor: its shadow is the plate moved by tan θ along +x.
     let plate = vec![
         [-1.0, 1.0, -1.0],
         [1.0, 1.0, -1.0],
         [1.0, 1.0, 1.0],
         [-1.0, 1.0, 1.0],
     ];
-    let doc = floor_scene(
-        json!([{"type": "directional", "intensity": intensity}]),
+    floor_scene(
+        json!([{"type": "directional", "intensity": lux}]),
         &[light_node(0, [0.0, 50.0, 0.0], tilt.to_array())],
         &[(plate, vec![0, 3, 2, 0, 2, 1])],
-    );
-    let bake = bake(load_with(&doc, 0.5, 1.0));
+    )
+}
+
+#[test]
+fn a_directional_light_gives_its_intensity_times_cos_theta_and_shadows() {
+    let intensity = 1000.0;
+    let theta = 30f64.to_radians();
+    let bake = bake(load_with(&sun_over_a_plate(intensity, theta), 0.5, 1.0));
     let direct = bake.direct().irradiance(0, &bake.light_power()).unwrap();
     let expected = intensity * theta.cos();
     let shift = theta.tan();
@@ -430,19 +433,7 @@ fn the_path_traced_reference_sees_point_and_directional_lights_as_the_closed_for
     // black in the plate's shadow.
     let lux = 1000.0;
     let theta = 30f64.to_radians();
-    let tilt = glam::DQuat::from_rotation_z(theta) * glam::DQuat::from_array(DOWN);
-    let plate = vec![
-        [-1.0, 1.0, -1.0],
-        [1.0, 1.0, -1.0],
-        [1.0, 1.0, 1.0],
-        [-1.0, 1.0, 1.0],
-    ];
-    let doc = floor_scene(
-        json!([{"type": "directional", "intensity": lux}]),
-        &[light_node(0, [0.0, 50.0, 0.0], tilt.to_array())],
-        &[(plate, vec![0, 3, 2, 0, 2, 1])],
-    );
-    let baked = bake(load_with(&doc, 0.5, 1.0));
+    let baked = bake(load_with(&sun_over_a_plate(lux, theta), 0.5, 1.0));
     let reference = path_traced(&baked.scene, baked.tracer(), 0, 8, [0.0; 3], 6);
     let expected = RHO / std::f64::consts::PI * lux * theta.cos();
     let (mut lit, mut dark) = (0, 0);
