@@ -244,12 +244,12 @@ fn mark(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<(u32, u32)> {
                     let level = heap.ilog2();
                     let span = LEAVES >> level;
                     let first = (heap << (DEPTH - level)) - LEAVES;
-                    let Some((gain, mean)) = variation(&leaves[first..first + span], auto) else {
+                    let Some(gain) = variation(&leaves[first..first + span], auto) else {
                         continue;
                     };
                     // The light the node misplaces: its reflected flux's spread.
                     let area = patch.area / f64::from(1u32 << level);
-                    *priority = priority.max(area * rho * gain.sqrt() * mean);
+                    *priority = priority.max(area * rho * gain.sqrt());
                 }
             });
     }
@@ -280,10 +280,10 @@ fn mark(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<(u32, u32)> {
 }
 
 /// How much the light a node gathers varies over its pieces (`[n, Σ, Σ²]` of the radiance
-/// each gathers, the node's leaves of the scoring tree), relative to its mean: the
-/// crossing-weighted variance of the pieces' true means, estimated without bias as
-/// Σ w_k ((m_k − m̄)² − v_k), v_k the variance of piece k's mean, less the noise the pieces
-/// would show once cut (Σ w_k v_k), over m̄²; and m̄. A node left whole shows m̄ over all its
+/// each gathers, the node's leaves of the scoring tree): the crossing-weighted variance of
+/// the pieces' true means, estimated without bias as Σ w_k ((m_k − m̄)² − v_k), v_k the
+/// variance of piece k's mean, less the noise the pieces would show once cut (Σ w_k v_k,
+/// weighed by [`NOISE_COST`]). A node left whole shows m̄ over all its
 /// pieces; cut down to them, each shows its own, noisier. Looking at every piece, not
 /// only the two halves, finds light that a first cut would split evenly (a lamp centred on
 /// the cut).
@@ -292,7 +292,7 @@ fn mark(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<(u32, u32)> {
 /// [`Adaptive::precision`], and the pieces differ
 /// beyond their noise: Σ (m_k − m̄)² / v_k, χ² with K − 1 degrees of freedom when they do
 /// not, above its mean by [`Adaptive::significance`] standard deviations.
-fn variation(pieces: &[[f64; 3]], auto: &Adaptive) -> Option<(f64, f64)> {
+fn variation(pieces: &[[f64; 3]], auto: &Adaptive) -> Option<f64> {
     let (h0, h1) = pieces.split_at(pieces.len() / 2);
     let crossings = |h: &[[f64; 3]]| h.iter().map(|p| p[0]).sum::<f64>();
     if crossings(h0) < auto.min_crossings || crossings(h1) < auto.min_crossings {
@@ -338,8 +338,7 @@ fn variation(pieces: &[[f64; 3]], auto: &Adaptive) -> Option<(f64, f64)> {
         .iter()
         .map(|&(n, m, v)| n / total * ((m - mean).powi(2) - NOISE_COST * v))
         .sum();
-    let relative = gain / (mean * mean).max(f64::MIN_POSITIVE);
-    (relative > 0.0).then_some((relative, mean))
+    (gain > 0.0).then_some(gain)
 }
 
 /// How many times its noise variance a piece's estimate costs in [`variation`]'s gain: 1 for

@@ -63,13 +63,8 @@ impl Bake {
         let list = IntersectionList::build(&scene, &tracer, params, control)?;
         let mut tallies = Tallies::default();
         tallies.update(&list, &tracer.surfaces(), scene.patches.len());
-        let direct = DirectLight::compute(&scene, &tracer, control)?;
-        let area = AreaLights::compute(
-            &scene,
-            &tracer,
-            Sampling::for_lines(list.lines() as u64, scene.patches.len(), params.seed),
-            control,
-        )?;
+        let (direct, area) =
+            Self::sampled_lights(&scene, &tracer, (list.lines(), params.seed), control)?;
         let warnings = overlap_warnings(&scene, &tracer, &list);
         Ok(Self {
             scene,
@@ -127,7 +122,9 @@ impl Bake {
         // What can fail (cancellation) first: the bake is left as it was.
         let tracer = SceneTracer::new(&scene);
         let (direct, area) = match lights {
-            Lights::Sample => self.sampled_lights(&scene, &tracer, control)?,
+            Lights::Sample => {
+                Self::sampled_lights(&scene, &tracer, (self.list.lines(), self.seed), control)?
+            }
             Lights::Inherit => (
                 self.direct.inherit(refinement.parents()),
                 self.area.inherit(refinement.parents()),
@@ -154,18 +151,19 @@ impl Bake {
         Ok(added)
     }
 
-    /// The direct light of the punctual lights and the area lights, sampled for `scene`.
+    /// The direct light of the punctual lights and the area lights of `scene`, sampled as a
+    /// bake of `lines` lines from `seed` samples them.
     fn sampled_lights(
-        &self,
         scene: &Scene,
         tracer: &SceneTracer,
+        (lines, seed): (usize, u64),
         control: &Control,
     ) -> Result<(DirectLight, AreaLights), TraceError> {
         let direct = DirectLight::compute(scene, tracer, control)?;
         let area = AreaLights::compute(
             scene,
             tracer,
-            Sampling::for_lines(self.list.lines() as u64, scene.patches.len(), self.seed),
+            Sampling::for_lines(lines as u64, scene.patches.len(), seed),
             control,
         )?;
         Ok((direct, area))
@@ -178,7 +176,9 @@ impl Bake {
     /// [`TraceError::Cancelled`] if `control` is cancelled (the light is then left as it was).
     pub fn sample_lights(&mut self, control: &Control) -> Result<(), TraceError> {
         if self.inherited {
-            (self.direct, self.area) = self.sampled_lights(&self.scene, &self.tracer, control)?;
+            let sampling = (self.list.lines(), self.seed);
+            (self.direct, self.area) =
+                Self::sampled_lights(&self.scene, &self.tracer, sampling, control)?;
             self.inherited = false;
         }
         Ok(())

@@ -124,9 +124,6 @@ pub enum Outcome {
     Cancelled,
 }
 
-/// Patches listed in the summary with the largest shares of the information gap.
-const LARGEST_GAPS: usize = 10;
-
 /// The deterministic summary of a bake.
 #[derive(Serialize)]
 struct Summary<'a> {
@@ -174,16 +171,7 @@ struct Summary<'a> {
     warnings: &'a [String],
     /// The visibility information the lines measure at frame 0 (`I_c`, `I_d`, their gap),
     /// with the patches that lose the most of it (`solve::information`).
-    information: Information,
-}
-
-/// The visibility information of a summary: the scene's, and the patches with the largest
-/// shares of the gap (none when `I_d` is unresolved).
-#[derive(Serialize)]
-struct Information {
-    #[serde(flatten)]
-    measured: crate::solve::information::Information,
-    largest_gaps: Vec<crate::solve::information::GapShare>,
+    information: crate::solve::information::Report,
 }
 
 /// The scenes named by `inputs`: files as given, directories searched (not recursively) for
@@ -504,15 +492,7 @@ pub fn bake_one(
         log(&format!("{name}: warning: {w}"));
     }
     let warnings: Vec<String> = scene.warnings.iter().cloned().chain(found).collect();
-    let information = {
-        let mut measured = bake.information(0);
-        let largest_gaps = measured.largest_gaps(LARGEST_GAPS);
-        measured.patch_gap = None;
-        Information {
-            measured,
-            largest_gaps,
-        }
-    };
+    let information = bake.information(0).report(false);
     let summary = Summary {
         scene: &name,
         content_hash: hash,

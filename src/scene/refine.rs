@@ -207,6 +207,15 @@ impl MeshCutter {
         }
     }
 
+    /// The cutter of `mesh` with each triangle cut as its heap-ordered tree in `cuts` says.
+    fn with_cuts(mesh: &TriangleMesh, cuts: &[u32]) -> Self {
+        let mut cutter = Self::new(mesh);
+        for (t, &c) in cuts.iter().enumerate() {
+            cutter.cut_tree(t as u32, c);
+        }
+        cutter
+    }
+
     /// Cuts root `root` as the heap-ordered tree `cuts` says ([`cut`]).
     fn cut_tree(&mut self, root: u32, cuts: u32) {
         let mut stack = vec![(root, 1u32)];
@@ -259,26 +268,28 @@ impl MeshCutter {
     }
 }
 
+/// The traced meshes in global order (the static one, then each moving object's), each with
+/// whether it deforms (its triangles are kept as they are).
+fn traced_meshes(scene: &Scene) -> Vec<(&TriangleMesh, bool)> {
+    std::iter::once((&scene.statics, false))
+        .chain(scene.objects.iter().map(|o| (&o.mesh, !o.is_rigid())))
+        .collect()
+}
+
 /// How many patches [`cut`] would make of `scene` with `cuts`, the cuts the neighbours need
 /// included, without building the scene (to keep a budget).
 #[must_use]
 pub fn patches_after(scene: &Scene, cuts: &[u32]) -> usize {
-    let mut meshes: Vec<&TriangleMesh> = vec![&scene.statics];
-    meshes.extend(scene.objects.iter().map(|o| &o.mesh));
     let mut first = 0;
     let mut patches = 0;
-    for (m, mesh) in meshes.into_iter().enumerate() {
+    for (mesh, deforming) in traced_meshes(scene) {
         let count = mesh.triangles.len();
         let faces = |t: usize| 1 + usize::from(mesh.faces[t].back.is_some());
-        let deforming = m > 0 && !scene.objects[m - 1].is_rigid();
         let mine = &cuts[first..first + count];
         if deforming || mine.iter().all(|&c| c & !1 == 0) {
             patches += (0..count).map(faces).sum::<usize>();
         } else {
-            let mut cutter = MeshCutter::new(mesh);
-            for (t, &c) in mine.iter().enumerate() {
-                cutter.cut_tree(t as u32, c);
-            }
+            let cutter = MeshCutter::with_cuts(mesh, mine);
             for root in 0..count {
                 let mut leaves = 0;
                 let mut stack = vec![root as u32];
@@ -308,8 +319,7 @@ pub fn patches_after(scene: &Scene, cuts: &[u32]) -> usize {
 /// order of their triangles (a cut triangle's pieces in place of it, each with its share of
 /// the area), and the map from old triangles to new.
 pub fn cut(scene: &Scene, cuts: &[u32]) -> (Scene, Refinement) {
-    let mut meshes: Vec<&TriangleMesh> = vec![&scene.statics];
-    meshes.extend(scene.objects.iter().map(|o| &o.mesh));
+    let meshes = traced_meshes(scene);
     let mut first = 0;
     let mut new_first = 0u32;
     let mut patches: Vec<Patch> = Vec::with_capacity(scene.patches.len());
@@ -318,16 +328,14 @@ pub fn cut(scene: &Scene, cuts: &[u32]) -> (Scene, Refinement) {
     let mut extra: Vec<Node> = Vec::new();
     let mut new_meshes = Vec::with_capacity(meshes.len());
     // Every old triangle is a root; the cut nodes are numbered after them all.
-    let roots: usize = meshes.iter().map(|m| m.triangles.len()).sum();
-    for (m, mesh) in meshes.into_iter().enumerate() {
+    let roots: usize = meshes.iter().map(|(m, _)| m.triangles.len()).sum();
+    for (mesh, deforming) in meshes {
         let count = mesh.triangles.len();
-        let deforming = m > 0 && !scene.objects[m - 1].is_rigid();
-        let mut cutter = MeshCutter::new(mesh);
-        if !deforming {
-            for t in 0..count {
-                cutter.cut_tree(t as u32, cuts[first + t]);
-            }
-        }
+        let cutter = if deforming {
+            MeshCutter::new(mesh)
+        } else {
+            MeshCutter::with_cuts(mesh, &cuts[first..first + count])
+        };
         // The leaves depth first from each root, with their depth and root: a triangle's
         // pieces stay together, in the source's order.
         let mut order = Vec::with_capacity(cutter.triangles.len());

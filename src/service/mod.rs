@@ -848,14 +848,9 @@ async fn timeline_stats(
         let bake = job.bake.lock().ok()?;
         let bake = bake.as_ref()?;
         let stats = crate::timeline::stats::SceneStats::measure(&bake.scene, bake.list(), frame);
-        let mut information = bake.information(frame);
-        let largest = information.largest_gaps(LARGEST_GAPS);
-        if !patches {
-            information.patch_gap = None;
-        }
         let mut stats = serde_json::to_value(stats).ok()?;
-        stats["information"] = serde_json::to_value(information).ok()?;
-        stats["information"]["largest_gaps"] = serde_json::to_value(largest).ok()?;
+        stats["information"] =
+            serde_json::to_value(bake.information(frame).report(patches)).ok()?;
         Some(stats)
     })
     .await
@@ -867,9 +862,6 @@ async fn timeline_stats(
     })?;
     Ok(Json(stats))
 }
-
-/// Patches listed by `/stats` with the largest shares of the information gap.
-const LARGEST_GAPS: usize = 10;
 
 /// `GET /v1/timelines/{id}/events`: Server-Sent Events, a `status` event with the status
 /// document whenever a frame is solved or the job changes stage, and at least every second;

@@ -59,6 +59,15 @@ pub struct Information {
     pub pairs: u64,
 }
 
+/// A patch's share of the information gap.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct GapShare {
+    /// The patch.
+    pub patch: usize,
+    /// Its share of `I_c − I_d` (nats).
+    pub share: f64,
+}
+
 impl Information {
     /// Measures the information of `list` at `frame`, `tally` being that frame's tallies.
     #[must_use]
@@ -92,11 +101,11 @@ impl Information {
         // the order the threads add them in: the summary of a bake is the same on any run.
         let fixed = |x: f64| (x * UNIT).round() as i128;
         let groups = list.line_groups(GROUPS);
-        let (sums, by_group, count) = (0..list.lines())
+        let (sums, by_group) = (0..list.lines())
             .into_par_iter()
             .fold(
-                || (vec![0i128; patches], [(0i128, 0u64); G], 0u64, Vec::new()),
-                |(mut sums, mut by_group, mut count, mut scratch), l| {
+                || (vec![0i128; patches], [(0i128, 0u64); G], Vec::new()),
+                |(mut sums, mut by_group, mut scratch), l| {
                     let group = &mut by_group[groups[l] as usize];
                     list.frame_hits(l, frame, &mut scratch);
                     let d = list.direction(l).as_dvec3();
@@ -124,23 +133,23 @@ impl Information {
                         sums[j as usize] += fixed(term);
                         group.0 += 2 * fixed(term);
                         group.1 += 2;
-                        count += 2;
                     }
-                    (sums, by_group, count, scratch)
+                    (sums, by_group, scratch)
                 },
             )
-            .map(|(sums, by_group, count, _)| (sums, by_group, count))
+            .map(|(sums, by_group, _)| (sums, by_group))
             .reduce(
-                || (vec![0; patches], [(0, 0); G], 0),
-                |(mut a, mut ga, ca), (b, gb, cb)| {
+                || (vec![0; patches], [(0, 0); G]),
+                |(mut a, mut ga), (b, gb)| {
                     a.iter_mut().zip(&b).for_each(|(x, y)| *x += y);
                     ga.iter_mut().zip(&gb).for_each(|(x, y)| {
                         x.0 += y.0;
                         x.1 += y.1;
                     });
-                    (a, ga, ca + cb)
+                    (a, ga)
                 },
             );
+        let count: u64 = by_group.iter().map(|g| g.1).sum();
         let n = count.max(1) as f64;
         let sums: Vec<f64> = sums.iter().map(|&s| s as f64 / UNIT).collect();
         let continuous: f64 = sums.iter().sum::<f64>() / n;
@@ -204,18 +213,20 @@ impl Information {
             pairs,
         }
     }
-}
 
-/// A patch's share of the information gap.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
-pub struct GapShare {
-    /// The patch.
-    pub patch: usize,
-    /// Its share of `I_c − I_d` (nats).
-    pub share: f64,
-}
+    /// The report of this measure, with every patch's share of the gap if `every_patch`.
+    #[must_use]
+    pub fn report(mut self, every_patch: bool) -> Report {
+        let largest_gaps = self.largest_gaps(LARGEST_GAPS);
+        if !every_patch {
+            self.patch_gap = None;
+        }
+        Report {
+            measured: self,
+            largest_gaps,
+        }
+    }
 
-impl Information {
     /// The `k` patches with the largest shares of the gap, largest first; none when `I_d` is
     /// unresolved.
     #[must_use]
@@ -233,6 +244,21 @@ impl Information {
         order
     }
 }
+
+/// What is reported of a frame's information (`/stats`, `summary.json`): the measure, every
+/// patch's share only when asked for, and the patches with the largest shares.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Report {
+    /// The measure.
+    #[serde(flatten)]
+    pub measured: Information,
+    /// The [`LARGEST_GAPS`] patches with the largest shares of the gap, largest first (none
+    /// when `I_d` is unresolved).
+    pub largest_gaps: Vec<GapShare>,
+}
+
+/// Patches a [`Report`] lists with the largest shares of the gap.
+pub const LARGEST_GAPS: usize = 10;
 
 /// Line groups ([`GROUPS`]).
 const G: usize = GROUPS as usize;
