@@ -54,6 +54,10 @@ pub struct Adaptive {
     /// would show more noise than the variation they resolve (measured: 0.05 cuts too little
     /// on the level, no limit too much on the Cornell box's dim corners).
     pub precision: f64,
+    /// Coplanar neighbours are merged into one patch while the merged patch spans at most this
+    /// (its box's diagonal, in the scene's normalised units: its bounding sphere has radius 1)
+    /// and the cut rule would not cut it again ([`merges`]); 0 merges nothing.
+    pub merge_extent: f64,
 }
 
 impl Adaptive {
@@ -69,6 +73,7 @@ impl Adaptive {
             significance: 3.0,
             min_crossings: 32.0,
             precision: 0.1,
+            merge_extent: MERGE_EXTENT,
         }
     }
 
@@ -94,6 +99,9 @@ impl Adaptive {
 /// Lines per patch of the standard budget ([`Adaptive::for_lines`]).
 pub const LINES_PER_PATCH: u64 = 200;
 
+/// The standard [`Adaptive::merge_extent`].
+pub const MERGE_EXTENT: f64 = 1.0;
+
 /// What one round did.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
 pub struct Round {
@@ -104,7 +112,11 @@ pub struct Round {
     pub significant: usize,
     /// Patches added by the round's cuts.
     pub added: usize,
-    /// Seconds the round took (solve, scores, cuts, direct light).
+    /// Patches merged away by the round (the last one merges, [`merges`]).
+    pub removed: usize,
+    /// Seconds the round took (solve, scores, cuts, direct light); not serialised with the
+    /// rest, which is the same on every run (`timings.json` has them).
+    #[serde(skip)]
     pub seconds: f64,
 }
 
@@ -140,6 +152,7 @@ pub fn adapt(
             patches,
             significant,
             added,
+            removed: 0,
             seconds: started.elapsed().as_secs_f64(),
         });
         // Rounds find fewer cuts as they go: after one that added under 1%, another is not
@@ -154,7 +167,250 @@ pub fn adapt(
     if let Some(last) = rounds.last_mut() {
         last.seconds += started.elapsed().as_secs_f64();
     }
+    // Then the neighbours the lines cannot tell apart made one patch (their light sampled
+    // again if any are).
+    if auto.merge_extent > 0.0 {
+        control.check()?;
+        let started = Instant::now();
+        let patches = bake.scene.patches.len();
+        let into = merges(bake, auto, solve);
+        let removed = bake.merge(&into, control)?;
+        rounds.push(Round {
+            patches,
+            significant: 0,
+            added: 0,
+            removed,
+            seconds: started.elapsed().as_secs_f64(),
+        });
+    }
     Ok(rounds)
+}
+
+/// Which patches to merge: old patch `p` becomes patch `into[p]` (dense, in the order of each
+/// merged patch's first member). Faces are merged with a neighbour across an edge when both
+/// are of one mesh (static or one rigid object), one material that does not emit, and one
+/// plane facing one way, while the merged patch spans at most [`Adaptive::merge_extent`] and,
+/// at every scored frame, the cut rule would not cut it again: its members' radiances (each
+/// with its standard error from the solve's replicas) do not differ beyond their noise, or
+/// differ by less than the noise they would show apart (as [`variation`] decides a cut).
+/// Most alike neighbours first (least z² between their radiances, most over the frames); and
+/// while the patches are more than [`Adaptive::budget`], the most alike whatever the rule.
+fn merges(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<u32> {
+    let scene = &bake.scene;
+    let faces = bake.tracer().faces();
+    let corners = Corners::new(scene);
+    let patches = scene.patches.len();
+    // Per scored frame and patch, two (value, variance of its estimate) to compare between
+    // neighbours (variance infinite when unsampled): the patch's luminance, with its standard
+    // error from the solve's replicas; and the mean luminance its crossings gather, the cut
+    // rule's own measure, which sees light a patch-constant solution spreads about (the
+    // light a ceiling piece in a fixture's gap gathers, against its neighbour's in the room).
+    let mut nears = Vec::new();
+    let frames: Vec<Vec<[(f64, f64); 2]>> = scored_frames(bake)
+        .into_iter()
+        .map(|frame| {
+            let solution = bake.solve_frame(frame, &scene.materials, solve);
+            let (stats, near) = gathered(bake, frame, &solution.radiance, solve.sky);
+            nears.push(near);
+            (solution.radiance.iter().zip(&solution.stderr))
+                .zip(stats.chunks_exact(3 * LEAVES))
+                .map(|((&l, e), leaves)| {
+                    let v = e.map_or(f64::INFINITY, |e| luminance(e).powi(2));
+                    let [n, sum, square] = leaves
+                        .chunks_exact(3)
+                        .fold([0.0; 3], |a, p| [a[0] + p[0], a[1] + p[1], a[2] + p[2]]);
+                    let gathered = if n >= 2.0 {
+                        let mean = sum / n;
+                        (mean, (square / n - mean * mean).max(0.0) / (n - 1.0))
+                    } else {
+                        (0.0, f64::INFINITY)
+                    };
+                    [(luminance(l), v), gathered]
+                })
+                .collect()
+        })
+        .collect();
+    // Each face that may merge: its patch, its plane (unit normal on its side, offset) and its
+    // corners at frame 0 in normalised space; and the faces on each edge.
+    let mergeable = |p: u32| {
+        let m = &scene.materials[scene.patches[p as usize].material as usize];
+        !m.is_emitter()
+    };
+    let mut area = vec![0.0f64; patches];
+    let mut boxes = vec![(DVec3::INFINITY, DVec3::NEG_INFINITY); patches];
+    let mut planes: Vec<Option<(DVec3, f64)>> = vec![None; patches];
+    // Edges keyed by their corners' position bits, in order.
+    type Edge = ([u64; 3], [u64; 3]);
+    let mut edges: std::collections::HashMap<Edge, Vec<u32>> = Default::default();
+    for (g, f) in faces.iter().enumerate() {
+        let Some(c) = corners.posed(g as u32, Some(0)) else {
+            continue;
+        };
+        let cross = (c[1] - c[0]).cross(c[2] - c[0]);
+        let (normal, a) = (cross.normalize_or_zero(), 0.5 * cross.length());
+        if normal == DVec3::ZERO {
+            continue;
+        }
+        for (patch, back) in [(Some(f.front), false), (f.back, true)] {
+            let Some(p) = patch.filter(|&p| mergeable(p)) else {
+                continue;
+            };
+            let n = if back { -normal } else { normal };
+            planes[p as usize] = Some((n, n.dot(c[0])));
+            area[p as usize] += a;
+            let (lo, hi) = &mut boxes[p as usize];
+            for x in c {
+                (*lo, *hi) = (lo.min(x), hi.max(x));
+            }
+            for k in 0..3 {
+                let bits = |v: DVec3| v.to_array().map(f64::to_bits);
+                let (a, b) = (bits(c[k]), bits(c[(k + 1) % 3]));
+                let key = if a <= b { (a, b) } else { (b, a) };
+                edges.entry(key).or_default().push(p);
+            }
+        }
+    }
+    // Candidate pairs: neighbours across an edge, same object and material, one plane.
+    let coplanar = |a: u32, b: u32| {
+        let (Some((na, da)), Some((nb, db))) = (planes[a as usize], planes[b as usize]) else {
+            return false;
+        };
+        na.dot(nb) >= 1.0 - 1e-6 && (da - db).abs() <= 1e-6
+    };
+    let same = |a: u32, b: u32| {
+        let (pa, pb) = (&scene.patches[a as usize], &scene.patches[b as usize]);
+        pa.material == pb.material && pa.object == pb.object
+    };
+    let mut pairs: Vec<(f64, u32, u32)> = Vec::new();
+    for on_edge in edges.values() {
+        for (i, &a) in on_edge.iter().enumerate() {
+            for &b in &on_edge[i + 1..] {
+                if a != b && same(a, b) && coplanar(a, b) {
+                    let z = frames
+                        .iter()
+                        .flat_map(|f| {
+                            (0..2).map(move |k| {
+                                let ((ma, va), (mb, vb)) = (f[a as usize][k], f[b as usize][k]);
+                                (ma - mb).powi(2) / (va + vb).max(f64::MIN_POSITIVE)
+                            })
+                        })
+                        .fold(0.0, f64::max);
+                    pairs.push((z, a.min(b), a.max(b)));
+                }
+            }
+        }
+    }
+    pairs.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)).then(x.2.cmp(&y.2)));
+    pairs.dedup_by(|x, y| (x.1, x.2) == (y.1, y.2));
+    // Greedy union, most alike first.
+    let mut root: Vec<u32> = (0..patches as u32).collect();
+    let mut members: Vec<Vec<u32>> = (0..patches as u32).map(|p| vec![p]).collect();
+    fn find(root: &mut [u32], mut p: u32) -> u32 {
+        while root[p as usize] != p {
+            root[p as usize] = root[root[p as usize] as usize];
+            p = root[p as usize];
+        }
+        p
+    }
+    // Then, while over the budget (the source's own triangles can be more than it), the most
+    // alike neighbours whatever the rule says.
+    let mut count = patches;
+    for forced in [false, true] {
+        for &(_, a, b) in &pairs {
+            if forced && count <= auto.budget {
+                break;
+            }
+            let (ra, rb) = (find(&mut root, a), find(&mut root, b));
+            if ra == rb {
+                continue;
+            }
+            let union: Vec<u32> = members[ra as usize]
+                .iter()
+                .chain(&members[rb as usize])
+                .copied()
+                .collect();
+            let (lo, hi) = union
+                .iter()
+                .fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(lo, hi), &p| {
+                    (lo.min(boxes[p as usize].0), hi.max(boxes[p as usize].1))
+                });
+            // Not where what the members face is closer than the merged patch is wide: there
+            // the light changes over that distance (a fixture's gap under a ceiling), and the
+            // lines' own estimates cannot show it (the gap's patches exchange their light
+            // with each other, alike whatever its true shape).
+            let diameter = lo.distance(hi);
+            if diameter > auto.merge_extent
+                || union.iter().any(|&p| {
+                    nears
+                        .iter()
+                        .any(|n| n[p as usize].closer_than(diameter) > NEAR_SHARE)
+                })
+            {
+                continue;
+            }
+            let alike = forced
+                || frames.iter().all(|f| {
+                    (0..2).all(|k| {
+                        let pieces: Vec<(f64, f64, f64)> = union
+                            .iter()
+                            .map(|&p| (area[p as usize], f[p as usize][k].0, f[p as usize][k].1))
+                            .collect();
+                        !worth_apart(&pieces, auto)
+                    })
+                });
+            if alike {
+                let (keep, gone) = (ra.min(rb), ra.max(rb));
+                root[gone as usize] = keep;
+                members[keep as usize] = union;
+                members[gone as usize] = Vec::new();
+                count -= 1;
+            }
+        }
+    }
+    // Dense new ids, in the order of each merged patch's first member.
+    let mut id = vec![u32::MAX; patches];
+    let mut next = 0;
+    (0..patches as u32)
+        .map(|p| {
+            let r = find(&mut root, p) as usize;
+            if id[r] == u32::MAX {
+                id[r] = next;
+                next += 1;
+            }
+            id[r]
+        })
+        .collect()
+}
+
+/// The largest share of a merged patch's view (its members' each) that may lie closer than
+/// the merged patch is wide ([`merges`]).
+const NEAR_SHARE: f64 = 0.5;
+
+/// Whether `pieces` (area, radiance, variance of its estimate; infinite when unsampled) are
+/// worth keeping apart by the rule that cuts ([`variation`]): they differ beyond their noise
+/// (χ² at [`Adaptive::significance`]) and by more than the noise they show apart (weighed by
+/// [`NOISE_COST`]). Unsampled pieces follow the others.
+fn worth_apart(pieces: &[(f64, f64, f64)], auto: &Adaptive) -> bool {
+    let sampled: Vec<&(f64, f64, f64)> = pieces.iter().filter(|p| p.2.is_finite()).collect();
+    let total: f64 = sampled.iter().map(|p| p.0).sum();
+    if sampled.len() < 2 || total <= 0.0 {
+        return false;
+    }
+    let mean = sampled.iter().map(|p| p.0 * p.1).sum::<f64>() / total;
+    let floor = f64::EPSILON * mean * mean + f64::MIN_POSITIVE;
+    let chi2: f64 = sampled
+        .iter()
+        .map(|&&(_, m, v)| (m - mean).powi(2) / v.max(floor))
+        .sum();
+    let freedom = sampled.len() as f64 - 1.0;
+    if chi2 <= freedom + auto.significance * (2.0 * freedom).sqrt() {
+        return false;
+    }
+    let gain: f64 = sampled
+        .iter()
+        .map(|&&(a, m, v)| a / total * ((m - mean).powi(2) - NOISE_COST * v))
+        .sum();
+    gain > 0.0
 }
 
 /// Up to [`FRAMES`] distinct frames spread over the timeline.
@@ -360,6 +616,66 @@ fn luminance(c: [f64; 3]) -> f64 {
 /// of squares of the luminance at the segments' other ends, at `frame` with `radiance`
 /// (`3 × LEAVES` numbers per patch).
 fn leaf_stats(bake: &Bake, frame: usize, radiance: &[[f64; 3]], sky: [f64; 3]) -> Vec<f64> {
+    gathered(bake, frame, radiance, sky).0
+}
+
+/// Bins of [`Near`]: segment lengths from 2^-[`NEAR_OFFSET`] (and shorter) to 2^3 (and longer),
+/// in the scene's normalised units, one octave each.
+const NEAR_BINS: usize = 20;
+/// Octaves below 1 of [`Near`]'s first bin.
+const NEAR_OFFSET: i32 = 16;
+
+/// Per patch, how far what its segments meet lies: segments leaving it by length octave
+/// ([`NEAR_BINS`]; contacts in the first, the sky in none), and all of them.
+#[derive(Clone, Copy, Default)]
+struct Near {
+    bins: [u32; NEAR_BINS],
+    segments: u32,
+}
+
+impl Near {
+    fn add(&mut self, length: f32) {
+        self.segments += 1;
+        if length.is_finite() {
+            let octave = if length > 0.0 {
+                length.log2().floor() as i32 + NEAR_OFFSET
+            } else {
+                0
+            };
+            self.bins[octave.clamp(0, NEAR_BINS as i32 - 1) as usize] += 1;
+        }
+    }
+
+    fn merge(&mut self, other: &Self) {
+        self.segments += other.segments;
+        for (a, b) in self.bins.iter_mut().zip(&other.bins) {
+            *a += b;
+        }
+    }
+
+    /// The share of the segments that meet something closer than `d` (whole octaves below it:
+    /// an underestimate by at most one octave), 0 without segments. Lines are uniform, so the
+    /// segments leaving a patch are cosine-distributed: this is its form factor to what lies
+    /// that close.
+    fn closer_than(&self, d: f64) -> f64 {
+        if self.segments == 0 {
+            return 0.0;
+        }
+        let below: u32 = (0..NEAR_BINS)
+            .take_while(|&k| 2f64.powi(k as i32 + 1 - NEAR_OFFSET) <= d)
+            .map(|k| self.bins[k])
+            .sum();
+        f64::from(below) / f64::from(self.segments)
+    }
+}
+
+/// [`leaf_stats`], and each patch's [`Near`].
+fn gathered(
+    bake: &Bake,
+    frame: usize,
+    radiance: &[[f64; 3]],
+    sky: [f64; 3],
+) -> (Vec<f64>, Vec<Near>) {
     let scene = &bake.scene;
     let list = bake.list();
     let surfaces = bake.tracer().surfaces();
@@ -383,16 +699,21 @@ fn leaf_stats(bake: &Bake, frame: usize, radiance: &[[f64; 3]], sky: [f64; 3]) -
         (g / unit).round().max(0.0) as u64
     };
     let size = scene.patches.len() * LEAVES;
-    let sums = list
+    let patches = scene.patches.len();
+    let (sums, near) = list
         .bundles(scene)
         .fold(
-            || (vec![Sums::default(); size], Vec::new()),
-            |(mut acc, mut hits), (first, bundle)| {
+            || {
+                let near = vec![Near::default(); patches];
+                (vec![Sums::default(); size], near, Vec::new())
+            },
+            |(mut acc, mut near, mut hits), (first, bundle)| {
                 let surfaces = surfaces.along(bundle.direction);
                 let direction = bundle.direction.as_dvec3();
                 for (i, origin) in bundle.origins.iter().enumerate() {
                     list.frame_hits(first + i, frame, &mut hits);
-                    walk_from(&hits, &surfaces, |from, to, at| {
+                    walk_from(&hits, &surfaces, |from, to, at, length| {
+                        near[from as usize].add(length);
                         let Some(posed) = corners.posed(at.surface(), Some(frame)) else {
                             return;
                         };
@@ -408,22 +729,24 @@ fn leaf_stats(bake: &Bake, frame: usize, radiance: &[[f64; 3]], sky: [f64; 3]) -
                         a.square += u128::from(g) * u128::from(g);
                     });
                 }
-                (acc, hits)
+                (acc, near, hits)
             },
         )
-        .map(|(acc, _)| acc)
+        .map(|(acc, near, _)| (acc, near))
         .reduce(
-            || vec![Sums::default(); size],
-            |mut a, b| {
+            || (vec![Sums::default(); size], vec![Near::default(); patches]),
+            |(mut a, mut an), (b, bn)| {
                 for (x, y) in a.iter_mut().zip(&b) {
                     x.count += y.count;
                     x.sum += y.sum;
                     x.square += y.square;
                 }
-                a
+                an.iter_mut().zip(&bn).for_each(|(x, y)| x.merge(y));
+                (a, an)
             },
         );
-    sums.iter()
+    let sums = sums
+        .iter()
         .flat_map(|s| {
             [
                 s.count as f64,
@@ -431,7 +754,8 @@ fn leaf_stats(bake: &Bake, frame: usize, radiance: &[[f64; 3]], sky: [f64; 3]) -
                 s.square as f64 * unit * unit,
             ]
         })
-        .collect()
+        .collect();
+    (sums, near)
 }
 
 /// A piece's crossings and the fixed-point sum and sum of squares of what they gather.

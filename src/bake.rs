@@ -151,6 +151,30 @@ impl Bake {
         Ok(added)
     }
 
+    /// Merges the patches as `into` says ([`crate::scene::refine::merge`]: old patch `p`
+    /// becomes new patch `into[p]`) and samples their direct light. No triangle changes, so the
+    /// list is kept as it is and only tallied again. Returns the patches removed.
+    ///
+    /// # Errors
+    /// [`TraceError::Cancelled`] if `control` is cancelled while the light is sampled (the
+    /// bake is then left as it was).
+    pub fn merge(&mut self, into: &[u32], control: &Control) -> Result<usize, TraceError> {
+        let scene = crate::scene::refine::merge(&self.scene, into);
+        let removed = self.scene.patches.len() - scene.patches.len();
+        if removed == 0 {
+            return Ok(0);
+        }
+        let tracer = SceneTracer::new(&scene);
+        let (direct, area) =
+            Self::sampled_lights(&scene, &tracer, (self.list.lines(), self.seed), control)?;
+        let mut tallies = Tallies::default();
+        tallies.update(&self.list, &tracer.surfaces(), scene.patches.len());
+        (self.scene, self.tracer, self.tallies) = (scene, tracer, tallies);
+        (self.direct, self.area) = (direct, area);
+        self.inherited = false;
+        Ok(removed)
+    }
+
     /// The direct light of the punctual lights and the area lights of `scene`, sampled as a
     /// bake of `lines` lines from `seed` samples them.
     fn sampled_lights(
@@ -428,13 +452,44 @@ impl Bake {
         self.solve_all_with(materials, params, &Control::default())
     }
 
+    /// The runs frames are solved in: the distinct frames (those that share no other's
+    /// solution, [`Bake::representatives`]) in order, [`RUN`] at a time. Within a run each
+    /// frame starts from the solution of the one before it (an animation changes little from
+    /// frame to frame); a run's first frame starts cold. The bake command and the service both
+    /// solve by these runs ([`Bake::solve_run`]), so a frame's answer depends neither on which
+    /// of them solved it nor on the threads.
+    #[must_use]
+    pub fn solve_runs(&self) -> Vec<Vec<usize>> {
+        let representatives = self.representatives();
+        let distinct: Vec<usize> = (0..representatives.len())
+            .filter(|&f| representatives[f] == f)
+            .collect();
+        distinct.chunks(RUN).map(<[usize]>::to_vec).collect()
+    }
+
+    /// Solves one run of [`Bake::solve_runs`] with `materials` and the lights at `power`:
+    /// each frame with its solution.
+    #[must_use]
+    pub fn solve_run(
+        &self,
+        run: &[usize],
+        materials: &[Material],
+        power: &[[f64; 3]],
+        params: &SolveParams,
+    ) -> Vec<(usize, Arc<FrameSolution>)> {
+        let mut previous: Option<(usize, Arc<FrameSolution>)> = None;
+        run.iter()
+            .map(|&f| {
+                let start = previous.as_ref().map(|(p, s)| (*p, s.as_ref()));
+                let solution = Arc::new(self.solve_frame_from(f, materials, power, params, start));
+                previous = Some((f, solution.clone()));
+                (f, solution)
+            })
+            .collect()
+    }
+
     /// [`Bake::solve_all`], adding each distinct frame to solve as one unit of work to
-    /// `control`'s current stage.
-    ///
-    /// The distinct frames are split into runs of consecutive frames, about [`RUN`] each,
-    /// solved in parallel; within a run each frame starts from the solution of the one before
-    /// it (an animation changes little from frame to frame). The runs depend only on the
-    /// frames, not on the thread count, so neither do the answers.
+    /// `control`'s current stage. The runs ([`Bake::solve_runs`]) are solved in parallel.
     #[must_use]
     pub fn solve_all_with(
         &self,
@@ -443,27 +498,15 @@ impl Bake {
         control: &Control,
     ) -> Vec<Arc<FrameSolution>> {
         let representatives = self.representatives();
-        let distinct: Vec<usize> = (0..representatives.len())
-            .filter(|&f| representatives[f] == f)
-            .collect();
-        control.add_work(distinct.len() as u64);
+        let runs = self.solve_runs();
+        control.add_work(runs.iter().map(Vec::len).sum::<usize>() as u64);
         let power = self.light_power();
-        let runs = distinct.len().div_ceil(RUN);
-        let solved: Vec<(usize, Arc<FrameSolution>)> = (0..runs)
-            .into_par_iter()
-            .flat_map_iter(|k| {
-                let run = &distinct[k * distinct.len() / runs..(k + 1) * distinct.len() / runs];
-                let mut previous: Option<(usize, Arc<FrameSolution>)> = None;
-                run.iter()
-                    .map(|&f| {
-                        let start = previous.as_ref().map(|(p, s)| (*p, s.as_ref()));
-                        let solution =
-                            Arc::new(self.solve_frame_from(f, materials, &power, params, start));
-                        control.advance(1);
-                        previous = Some((f, solution.clone()));
-                        (f, solution)
-                    })
-                    .collect::<Vec<_>>()
+        let solved: Vec<(usize, Arc<FrameSolution>)> = runs
+            .par_iter()
+            .flat_map_iter(|run| {
+                let solved = self.solve_run(run, materials, &power, params);
+                control.advance(run.len() as u64);
+                solved
             })
             .collect();
         let mut by_frame: Vec<Option<Arc<FrameSolution>>> = vec![None; representatives.len()];
@@ -481,7 +524,7 @@ impl Bake {
     }
 }
 
-/// Distinct frames per run of [`Bake::solve_all_with`]: a run's first frame starts cold, the
+/// Distinct frames per run of [`Bake::solve_runs`]: a run's first frame starts cold, the
 /// others from the frame before; runs are solved in parallel.
 pub const RUN: usize = 4;
 

@@ -440,6 +440,7 @@ pub fn bake_one(
         Vec::new()
     };
     let adapt_seconds = started.elapsed().as_secs_f64();
+    let round_seconds: Vec<f64> = rounds.iter().map(|r| r.seconds).collect();
     control.start_stage(0);
     log(&format!(
         "{name}: solving {} frames",
@@ -530,6 +531,7 @@ pub fn bake_one(
         "load": load_seconds,
         "trace": trace_seconds,
         "adapt": adapt_seconds,
+        "adapt_rounds": round_seconds,
         "solve": solve_seconds,
         "outputs": started.elapsed().as_secs_f64(),
     });

@@ -139,8 +139,9 @@ fn baked_outputs_are_usable(dir: &Path) {
                 triangles += reader.read_indices().unwrap().into_u32().count() / 3;
             }
         }
-        // One triangle per patch.
-        assert_eq!(triangles, summary["patches"].as_u64().unwrap() as usize);
+        // One triangle per face of a traced triangle: one per patch at least (a merged patch
+        // covers several).
+        assert!(triangles >= summary["patches"].as_u64().unwrap() as usize);
     }
     let previews = summary["preview_frames"].as_array().unwrap();
     assert_eq!(previews.len(), 3, "first, middle and last by default");

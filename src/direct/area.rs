@@ -220,26 +220,28 @@ impl AreaLights {
             occluders: Occluders::Static,
         };
         let emitters: Vec<Emitter> = clusters.iter().map(|c| pose(c, &triangles)).collect();
-        let mut rows: Vec<(u32, Pair, Vec<u64>)> = (0..statics)
-            .into_par_iter()
-            .map_init(Vec::new, |hits, t| {
+        let receivers: Vec<Receiver> = receivers(&triangles, statics)
+            .into_iter()
+            .filter(|r| !r.moving)
+            .collect();
+        let mut rows: Vec<(u32, Pair, Vec<u64>)> = receivers
+            .par_iter()
+            .map_init(Vec::new, |hits, receiver| {
                 let mut rows = Vec::new();
-                for face in faces(&triangles, t) {
-                    for (c, emitter) in emitters.iter().enumerate() {
-                        if !clusters[c].moving {
-                            let mut bits = Vec::new();
-                            let pair = pair(
-                                &at,
-                                &face,
-                                c,
-                                emitter,
-                                sampling,
-                                Rays::Record(&mut bits),
-                                hits,
-                            );
-                            if pair.value > 0.0 {
-                                rows.push((face.patch, pair, bits));
-                            }
+                for (c, emitter) in emitters.iter().enumerate() {
+                    if !clusters[c].moving {
+                        let mut bits = Vec::new();
+                        let pair = pair(
+                            &at,
+                            receiver,
+                            c,
+                            emitter,
+                            sampling,
+                            Rays::Record(&mut bits),
+                            hits,
+                        );
+                        if pair.value > 0.0 {
+                            rows.push((receiver.patch, pair, bits));
                         }
                     }
                 }
@@ -666,54 +668,87 @@ impl Face {
     }
 }
 
-/// A receiving face: a face of a traced triangle, with its patch.
+/// A receiving patch: the faces of traced triangles it covers (one, or several merged by
+/// [`crate::scene::refine::merge`]), each with its area.
 struct Receiver {
     patch: u32,
-    face: Face,
+    faces: Vec<(Face, f64)>,
+    /// Whether its triangles are a moving object's.
+    moving: bool,
 }
 
-impl std::ops::Deref for Receiver {
-    type Target = Face;
-    fn deref(&self) -> &Face {
-        &self.face
+/// Every patch's faces at a pose (`triangles`, the static ones first: `statics` of them), by
+/// patch; a patch with no face of non-zero area is left out.
+fn receivers(triangles: &[([glam::Vec3; 3], Faces)], statics: usize) -> Vec<Receiver> {
+    let mut by_patch: std::collections::BTreeMap<u32, Receiver> = Default::default();
+    for (t, (corners, faces)) in triangles.iter().enumerate() {
+        let corners = corners.map(|c| c.as_dvec3());
+        let cross = (corners[1] - corners[0]).cross(corners[2] - corners[0]);
+        let (normal, area) = (cross.normalize_or_zero(), 0.5 * cross.length());
+        for (patch, back) in [(Some(faces.front), false), (faces.back, true)] {
+            let Some(patch) = patch else { continue };
+            let face = Face {
+                own: t as u32,
+                back,
+                corners,
+                n: if back { -normal } else { normal },
+            };
+            by_patch
+                .entry(patch)
+                .or_insert_with(|| Receiver {
+                    patch,
+                    faces: Vec::new(),
+                    moving: t >= statics,
+                })
+                .faces
+                .push((face, area));
+        }
     }
+    by_patch.into_values().collect()
 }
 
-/// The faces of traced triangle `t` (one or two).
-fn faces(triangles: &[([glam::Vec3; 3], Faces)], t: usize) -> impl Iterator<Item = Receiver> {
-    let (corners, faces) = triangles[t];
-    let corners = corners.map(|c| c.as_dvec3());
-    let normal = (corners[1] - corners[0])
-        .cross(corners[2] - corners[0])
-        .normalize_or_zero();
-    [(Some(faces.front), false), (faces.back, true)]
-        .into_iter()
-        .filter_map(move |(patch, back)| {
-            Some(Receiver {
-                patch: patch?,
-                face: Face {
-                    own: t as u32,
-                    back,
-                    corners,
-                    n: if back { -normal } else { normal },
-                },
-            })
-        })
-}
-
-/// The form factor of `receiver` to cluster `c` (posed as `emitter`) with `at`'s occluders.
+/// The form factor of `receiver` to cluster `c` (posed as `emitter`) with `at`'s occluders: the
+/// area average of its faces' ([`form_factor`]), the rays of each face after the previous
+/// face's, each face's starting on a whole word of bits.
 fn pair(
     at: &Frame<'_>,
     receiver: &Receiver,
     c: usize,
     emitter: &Emitter,
     sampling: Sampling,
-    rays: Rays<'_>,
+    mut rays: Rays<'_>,
     hits: &mut Vec<crate::trace::Hit>,
 ) -> Pair {
     let seed = mix(sampling.seed ^ mix((u64::from(receiver.patch) << 32) ^ c as u64));
-    let g = grid(receiver, emitter, sampling.density);
-    let (value, variance) = form_factor(at, receiver, emitter, (seed, g), rays, hits);
+    let total: f64 = receiver.faces.iter().map(|(_, a)| a).sum();
+    let (mut value, mut variance) = (0.0, 0.0);
+    let (mut own, mut word) = (Vec::new(), 0);
+    if let Rays::Record(bits) = &mut rays {
+        bits.clear();
+    }
+    for (k, (face, area)) in receiver.faces.iter().enumerate() {
+        let seed = if k == 0 { seed } else { mix(seed ^ k as u64) };
+        let g = grid(face, emitter, sampling.density);
+        let words = (g * g).div_ceil(64);
+        let face_rays = match &rays {
+            Rays::Trace => Rays::Trace,
+            Rays::Record(_) => {
+                own.clear();
+                Rays::Record(&mut own)
+            }
+            Rays::Known(bits) => Rays::Known(&bits[word..]),
+        };
+        let (v, var) = form_factor(at, face, emitter, (seed, g), face_rays, hits);
+        if let Rays::Record(bits) = &mut rays {
+            own.resize(words, 0);
+            bits.extend_from_slice(&own);
+        }
+        word += words;
+        // A patch of one face takes its value as it is (weight 1 exactly).
+        let w = if total > 0.0 { area / total } else { 0.0 };
+        value += w * v;
+        variance += w * w * var;
+    }
     Pair {
         cluster: c as u32,
         value: value as f32,
@@ -775,36 +810,34 @@ fn changed_pairs(
         });
         start = end;
     }
-    let mut changed: Vec<(u32, Pair)> = (0..triangles.len())
-        .into_par_iter()
+    let mut changed: Vec<(u32, Pair)> = receivers(triangles, statics)
+        .par_iter()
         .map_init(
             || (Vec::new(), Vec::new()),
-            |(hits, hull), t| {
+            |(hits, hull), receiver| {
                 let mut out = Vec::new();
-                for receiver in faces(triangles, t) {
-                    for (c, emitter) in emitters.iter().enumerate() {
-                        if t >= statics || clusters[c].moving {
-                            let pair =
-                                pair(&at, &receiver, c, emitter, sampling, Rays::Trace, hits);
-                            if pair.value > 0.0 {
-                                out.push((receiver.patch, pair));
-                            }
-                            continue;
-                        }
-                        // Dark with the static geometry alone: dark whatever moves.
-                        let Some(base) = lights.static_pair(receiver.patch, c) else {
-                            continue;
-                        };
-                        hull.clear();
-                        hull.extend(receiver.corners.iter().chain(&emitter.hull));
-                        if !boxes.iter().any(|b| b.meets_hull(hull)) {
-                            continue;
-                        }
-                        let rays = Rays::Known(&lights.visible[base.visible as usize..]);
-                        let pair = pair(&moving_only, &receiver, c, emitter, sampling, rays, hits);
-                        if pair.value != base.value {
+                for (c, emitter) in emitters.iter().enumerate() {
+                    if receiver.moving || clusters[c].moving {
+                        let pair = pair(&at, receiver, c, emitter, sampling, Rays::Trace, hits);
+                        if pair.value > 0.0 {
                             out.push((receiver.patch, pair));
                         }
+                        continue;
+                    }
+                    // Dark with the static geometry alone: dark whatever moves.
+                    let Some(base) = lights.static_pair(receiver.patch, c) else {
+                        continue;
+                    };
+                    hull.clear();
+                    let corners = receiver.faces.iter().flat_map(|(f, _)| &f.corners);
+                    hull.extend(corners.chain(&emitter.hull));
+                    if !boxes.iter().any(|b| b.meets_hull(hull)) {
+                        continue;
+                    }
+                    let rays = Rays::Known(&lights.visible[base.visible as usize..]);
+                    let pair = pair(&moving_only, receiver, c, emitter, sampling, rays, hits);
+                    if pair.value != base.value {
+                        out.push((receiver.patch, pair));
                     }
                 }
                 out
@@ -1197,12 +1230,10 @@ mod tests {
             let emitters: Vec<Emitter> = clusters.iter().map(|c| pose(c, triangles)).collect();
             let mut whole = vec![0.0f64; scene.patches.len() * slots];
             let mut hits = Vec::new();
-            for t in 0..triangles.len() {
-                for face in faces(triangles, t) {
-                    for (c, emitter) in emitters.iter().enumerate() {
-                        let p = pair(&at, &face, c, emitter, sampling, Rays::Trace, &mut hits);
-                        whole[face.patch as usize * slots + clusters[c].slot] += f64::from(p.value);
-                    }
+            for receiver in receivers(triangles, scene.statics.triangles.len()) {
+                for (c, emitter) in emitters.iter().enumerate() {
+                    let p = pair(&at, &receiver, c, emitter, sampling, Rays::Trace, &mut hits);
+                    whole[receiver.patch as usize * slots + clusters[c].slot] += f64::from(p.value);
                 }
             }
             let (values, _) = lights.form_factors(frame);

@@ -514,11 +514,50 @@ fn point(at: &Frame<'_>, light: &Light, index: usize) -> Vec<(f64, f64)> {
             })
         })
         .collect();
-    let mut out = vec![(0.0, 0.0); at.scene.patches.len()];
-    for (patch, value) in per_triangle.into_iter().flatten().flatten() {
-        out[patch as usize] = value;
+    let faces = per_triangle
+        .into_iter()
+        .zip(at.triangles)
+        .flat_map(|(sides, (c, _))| {
+            let area = triangle_area(c);
+            sides.into_iter().flatten().map(move |(p, v)| (p, area, v))
+        });
+    per_patch(at.scene.patches.len(), faces)
+}
+
+/// Area of a triangle given by its corners.
+fn triangle_area(c: &[glam::Vec3; 3]) -> f64 {
+    let [a, b, c] = c.map(|p| p.as_dvec3());
+    0.5 * (b - a).cross(c - a).length()
+}
+
+/// Per patch, the mean over its faces of their (value, variance), weighted by their areas:
+/// `faces` gives each face's patch, area and values. A patch of one face takes its face's
+/// values as they are; one merged from several faces ([`crate::scene::refine::merge`]) their
+/// area average (the variance of a weighted sum of independent estimates).
+fn per_patch(
+    patches: usize,
+    faces: impl IntoIterator<Item = (u32, f64, (f64, f64))>,
+) -> Vec<(f64, f64)> {
+    // Per patch: faces, Σ area, Σ area·value, Σ area²·variance, the last face's values.
+    let mut sums = vec![(0u32, 0.0, 0.0, 0.0, (0.0, 0.0)); patches];
+    for (p, area, (value, variance)) in faces {
+        let s = &mut sums[p as usize];
+        *s = (
+            s.0 + 1,
+            s.1 + area,
+            s.2 + area * value,
+            s.3 + area * area * variance,
+            (value, variance),
+        );
     }
-    out
+    sums.into_iter()
+        .map(|(n, area, value, variance, last)| match n {
+            0 => (0.0, 0.0),
+            1 => last,
+            _ if area > 0.0 => (value / area, variance / (area * area)),
+            _ => (0.0, 0.0),
+        })
+        .collect()
 }
 
 /// One face of a traced triangle, as a receiver of direct light.
@@ -634,7 +673,7 @@ fn directional(at: &Frame<'_>, light: &Light) -> Vec<(f64, f64)> {
     let scene = at.scene;
     let patches = scene.patches.len();
     let w = light.direction(at.frame);
-    let mut out = vec![(0.0, 0.0); patches];
+    let out = vec![(0.0, 0.0); patches];
     if w == DVec3::ZERO {
         return out;
     }
@@ -704,6 +743,7 @@ fn directional(at: &Frame<'_>, light: &Light) -> Vec<(f64, f64)> {
             },
         );
     let mut hits = Vec::new();
+    let mut values = Vec::with_capacity(at.triangles.len());
     for (t, ((corners, faces), &(normal, area))) in at.triangles.iter().zip(&geometry).enumerate() {
         if area <= 0.0 {
             continue;
@@ -715,6 +755,7 @@ fn directional(at: &Frame<'_>, light: &Light) -> Vec<(f64, f64)> {
             };
             let cos = -n.dot(w);
             if cos <= 0.0 {
+                values.push((p as u32, area, (0.0, 0.0)));
                 continue;
             }
             let (visible, variance) = if crossed[p] > 0 {
@@ -729,8 +770,8 @@ fn directional(at: &Frame<'_>, light: &Light) -> Vec<(f64, f64)> {
                 let visible = !at.blocked(centre, away, t as u32, back, &mut hits);
                 (f64::from(u8::from(visible)), 0.0)
             };
-            out[p] = (cos * visible, cos * cos * variance);
+            values.push((p as u32, area, (cos * visible, cos * cos * variance)));
         }
     }
-    out
+    per_patch(patches, values)
 }

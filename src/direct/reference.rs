@@ -49,9 +49,10 @@ pub struct Estimate {
     pub spread: [f64; 3],
 }
 
-/// One emitting patch, for next-event estimation.
+/// One emitting face, for next-event estimation.
 struct Emitter {
-    patch: usize,
+    /// Its place.
+    place: usize,
     corners: [DVec3; 3],
     /// Unit normal on its emitting side.
     normal: DVec3,
@@ -76,8 +77,8 @@ impl Emitter {
     }
 }
 
-/// Where each patch lies: its triangle (global id), the face, its corners and the unit normal
-/// on its side, at one frame.
+/// Where a face lies: its triangle (global id), the side, its corners and the unit normal on
+/// its side, at one frame.
 struct Place {
     triangle: u32,
     back: bool,
@@ -98,16 +99,17 @@ pub fn path_traced(
 ) -> Vec<Estimate> {
     let posed = Posed::at(scene, tracer, frame);
     let view = posed.frame(scene, tracer, Occluders::All);
-    let places = places(scene, &view);
-    let emitters = emitters(scene, &places);
-    let mut emitter_of = vec![None; scene.patches.len()];
+    let (places, members) = places(scene, &view);
+    let emitters = emitters(scene, &view, &places);
+    let mut emitter_of = vec![None; places.len()];
     for (k, e) in emitters.iter().enumerate() {
-        emitter_of[e.patch] = Some(k);
+        emitter_of[e.place] = Some(k);
     }
     let tracer = Tracer {
         scene,
         view: &view,
         places: &places,
+        members: &members,
         emitters: &emitters,
         emitter_of,
         punctual: scene
@@ -146,54 +148,55 @@ struct Punctual {
     range: Option<f64>,
 }
 
-/// Every patch's place at the frame.
-fn places(scene: &Scene, view: &Frame<'_>) -> Vec<Place> {
-    let mut out: Vec<Option<Place>> = (0..scene.patches.len()).map(|_| None).collect();
+/// Every face's place at the frame (face `2t + back` of triangle `t`; a face no patch covers
+/// has triangle `u32::MAX`), and each patch's faces with their cumulative share of its area
+/// (one face, or several merged by [`crate::scene::refine::merge`]).
+fn places(scene: &Scene, view: &Frame<'_>) -> (Vec<Place>, Vec<Vec<(usize, f64)>>) {
+    let mut places = Vec::with_capacity(2 * view.triangles.len());
+    let mut members: Vec<Vec<(usize, f64)>> = vec![Vec::new(); scene.patches.len()];
     for (t, (corners, faces)) in view.triangles.iter().enumerate() {
         let corners = corners.map(|c| c.as_dvec3());
-        let normal = (corners[1] - corners[0])
-            .cross(corners[2] - corners[0])
-            .normalize_or_zero();
-        let mut put = |patch: u32, back: bool| {
-            out[patch as usize] = Some(Place {
-                triangle: t as u32,
+        let cross = (corners[1] - corners[0]).cross(corners[2] - corners[0]);
+        let (normal, area) = (cross.normalize_or_zero(), 0.5 * cross.length());
+        for (patch, back) in [(Some(faces.front), false), (faces.back, true)] {
+            if let Some(p) = patch {
+                members[p as usize].push((places.len(), area));
+            }
+            places.push(Place {
+                triangle: if patch.is_some() { t as u32 } else { u32::MAX },
                 back,
                 corners,
                 normal: if back { -normal } else { normal },
             });
-        };
-        put(faces.front, false);
-        if let Some(b) = faces.back {
-            put(b, true);
         }
     }
-    out.into_iter()
-        .map(|p| {
-            p.unwrap_or(Place {
-                triangle: u32::MAX,
-                back: false,
-                corners: [DVec3::ZERO; 3],
-                normal: DVec3::ZERO,
-            })
-        })
-        .collect()
+    for faces in &mut members {
+        let total: f64 = faces.iter().map(|f| f.1).sum();
+        let mut sum = 0.0;
+        for f in faces.iter_mut() {
+            sum += f.1;
+            f.1 = if total > 0.0 { sum / total } else { 1.0 };
+        }
+    }
+    (places, members)
 }
 
-/// The emitting patches, with their pick probabilities (area × brightest channel).
-fn emitters(scene: &Scene, places: &[Place]) -> Vec<Emitter> {
-    let mut out: Vec<Emitter> = scene
-        .patches
+/// The emitting faces, with their pick probabilities (area × brightest channel).
+fn emitters(scene: &Scene, view: &Frame<'_>, places: &[Place]) -> Vec<Emitter> {
+    let mut out: Vec<Emitter> = places
         .iter()
-        .zip(places)
         .enumerate()
-        .filter_map(|(i, (p, place))| {
-            let emission = scene.materials[p.material as usize].emission;
+        .filter_map(|(k, place)| {
+            let faces = view.triangles.get(place.triangle as usize)?.1;
+            let patch = if place.back { faces.back? } else { faces.front };
+            let emission =
+                scene.materials[scene.patches[patch as usize].material as usize].emission;
             let area = 0.5
                 * (place.corners[1] - place.corners[0])
                     .cross(place.corners[2] - place.corners[0])
                     .length();
             (emission.iter().any(|&e| e > 0.0) && area > 0.0).then_some(Emitter {
-                patch: i,
+                place: k,
                 corners: place.corners,
                 normal: place.normal,
                 area,
@@ -223,8 +226,8 @@ enum Met {
     Sky,
     /// The back of a one-sided face, which absorbs.
     Nothing,
-    /// A patch, at this distance.
-    Patch(usize, f64),
+    /// A face (its place) of a patch, at this distance.
+    Patch(usize, usize, f64),
 }
 
 /// Bounces after which Russian roulette starts.
@@ -237,8 +240,10 @@ struct Tracer<'a> {
     scene: &'a Scene,
     view: &'a Frame<'a>,
     places: &'a [Place],
+    /// Per patch, its faces' places with their cumulative share of its area.
+    members: &'a [Vec<(usize, f64)>],
     emitters: &'a [Emitter],
-    /// Per patch, its index among the emitters.
+    /// Per face's place, its index among the emitters.
     emitter_of: Vec<Option<usize>>,
     /// The punctual lights.
     punctual: Vec<Punctual>,
@@ -249,15 +254,18 @@ impl Tracer<'_> {
     /// Patch i's estimate from `paths` paths.
     fn patch(&self, i: usize, paths: usize, rng: &mut Xoshiro256PlusPlus) -> Estimate {
         let material = &self.scene.materials[self.scene.patches[i].material as usize];
-        let place = &self.places[i];
-        if place.triangle == u32::MAX || material.reflectance == [0.0; 3] {
+        let members = &self.members[i];
+        if members.is_empty() || material.reflectance == [0.0; 3] {
             return Estimate {
                 radiance: material.emission,
                 stderr: [0.0; 3],
                 spread: [0.0; 3],
             };
         }
-        let corners = inset(&place.corners);
+        let faces: Vec<(&Place, [DVec3; 3])> = members
+            .iter()
+            .map(|&(k, _)| (&self.places[k], inset(&self.places[k].corners)))
+            .collect();
         let mut hits = Vec::new();
         // Paths in pairs from one point: the pairs' means are independent samples of the
         // area mean, and the two paths of a pair differ only by the paths' own noise, which
@@ -265,6 +273,14 @@ impl Tracer<'_> {
         let pairs = (paths / 2).max(2);
         let (mut sum, mut sum_sq, mut apart) = ([0.0; 3], [0.0; 3], [0.0; 3]);
         for _ in 0..pairs {
+            // A face picked by area (no draw for a patch of one face), a point on it.
+            let k = if faces.len() == 1 {
+                0
+            } else {
+                let u: f64 = rng.random();
+                members.partition_point(|f| f.1 < u).min(faces.len() - 1)
+            };
+            let (place, corners) = faces[k];
             let x = triangle_point(&corners, rng.random(), rng.random());
             let e = [0, 1].map(|_| self.irradiance(x, place, rng, &mut hits));
             for c in 0..3 {
@@ -308,7 +324,7 @@ impl Tracer<'_> {
             // A cosine-weighted direction: the irradiance is π times the mean radiance coming
             // in along it.
             let w = cosine_direction(place.normal, rng);
-            let (patch, t) = match self.first_hit(x, w, place, hits) {
+            let (face, patch, t) = match self.first_hit(x, w, place, hits) {
                 Met::Sky => {
                     (0..3).for_each(|c| {
                         total[c] += throughput[c] * std::f64::consts::PI * self.sky[c];
@@ -316,9 +332,9 @@ impl Tracer<'_> {
                     break;
                 }
                 Met::Nothing => break,
-                Met::Patch(patch, t) => (patch, t),
+                Met::Patch(face, patch, t) => (face, patch, t),
             };
-            if let Some(k) = self.emitter_of[patch] {
+            if let Some(k) = self.emitter_of[face] {
                 // Its emission, weighted against next-event estimation's density of the same
                 // direction ([`Emitter::weight`]).
                 let light = &self.emitters[k];
@@ -339,7 +355,7 @@ impl Tracer<'_> {
                 break;
             }
             (0..3).for_each(|c| throughput[c] *= rho[c] / survive);
-            place = &self.places[patch];
+            place = &self.places[face];
             // The next point kept 8·COINCIDENT inside its patch's edges, as the first is (see
             // [`inset`]): a ray from a point a hair from a corner would meet the wall across it
             // inside the window where crossings are taken for its own surface, and escape.
@@ -453,12 +469,17 @@ impl Tracer<'_> {
             return Met::Sky;
         };
         let faces = self.view.triangles[hit.surface() as usize].1;
-        match if hit.front() {
-            Some(faces.front)
+        let (patch, back) = if hit.front() {
+            (Some(faces.front), false)
         } else {
-            faces.back
-        } {
-            Some(patch) => Met::Patch(patch as usize, f64::from(hit.t) - behind),
+            (faces.back, true)
+        };
+        match patch {
+            Some(patch) => Met::Patch(
+                2 * hit.surface() as usize + usize::from(back),
+                patch as usize,
+                f64::from(hit.t) - behind,
+            ),
             None => Met::Nothing,
         }
     }

@@ -1,4 +1,5 @@
-//! The scene at one frame as drawable geometry: one triangle per patch, facing the patch's side,
+//! The scene at one frame as drawable geometry: one triangle per face of a traced triangle
+//! (a patch merged from several faces draws them all), facing the patch's side,
 //! with per-vertex radiance averaged (area-weighted) over the patches around each vertex.
 //!
 //! A vertex is shared only by patches of the same source node, on the same side, whose planes

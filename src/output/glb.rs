@@ -1,7 +1,7 @@
 //! The baked glTF: one binary glTF (`.glb`) per frame.
 //!
 //! Each file is the scene posed at its frame, one node and mesh per source node (its index in
-//! `extras.source_node`), one triangle per patch, with per-vertex:
+//! `extras.source_node`), one triangle per face of a traced triangle, with per-vertex:
 //! - `_RADIANCE`: the HDR radiance (f32 RGB, the scene's emission units);
 //! - `COLOR_0`: the same tone-mapped to [0, 1] ([`ToneMap`]), which ordinary viewers show;
 //! - `NORMAL`.

@@ -41,10 +41,11 @@ pub struct Provenance {
     pub triangle: u32,
 }
 
-/// A patch: one face of one (possibly subdivided) triangle, the unit radiosity is solved for.
+/// A patch: one face of one (possibly subdivided) triangle, or of several coplanar ones merged
+/// ([`refine::merge`]); the unit radiosity is solved for.
 #[derive(Clone, Debug)]
 pub struct Patch {
-    /// The source triangle this patch is (part of).
+    /// The source triangle this patch is (part of); a merged patch's first member's.
     pub source: Provenance,
     /// Which face of the triangle.
     pub side: Side,

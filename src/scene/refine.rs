@@ -8,6 +8,9 @@
 //! are matched by their corners' positions, so a flat-shaded export that repeats a vertex per
 //! face is cut without cracks as well.
 //!
+//! Patches can also be merged: coplanar faces of one mesh and material made one patch
+//! ([`merge`]), which changes no triangle.
+//!
 //! Every cut is recorded: a crossing of a triangle before the cuts finds the triangle it lies
 //! in after them from its barycentric coordinates ([`Refinement::locate`]), which is how the
 //! intersection list follows the patches without a line traced again.
@@ -280,6 +283,8 @@ fn traced_meshes(scene: &Scene) -> Vec<(&TriangleMesh, bool)> {
 /// included, without building the scene (to keep a budget).
 #[must_use]
 pub fn patches_after(scene: &Scene, cuts: &[u32]) -> usize {
+    let members = members(scene);
+    let shared: Vec<bool> = members.iter().map(|&m| m > 1).collect();
     let mut first = 0;
     let mut patches = 0;
     for (mesh, deforming) in traced_meshes(scene) {
@@ -299,12 +304,71 @@ pub fn patches_after(scene: &Scene, cuts: &[u32]) -> usize {
                         Node::Cut { children, .. } => stack.extend(children),
                     }
                 }
-                patches += leaves * faces(root);
+                let f = mesh.faces[root];
+                patches += [Some(f.front), f.back]
+                    .into_iter()
+                    .flatten()
+                    .map(|p| if shared[p as usize] { 1 } else { leaves })
+                    .sum::<usize>();
             }
         }
         first += count;
     }
+    // A merged patch counted once per face above: once in all.
     patches
+        - shared
+            .iter()
+            .zip(&members)
+            .filter(|&(&s, _)| s)
+            .map(|(_, &m)| m as usize - 1)
+            .sum::<usize>()
+}
+
+/// How many traced faces each patch of `scene` covers: 1, or more for a patch merged from
+/// several ([`merge`]).
+fn members(scene: &Scene) -> Vec<u32> {
+    let mut count = vec![0u32; scene.patches.len()];
+    for (mesh, _) in traced_meshes(scene) {
+        for f in &mesh.faces {
+            for p in [Some(f.front), f.back].into_iter().flatten() {
+                count[p as usize] += 1;
+            }
+        }
+    }
+    count
+}
+
+/// Merges `scene`'s patches: old patch `p` becomes new patch `into[p]` (the new ids dense
+/// from 0). The patches merged into one must be faces of coplanar traced triangles of one
+/// mesh with one material and side, which the caller decides
+/// ([`crate::adaptive`]); the merged patch keeps its first member's source and the sum of
+/// their areas. No triangle changes: the intersection list stays as it is.
+#[must_use]
+pub fn merge(scene: &Scene, into: &[u32]) -> Scene {
+    let count = into.iter().map(|&n| n as usize + 1).max().unwrap_or(0);
+    let mut patches: Vec<Option<Patch>> = vec![None; count];
+    for (old, &new) in scene.patches.iter().zip(into) {
+        match &mut patches[new as usize] {
+            Some(patch) => patch.area += old.area,
+            slot => *slot = Some(old.clone()),
+        }
+    }
+    let mut merged = scene.clone();
+    merged.patches = patches
+        .into_iter()
+        .map(|p| p.expect("merge: every new patch has a member"))
+        .collect();
+    let remap = |mesh: &mut TriangleMesh| {
+        for f in &mut mesh.faces {
+            f.front = into[f.front as usize];
+            f.back = f.back.map(|b| into[b as usize]);
+        }
+    };
+    remap(&mut merged.statics);
+    for object in &mut merged.objects {
+        remap(&mut object.mesh);
+    }
+    merged
 }
 
 /// Cuts the traced triangles of `scene` as `cuts` says (by global index: the static
@@ -317,8 +381,12 @@ pub fn patches_after(scene: &Scene, cuts: &[u32]) -> usize {
 ///
 /// Returns the new scene, whose patches are those of the cut triangles' faces numbered in the
 /// order of their triangles (a cut triangle's pieces in place of it, each with its share of
-/// the area), and the map from old triangles to new.
+/// the area; a patch merged from several faces ([`merge`]) stays one patch, whatever its
+/// triangles are cut into), and the map from old triangles to new.
 pub fn cut(scene: &Scene, cuts: &[u32]) -> (Scene, Refinement) {
+    let members = members(scene);
+    // A merged patch's new id, once its first piece is numbered.
+    let mut kept: HashMap<u32, u32> = HashMap::new();
     let meshes = traced_meshes(scene);
     let mut first = 0;
     let mut new_first = 0u32;
@@ -362,6 +430,16 @@ pub fn cut(scene: &Scene, cuts: &[u32]) -> (Scene, Refinement) {
             global[leaf as usize] = new_first + i as u32;
             let faces = mesh.faces[root];
             let mut piece = |id: u32| {
+                // A merged patch stays one: its pieces (cut for a neighbour) all in it.
+                if members[id as usize] > 1 {
+                    if let Some(&new) = kept.get(&id) {
+                        return new;
+                    }
+                    kept.insert(id, patches.len() as u32);
+                    patches.push(scene.patches[id as usize].clone());
+                    parents.push(id);
+                    return (patches.len() - 1) as u32;
+                }
                 let mut patch = scene.patches[id as usize].clone();
                 patch.area /= f64::from(1u32 << depth.min(31));
                 patches.push(patch);

@@ -483,11 +483,10 @@ impl Job {
         }
     }
 
-    /// Solves every frame for the current version, in order, a couple per core at a time, so
-    /// that streams see them in order: each core takes a run of consecutive frames, the first
-    /// starting from the last frame solved before them and the next from the one before it
-    /// ([`Bake::solve_frame_from`]). A frame that does not converge stops the work: the frames
-    /// before it are kept, it and those after are not.
+    /// Solves every frame for the current version by the bake command's runs
+    /// ([`Bake::solve_runs`]: the same answers), a run per core at a time and in order, so
+    /// that streams see the frames in order. A frame that does not converge stops the work:
+    /// the frames before it are kept, it and those after are not.
     fn solve_frames(&self, bake: &Bake) -> Result<(), NotConverged> {
         self.set_status(Status::Solving);
         let started = Instant::now();
@@ -501,61 +500,44 @@ impl Job {
             .lock()
             .map(|l| l.iter().map(LightSetting::power).collect())
             .unwrap_or_default();
-        const RUN: usize = 2;
+        // The bake command's runs ([`Bake::solve_runs`]), as many at a time as there are
+        // threads, in order: after each batch the frames up to the next distinct frame not
+        // yet solved are served (a frame shares its representative's solution, which comes
+        // no later than it).
+        let runs = bake.solve_runs();
         let threads = rayon::current_num_threads().max(1);
-        let frames = self.frame_times.len();
+        let frames = representatives.len();
+        let mut by_frame: Vec<Option<Arc<FrameSolution>>> = vec![None; frames];
         let mut frame = 0;
-        // The last frame solved for this version, where the next runs start.
-        let mut last: Option<(usize, Arc<FrameSolution>)> = None;
-        while frame < frames {
+        for (k, batch) in runs.chunks(threads).enumerate() {
             if self.control.is_cancelled() {
                 return Ok(());
             }
-            let end = (frame + RUN * threads).min(frames);
-            let solved: Vec<Arc<FrameSolution>> = {
+            let solved: Vec<(usize, Arc<FrameSolution>)> = {
                 use rayon::prelude::*;
-                let runs: Vec<usize> = (frame..end).step_by(RUN).collect();
-                runs.into_par_iter()
-                    .flat_map_iter(|first| {
-                        let mut previous = last.clone();
-                        (first..(first + RUN).min(end))
-                            .map(|f| {
-                                let r = representatives[f];
-                                let shared = (r < f)
-                                    .then(|| self.frame(r))
-                                    .flatten()
-                                    .filter(|(v, _)| *v == version);
-                                let solution = match shared {
-                                    Some((_, s)) => s,
-                                    None => Arc::new(bake.solve_frame_from(
-                                        f,
-                                        &materials,
-                                        &power,
-                                        &params,
-                                        previous.as_ref().map(|(p, s)| (*p, s.as_ref())),
-                                    )),
-                                };
-                                previous = Some((f, solution.clone()));
-                                solution
-                            })
-                            .collect::<Vec<_>>()
-                    })
+                batch
+                    .par_iter()
+                    .flat_map_iter(|run| bake.solve_run(run, &materials, &power, &params))
                     .collect()
             };
             let failed = solved
                 .iter()
-                .enumerate()
-                .find_map(|(k, s)| s.ensure_converged(frame + k, &params).err());
-            let good = failed.as_ref().map_or(solved.len(), |e| e.frame - frame);
-            last = good
-                .checked_sub(1)
-                .and_then(|k| solved.get(k).map(|s| (frame + k, s.clone())));
+                .find_map(|(f, s)| s.ensure_converged(*f, &params).err());
+            for (f, s) in solved {
+                by_frame[f] = Some(s);
+            }
+            // Served: the frames before the first distinct frame not solved (or failed).
+            let next = runs
+                .get((k + 1) * threads)
+                .map_or(frames, |run| run[0])
+                .min(failed.as_ref().map_or(frames, |e| e.frame));
             if let Ok(mut results) = self.results.write() {
-                for (k, s) in solved.into_iter().take(good).enumerate() {
-                    results[frame + k] = Some((version, s));
+                for f in frame..next {
+                    let solution = by_frame[representatives[f]].clone();
+                    results[f] = solution.map(|s| (version, s));
                 }
             }
-            frame += good;
+            frame = next;
             self.frames_solved.store(frame, Ordering::Release);
             self.solved.send_replace(frame);
             if let Some(e) = failed {

@@ -50,11 +50,12 @@ pub fn unkey(k: u64) -> (u32, u32, u8) {
 /// and `to` a patch, [`SKY`] or [`ABSORBED`]. Coincident crossings are resolved first
 /// ([`resolve`]); the segment across a contact is dark both ways.
 fn walk(hits: &[Hit], surfaces: &Surfaces<'_>, mut visit: impl FnMut(u32, u32)) {
-    walk_from(hits, surfaces, |from, to, _| visit(from, to));
+    walk_from(hits, surfaces, |from, to, _, _| visit(from, to));
 }
 
-/// `walk`, also giving the crossing the segment leaves `from` at.
-pub fn walk_from(hits: &[Hit], surfaces: &Surfaces<'_>, mut visit: impl FnMut(u32, u32, Hit)) {
+/// `walk`, also giving the crossing the segment leaves `from` at and the segment's length
+/// (infinite to the sky, 0 across a contact).
+pub fn walk_from(hits: &[Hit], surfaces: &Surfaces<'_>, mut visit: impl FnMut(u32, u32, Hit, f32)) {
     let faces = surfaces.faces;
     let reordered = resolve(hits, surfaces);
     let hits = reordered.as_deref().unwrap_or(hits);
@@ -69,31 +70,32 @@ pub fn walk_from(hits: &[Hit], surfaces: &Surfaces<'_>, mut visit: impl FnMut(u3
         if h.front() { f.back } else { Some(f.front) }
     };
     if let Some(a) = entry(first) {
-        visit(a, SKY, *first);
+        visit(a, SKY, *first, f32::INFINITY);
     }
     for w in hits.windows(2) {
         // `a` faces the segment from one end, `b` from the other; a missing face absorbs.
         let (a, b) = (exit(&w[0]), entry(&w[1]));
         if is_contact(&w[0], &w[1]) {
             if let Some(a) = a {
-                visit(a, ABSORBED, w[0]);
+                visit(a, ABSORBED, w[0], 0.0);
             }
             if let Some(b) = b {
-                visit(b, ABSORBED, w[1]);
+                visit(b, ABSORBED, w[1], 0.0);
             }
             continue;
         }
+        let length = w[1].t - w[0].t;
         if let Some(a) = a {
-            visit(a, b.unwrap_or(ABSORBED), w[0]);
+            visit(a, b.unwrap_or(ABSORBED), w[0], length);
         }
         if let Some(b) = b {
-            visit(b, a.unwrap_or(ABSORBED), w[1]);
+            visit(b, a.unwrap_or(ABSORBED), w[1], length);
         }
     }
     if let Some(last) = hits.last()
         && let Some(a) = exit(last)
     {
-        visit(a, SKY, *last);
+        visit(a, SKY, *last, f32::INFINITY);
     }
 }
 
