@@ -24,7 +24,7 @@
 //!   averaged over each patch, not a discretisation's).
 //! - [`bake`]: a traced scene ready to solve, refine and relight any frame.
 //! - [`adaptive`]: `patch_size=auto`, patches cut after tracing where the light needs them
-//!   (the cuts themselves are [`scene::refine`]).
+//!   and merged where it does not (the cuts and merges themselves are [`scene::refine`]).
 //! - [`output`]: what people use and look at: the baked glTF (per-vertex radiance), PNG and
 //!   GIF previews, the tone map.
 //! - [`params`]: the rules on parameters that the CLI and the HTTP API share (the sky's

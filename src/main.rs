@@ -28,12 +28,13 @@ struct SceneArgs {
     /// Time of the last frame (seconds); defaults to the last keyframe.
     #[arg(long)]
     end: Option<f64>,
-    /// How patches are made: auto (cut after tracing where the light needs them), source (one
-    /// per side of each source triangle) or a length (every edge at most that long, scene units).
+    /// How patches are made: auto (cut after tracing where the light needs them, merged where
+    /// it does not), source (one per side of each source triangle) or a length (every edge at
+    /// most that long, scene units).
     #[arg(long, default_value_t)]
     patch_size: radiosity::params::PatchSize,
-    /// With --patch-size auto: most patches the cuts may reach (the cuts neighbours need
-    /// included); one per 200 lines by default.
+    /// With --patch-size auto: most patches (the cuts neighbours need included; merges bring a
+    /// scene of more triangles down to it where they can); one per 200 lines by default.
     #[arg(long)]
     patch_budget: Option<usize>,
     /// Largest diffuse reflectance, in (0, 1]: higher ones are lowered to it, with a warning.

@@ -35,8 +35,8 @@ pub enum ParamError {
 /// parameter of both front ends).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub enum PatchSize {
-    /// Patches cut after tracing where the light needs them, from the lines
-    /// ([`crate::adaptive`]), starting from the source's triangles. The default: on every
+    /// Patches cut after tracing where the light needs them and merged where it does not,
+    /// from the lines ([`crate::adaptive`]), starting from the source's triangles. The default: on every
     /// sample scene it is closer to the path-traced reference than the source's triangles
     /// (README, "Adaptive patches").
     #[default]

@@ -324,6 +324,14 @@ fn auto_merges_coplanar_neighbours_of_one_material_and_keeps_every_crossing() {
     }
     let merged = planes.iter().filter(|p| p.len() > 1).count();
     assert!(merged > 0);
+    // A patch of several source triangles names the others (the walls' two triangles are
+    // merged), in order, without its own.
+    assert!(scene.patches.iter().any(|p| !p.merged.is_empty()));
+    for (p, faces) in scene.patches.iter().zip(&planes) {
+        assert!(p.merged.windows(2).all(|w| w[0] < w[1]));
+        assert!(!p.merged.contains(&p.source.triangle));
+        assert!(p.merged.len() < faces.len().max(1));
+    }
     for faces in planes.iter().filter(|p| p.len() > 1) {
         for &(n, d) in &faces[1..] {
             assert!(n.dot(faces[0].0) > 1.0 - 1e-5 && (d - faces[0].1).abs() < 1e-5);

@@ -872,6 +872,7 @@ fn build(
                     material,
                     area,
                     object,
+                    merged: Vec::new(),
                 });
                 (patches.len() - 1) as u32
             };

@@ -56,6 +56,9 @@ pub struct Patch {
     pub area: f64,
     /// The moving object the patch belongs to, `None` for static geometry.
     pub object: Option<u32>,
+    /// A patch merged from several source triangles ([`refine::merge`]; all of one node, mesh
+    /// and primitive): the others' indices within the primitive, ascending; empty otherwise.
+    pub merged: Vec<u32>,
 }
 
 /// The optical properties the radiosity solve needs, per material.

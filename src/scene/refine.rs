@@ -340,18 +340,28 @@ fn members(scene: &Scene) -> Vec<u32> {
 
 /// Merges `scene`'s patches: old patch `p` becomes new patch `into[p]` (the new ids dense
 /// from 0). The patches merged into one must be faces of coplanar traced triangles of one
-/// mesh with one material and side, which the caller decides
-/// ([`crate::adaptive`]); the merged patch keeps its first member's source and the sum of
-/// their areas. No triangle changes: the intersection list stays as it is.
+/// source primitive (one node, mesh and primitive) with one material and side, which the
+/// caller decides ([`crate::adaptive`]); the merged patch keeps its first member's source,
+/// the others' source triangles ([`Patch::merged`]) and the sum of their areas. No triangle changes: the intersection list stays as it is.
 #[must_use]
 pub fn merge(scene: &Scene, into: &[u32]) -> Scene {
     let count = into.iter().map(|&n| n as usize + 1).max().unwrap_or(0);
     let mut patches: Vec<Option<Patch>> = vec![None; count];
     for (old, &new) in scene.patches.iter().zip(into) {
         match &mut patches[new as usize] {
-            Some(patch) => patch.area += old.area,
+            Some(patch) => {
+                patch.area += old.area;
+                let triangles = std::iter::once(old.source.triangle).chain(old.merged.clone());
+                patch
+                    .merged
+                    .extend(triangles.filter(|&t| t != patch.source.triangle));
+            }
             slot => *slot = Some(old.clone()),
         }
+    }
+    for patch in patches.iter_mut().flatten() {
+        patch.merged.sort_unstable();
+        patch.merged.dedup();
     }
     let mut merged = scene.clone();
     merged.patches = patches

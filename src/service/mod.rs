@@ -211,8 +211,12 @@ pub(crate) fn patch_table(scene: &Scene) -> serde_json::Value {
         .iter()
         .enumerate()
         .map(|(id, p)| {
-            json!({"id": id, "node": p.source.node, "mesh": p.source.mesh, "primitive": p.source.primitive,
-                   "triangle": p.source.triangle, "side": p.side, "area": p.area, "moving": p.object.is_some()})
+            let mut entry = json!({"id": id, "node": p.source.node, "mesh": p.source.mesh, "primitive": p.source.primitive,
+                   "triangle": p.source.triangle, "side": p.side, "area": p.area, "moving": p.object.is_some()});
+            if !p.merged.is_empty() {
+                entry["merged"] = json!(p.merged);
+            }
+            entry
         })
         .collect();
     json!({ "patches": patches })

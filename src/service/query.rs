@@ -135,7 +135,8 @@ pub(super) struct CreateQuery {
     /// Highest diffuse reflectance, in (0, 1]; [`crate::loader::MAX_REFLECTANCE`] by default.
     #[serde(default, deserialize_with = "number")]
     max_reflectance: Option<f64>,
-    /// With `patch_size=auto`: most patches the cuts may reach; one per 200 lines by default.
+    /// With `patch_size=auto`: most patches (cuts stop at it, merges bring a scene of more
+    /// triangles down to it where they can); one per 200 lines by default.
     #[serde(default, deserialize_with = "whole")]
     patch_budget: Option<u64>,
 }
