@@ -16,7 +16,7 @@
 //! it is sampled again once, for the final patches. The rounds stop when one adds under 1% of
 //! the patches, or at the budget.
 //!
-//! Then coplanar neighbours are merged into patches of several faces ([`merges`]) where the
+//! Then coplanar neighbours are merged into patches of several faces (`merges`) where the
 //! same rule would not cut them apart and what they face is no closer than they are wide, and
 //! while the patches are over the budget (a scene of more triangles than it): a wall lit
 //! smoothly is a few large patches, each crossed by more lines (less noise), and the patches
@@ -62,7 +62,7 @@ pub struct Adaptive {
     pub precision: f64,
     /// Coplanar neighbours are merged into one patch while the merged patch spans at most this
     /// (its box's diagonal, in the scene's normalised units: its bounding sphere has radius 1)
-    /// and the cut rule would not cut it again ([`merges`]); 0 merges nothing.
+    /// and the cut rule would not cut it again (`merges`, in [`adapt`]); 0 merges nothing.
     pub merge_extent: f64,
 }
 
@@ -122,7 +122,7 @@ pub struct Round {
     pub significant: usize,
     /// Patches added by the round's cuts.
     pub added: usize,
-    /// Patches merged away by the round (the last one merges, [`merges`]).
+    /// Patches merged away by the round (the last one merges).
     pub removed: usize,
     /// Seconds the round took (solve, scores, cuts, direct light); not serialised with the
     /// rest, which is the same on every run (`timings.json` has them).
