@@ -143,16 +143,60 @@ pub fn adapt(
     control: &Control,
 ) -> Result<Vec<Round>, TraceError> {
     let mut rounds = Vec::new();
+    // Cuts, then merges; once more if the merges freed budget the cuts had used up (the
+    // patches they freed go where the light needs them).
+    for cycle in 0..CYCLES {
+        let bound = cut_rounds(bake, auto, solve, control, &mut rounds)?;
+        if auto.merge_extent <= 0.0 {
+            break;
+        }
+        control.check()?;
+        let started = Instant::now();
+        let patches = bake.scene.patches.len();
+        let into = merges(bake, auto, solve);
+        let removed = bake.merge(&into, control)?;
+        rounds.push(Round {
+            patches,
+            significant: 0,
+            added: 0,
+            removed,
+            seconds: started.elapsed().as_secs_f64(),
+        });
+        let left = bake.scene.patches.len();
+        if !bound || removed < patches / 100 || left + left / 100 >= auto.budget || cycle > 0 {
+            break;
+        }
+    }
+    Ok(rounds)
+}
+
+/// Cut-and-merge cycles of [`adapt`] at most: the second only when the merges freed budget that
+/// the cuts had used up.
+const CYCLES: usize = 2;
+
+/// The rounds of cuts of [`adapt`], then the pieces' own direct light; whether they stopped at
+/// the budget (rather than for want of cuts worth making).
+fn cut_rounds(
+    bake: &mut Bake,
+    auto: &Adaptive,
+    solve: &SolveParams,
+    control: &Control,
+    rounds: &mut Vec<Round>,
+) -> Result<bool, TraceError> {
+    let mut bound = false;
     for _ in 0..auto.rounds {
         control.check()?;
         let started = Instant::now();
         let patches = bake.scene.patches.len();
         // A round costs solves and a pass over the lines: not for the last 1% of the budget.
         if patches + patches / 100 >= auto.budget {
+            bound = true;
             break;
         }
-        let marked = within_budget(bake, &mark(bake, auto, solve), auto.budget);
-        let significant = marked.iter().map(|m| m.count_ones() as usize).sum();
+        let ranked = mark(bake, auto, solve);
+        let marked = within_budget(bake, &ranked, auto.budget);
+        let significant: usize = marked.iter().map(|m| m.count_ones() as usize).sum();
+        bound = significant < ranked.len();
         let added = if significant == 0 {
             0
         } else {
@@ -177,23 +221,7 @@ pub fn adapt(
     if let Some(last) = rounds.last_mut() {
         last.seconds += started.elapsed().as_secs_f64();
     }
-    // Then the neighbours the lines cannot tell apart made one patch (their light sampled
-    // again if any are).
-    if auto.merge_extent > 0.0 {
-        control.check()?;
-        let started = Instant::now();
-        let patches = bake.scene.patches.len();
-        let into = merges(bake, auto, solve);
-        let removed = bake.merge(&into, control)?;
-        rounds.push(Round {
-            patches,
-            significant: 0,
-            added: 0,
-            removed,
-            seconds: started.elapsed().as_secs_f64(),
-        });
-    }
-    Ok(rounds)
+    Ok(bound)
 }
 
 /// Which patches to merge: old patch `p` becomes patch `into[p]` (dense, in the order of each
@@ -486,10 +514,12 @@ fn mark(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<(u32, u32)> {
     let scene = &bake.scene;
     let faces = bake.tracer().faces();
     let mut triangle_of = vec![0u32; scene.patches.len()];
+    // Faces per patch: a merged patch (more than one) is not cut (its pieces would stay in it).
+    let mut members = vec![0u32; scene.patches.len()];
     for (g, f) in faces.iter().enumerate() {
-        triangle_of[f.front as usize] = g as u32;
-        if let Some(b) = f.back {
-            triangle_of[b as usize] = g as u32;
+        for p in [Some(f.front), f.back].into_iter().flatten() {
+            triangle_of[p as usize] = g as u32;
+            members[p as usize] += 1;
         }
     }
     // Each node's area times its reflectance times the spread of its pieces' gathered
@@ -510,6 +540,9 @@ fn mark(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<(u32, u32)> {
             .zip(stats.par_chunks(3 * LEAVES))
             .enumerate()
             .for_each(|(i, (priority, leaves))| {
+                if members[i] > 1 {
+                    return;
+                }
                 let patch = &scene.patches[i];
                 let rho = luminance(scene.materials[patch.material as usize].reflectance);
                 let leaves: Vec<[f64; 3]> =

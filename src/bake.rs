@@ -80,21 +80,30 @@ impl Bake {
     }
 
     /// Progressive refinement: traces about `lines` more lines (a new batch of directions) and
-    /// adds their tallies; the lines already traced are kept.
+    /// adds their tallies; the lines already traced are kept. The emitters sampled as area
+    /// lights are sampled again as densely as a bake of all the lines samples them
+    /// ([`Sampling::for_lines`]), so that their error falls with the lines' too.
+    ///
+    /// # Errors
+    /// [`TraceError::Cancelled`] if `control` is cancelled (lines added before it are kept;
+    /// the area lights stay as they were).
     pub fn refine(&mut self, lines: u64, control: &Control) -> Result<(), TraceError> {
         let params = LineParams {
             lines,
             bundles: None,
             seed: self.seed,
         };
+        let patches = self.scene.patches.len();
+        let before = Sampling::for_lines(self.list.lines() as u64, patches, self.seed);
         self.list
             .add_lines(&self.scene, &self.tracer, &params, control)?;
-        self.tallies.update(
-            &self.list,
-            &self.tracer.surfaces(),
-            self.scene.patches.len(),
-        );
+        self.tallies
+            .update(&self.list, &self.tracer.surfaces(), patches);
         self.warnings = overlap_warnings(&self.scene, &self.tracer, &self.list);
+        let after = Sampling::for_lines(self.list.lines() as u64, patches, self.seed);
+        if after.density != before.density && !self.area.is_empty() {
+            self.area = AreaLights::compute(&self.scene, &self.tracer, after, control)?;
+        }
         Ok(())
     }
 
