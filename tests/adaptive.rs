@@ -93,6 +93,21 @@ fn cut_patches_hold_the_crossings_a_fresh_trace_finds() {
     assert_ne!(coarse.radiance, sampled.radiance, "the light was inherited");
 }
 
+/// `scene` traced with `params` and made `auto` with the standard choice: the bake, the choice
+/// and its rounds.
+fn adapted(scene: Scene, params: &LineParams) -> (Bake, Adaptive, Vec<radiosity::adaptive::Round>) {
+    let mut bake = Bake::trace(scene, params).unwrap();
+    let auto = Adaptive::for_lines(params.lines, bake.scene.patches.len());
+    let rounds = adapt(
+        &mut bake,
+        &auto,
+        &SolveParams::default(),
+        &Control::default(),
+    )
+    .unwrap();
+    (bake, auto, rounds)
+}
+
 /// The area-weighted mean radiance of the lit, non-emitting patches of frame 0 over the
 /// path-traced reference's, minus 1.
 fn bias_against_the_path_tracer(bake: &Bake) -> f64 {
@@ -121,15 +136,7 @@ fn auto_patches_keep_the_light_trapped_behind_a_panel_where_it_is() {
     let source = Bake::trace(scene.clone(), &params).unwrap();
     let before = bias_against_the_path_tracer(&source);
     assert!(before > 0.1, "the source's triangles are {before:+.3} off");
-    let mut bake = Bake::trace(scene, &params).unwrap();
-    let auto = Adaptive::for_lines(params.lines, bake.scene.patches.len());
-    let rounds = adapt(
-        &mut bake,
-        &auto,
-        &SolveParams::default(),
-        &Control::default(),
-    )
-    .unwrap();
+    let (bake, auto, rounds) = adapted(scene, &params);
     let patches = bake.scene.patches.len();
     assert!(
         patches <= auto.budget,
@@ -297,15 +304,7 @@ fn auto_merges_coplanar_neighbours_of_one_material_and_keeps_every_crossing() {
     let scene = sample("cornell_box.gltf", &LoadOptions::default());
     let total: f64 = scene.patches.iter().map(|p| p.area).sum();
     let params = lines(100_000);
-    let mut bake = Bake::trace(scene, &params).unwrap();
-    let auto = Adaptive::for_lines(params.lines, bake.scene.patches.len());
-    let rounds = adapt(
-        &mut bake,
-        &auto,
-        &SolveParams::default(),
-        &Control::default(),
-    )
-    .unwrap();
+    let (bake, _, rounds) = adapted(scene, &params);
     let merging = rounds.last().unwrap();
     assert!(merging.removed > 0, "{rounds:?}");
     let scene = &bake.scene;

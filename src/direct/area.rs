@@ -680,7 +680,7 @@ struct Receiver {
 /// Every patch's faces at a pose (`triangles`, the static ones first: `statics` of them), by
 /// patch; a patch with no face of non-zero area is left out.
 fn receivers(triangles: &[([glam::Vec3; 3], Faces)], statics: usize) -> Vec<Receiver> {
-    let mut by_patch: std::collections::BTreeMap<u32, Receiver> = Default::default();
+    let mut by_patch: Vec<Option<Receiver>> = Vec::new();
     for (t, (corners, faces)) in triangles.iter().enumerate() {
         let corners = corners.map(|c| c.as_dvec3());
         let cross = (corners[1] - corners[0]).cross(corners[2] - corners[0]);
@@ -693,9 +693,11 @@ fn receivers(triangles: &[([glam::Vec3; 3], Faces)], statics: usize) -> Vec<Rece
                 corners,
                 n: if back { -normal } else { normal },
             };
-            by_patch
-                .entry(patch)
-                .or_insert_with(|| Receiver {
+            if by_patch.len() <= patch as usize {
+                by_patch.resize_with(patch as usize + 1, || None);
+            }
+            by_patch[patch as usize]
+                .get_or_insert_with(|| Receiver {
                     patch,
                     faces: Vec::new(),
                     moving: t >= statics,
@@ -704,7 +706,7 @@ fn receivers(triangles: &[([glam::Vec3; 3], Faces)], statics: usize) -> Vec<Rece
                 .push((face, area));
         }
     }
-    by_patch.into_values().collect()
+    by_patch.into_iter().flatten().collect()
 }
 
 /// The form factor of `receiver` to cluster `c` (posed as `emitter`) with `at`'s occluders: the
