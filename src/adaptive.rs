@@ -364,7 +364,8 @@ fn merges(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<u32> {
                 break;
             }
             let (ra, rb) = (find(&mut root, a), find(&mut root, b));
-            if ra == rb {
+            let size = members[ra as usize].len() + members[rb as usize].len();
+            if ra == rb || size > MAX_MEMBERS {
                 continue;
             }
             let union: Vec<u32> = members[ra as usize]
@@ -424,6 +425,10 @@ fn merges(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<u32> {
         })
         .collect()
 }
+
+/// Most patches merged into one: each merge tests every member (a floor of a dense export,
+/// all alike, would otherwise cost its faces squared).
+const MAX_MEMBERS: usize = 256;
 
 /// The largest share of a merged patch's view (its members' each) that may lie closer than
 /// the merged patch is wide ([`merges`]). Measured with `bench-patches` at 1M lines, without
