@@ -34,6 +34,7 @@ use serde::Serialize;
 
 use crate::bake::{Bake, Lights};
 use crate::scene::refine::{self, Corners, barycentric, longest_edge};
+use crate::scene::subdivide::normal_and_area;
 use crate::solve::SolveParams;
 use crate::solve::tally::{ABSORBED, SKY, walk_from};
 use crate::timeline::{Control, TraceError};
@@ -284,8 +285,7 @@ fn merges(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<u32> {
         let Some(c) = corners.posed(g as u32, Some(0)) else {
             continue;
         };
-        let cross = (c[1] - c[0]).cross(c[2] - c[0]);
-        let (normal, a) = (cross.normalize_or_zero(), 0.5 * cross.length());
+        let (normal, a) = normal_and_area(c);
         if normal == DVec3::ZERO {
             continue;
         }
@@ -519,14 +519,13 @@ fn mark(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<(u32, u32)> {
     let scene = &bake.scene;
     let faces = bake.tracer().faces();
     let mut triangle_of = vec![0u32; scene.patches.len()];
-    // Faces per patch: a merged patch (more than one) is not cut (its pieces would stay in it).
-    let mut members = vec![0u32; scene.patches.len()];
     for (g, f) in faces.iter().enumerate() {
         for p in [Some(f.front), f.back].into_iter().flatten() {
             triangle_of[p as usize] = g as u32;
-            members[p as usize] += 1;
         }
     }
+    // A merged patch (more than one face) is not cut: its pieces would stay in it.
+    let members = refine::members(scene);
     // Each node's area times its reflectance times the spread of its pieces' gathered
     // radiance (the flux it would send to the wrong places), when they differ significantly
     // (most over the frames); 0 otherwise. A black patch has no light to misplace. The order

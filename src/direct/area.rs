@@ -49,6 +49,7 @@ use rand::{RngExt, SeedableRng};
 use rayon::prelude::*;
 
 use super::{Face, Frame, Occluders, Posed, geometry_key, triangle_point};
+use crate::scene::subdivide::normal_and_area;
 use crate::scene::{Faces, Material, Motion, Scene};
 use crate::timeline::{Control, TraceError};
 use crate::trace::coincident::mix;
@@ -683,8 +684,7 @@ fn receivers(triangles: &[([glam::Vec3; 3], Faces)], statics: usize) -> Vec<Rece
     let mut by_patch: Vec<Option<Receiver>> = Vec::new();
     for (t, (corners, faces)) in triangles.iter().enumerate() {
         let corners = corners.map(|c| c.as_dvec3());
-        let cross = (corners[1] - corners[0]).cross(corners[2] - corners[0]);
-        let (normal, area) = (cross.normalize_or_zero(), 0.5 * cross.length());
+        let (normal, area) = normal_and_area(corners);
         for (patch, back) in [(Some(faces.front), false), (faces.back, true)] {
             let Some(patch) = patch else { continue };
             let face = Face {

@@ -31,6 +31,7 @@ use rand::{RngExt, SeedableRng};
 use rayon::prelude::*;
 
 use crate::lines::parallel_bundle;
+use crate::scene::subdivide::normal_and_area;
 use crate::scene::{Faces, Light, LightKind, Scene};
 use crate::timeline::{Control, TraceError};
 use crate::trace::coincident::{COINCIDENT, mix, resolve};
@@ -487,16 +488,15 @@ fn point(at: &Frame<'_>, light: &Light, index: usize) -> Vec<(f64, f64)> {
     let position = light.position(at.frame);
     let axis = light.direction(at.frame);
     let radius = at.scene.normalisation.radius;
-    type Sample = Option<(u32, (f64, f64))>;
+    // Per face: its patch, its area and its (value, variance).
+    type Sample = Option<(u32, f64, (f64, f64))>;
     let per_triangle: Vec<[Sample; 2]> = at
         .triangles
         .par_iter()
         .enumerate()
         .map_init(Vec::new, |hits, (t, (corners, faces))| {
             let corners = corners.map(|c| c.as_dvec3());
-            let normal = (corners[1] - corners[0])
-                .cross(corners[2] - corners[0])
-                .normalize_or_zero();
+            let (normal, area) = normal_and_area(corners);
             let sides = [(Some(faces.front), false), (faces.back, true)];
             sides.map(|(patch, back)| {
                 let patch = patch?;
@@ -510,24 +510,14 @@ fn point(at: &Frame<'_>, light: &Light, index: usize) -> Vec<(f64, f64)> {
                 let (value, variance) =
                     patch_irradiance(at, light, &face, (position, axis), seed, hits);
                 let r2 = radius * radius;
-                Some((patch, (value / r2, variance / (r2 * r2))))
+                Some((patch, area, (value / r2, variance / (r2 * r2))))
             })
         })
         .collect();
-    let faces = per_triangle
-        .into_iter()
-        .zip(at.triangles)
-        .flat_map(|(sides, (c, _))| {
-            let area = triangle_area(c);
-            sides.into_iter().flatten().map(move |(p, v)| (p, area, v))
-        });
-    per_patch(at.scene.patches.len(), faces)
-}
-
-/// Area of a triangle given by its corners.
-fn triangle_area(c: &[glam::Vec3; 3]) -> f64 {
-    let [a, b, c] = c.map(|p| p.as_dvec3());
-    0.5 * (b - a).cross(c - a).length()
+    per_patch(
+        at.scene.patches.len(),
+        per_triangle.into_iter().flatten().flatten(),
+    )
 }
 
 /// Per patch, the mean over its faces of their (value, variance), weighted by their areas:
@@ -680,11 +670,7 @@ fn directional(at: &Frame<'_>, light: &Light) -> Vec<(f64, f64)> {
     let geometry: Vec<(DVec3, f64)> = at
         .triangles
         .iter()
-        .map(|(c, _)| {
-            let [a, b, c] = c.map(|p| p.as_dvec3());
-            let cross = (b - a).cross(c - a);
-            (cross.normalize_or_zero(), 0.5 * cross.length())
-        })
+        .map(|(c, _)| normal_and_area(c.map(|p| p.as_dvec3())))
         .collect();
     let mut sorted: Vec<f64> = geometry
         .iter()

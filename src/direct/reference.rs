@@ -32,6 +32,7 @@ use rayon::prelude::*;
 use super::{
     Frame, Occluders, Posed, inset, into_inset, range_window, spot_attenuation, triangle_point,
 };
+use crate::scene::subdivide::normal_and_area;
 use crate::scene::{LightKind, Scene};
 use crate::trace::coincident::COINCIDENT;
 use crate::trace::{Hit, Line, SceneTracer};
@@ -156,8 +157,7 @@ fn places(scene: &Scene, view: &Frame<'_>) -> (Vec<Place>, Vec<Vec<(usize, f64)>
     let mut members: Vec<Vec<(usize, f64)>> = vec![Vec::new(); scene.patches.len()];
     for (t, (corners, faces)) in view.triangles.iter().enumerate() {
         let corners = corners.map(|c| c.as_dvec3());
-        let cross = (corners[1] - corners[0]).cross(corners[2] - corners[0]);
-        let (normal, area) = (cross.normalize_or_zero(), 0.5 * cross.length());
+        let (normal, area) = normal_and_area(corners);
         for (patch, back) in [(Some(faces.front), false), (faces.back, true)] {
             if let Some(p) = patch {
                 members[p as usize].push((places.len(), area));

@@ -326,7 +326,8 @@ pub fn patches_after(scene: &Scene, cuts: &[u32]) -> usize {
 
 /// How many traced faces each patch of `scene` covers: 1, or more for a patch merged from
 /// several ([`merge`]).
-fn members(scene: &Scene) -> Vec<u32> {
+#[must_use]
+pub fn members(scene: &Scene) -> Vec<u32> {
     let mut count = vec![0u32; scene.patches.len()];
     for (mesh, _) in traced_meshes(scene) {
         for f in &mesh.faces {

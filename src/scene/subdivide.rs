@@ -96,6 +96,13 @@ pub fn triangle_area(a: DVec3, b: DVec3, c: DVec3) -> f64 {
     0.5 * (b - a).cross(c - a).length()
 }
 
+/// Unit normal of a triangle (counter-clockwise corners; zero if degenerate) and its area.
+#[must_use]
+pub fn normal_and_area([a, b, c]: [DVec3; 3]) -> (DVec3, f64) {
+    let cross = (b - a).cross(c - a);
+    (cross.normalize_or_zero(), 0.5 * cross.length())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
