@@ -439,6 +439,12 @@ pub fn bake_one(
     } else {
         Vec::new()
     };
+    // The frames are solved on finer pieces of the patches ([`Bake::split`]).
+    match bake.split(control) {
+        Ok(_) => {}
+        Err(TraceError::Cancelled) => return Outcome::Cancelled,
+        Err(e) => return Outcome::Failed(e.to_string()),
+    }
     let adapt_seconds = started.elapsed().as_secs_f64();
     let round_seconds: Vec<f64> = rounds.iter().map(|r| r.seconds).collect();
     control.start_stage(0);

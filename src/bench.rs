@@ -671,6 +671,8 @@ pub struct PatchPoint {
     pub scene: String,
     /// How the patches were made.
     pub patch_size: crate::params::PatchSize,
+    /// Whether they were solved on pieces ([`crate::bake::Bake::split`]) or whole.
+    pub split: bool,
     /// Patches the bake solved.
     pub patches: usize,
     /// With auto: the patch budget.
@@ -687,11 +689,41 @@ pub struct PatchPoint {
     pub reference_noise: f64,
     /// The area-weighted mean of the bake over the reference's, minus 1, on the same patches.
     pub bias: f64,
+    /// The bake's own error bars on the same patches (those a line crossed): area-weighted RMS
+    /// of σ / reference, σ the error bar the bake reports.
+    pub estimated_noise: f64,
+    /// Share of those patch-channels (by area) whose error is within twice the error bar (the
+    /// bake's σ and the reference's noise in quadrature): about 0.95 when the error bars are
+    /// honest.
+    pub coverage: f64,
+    /// The patches that hold most of the squared error, most first (at most [`WORST`]).
+    pub worst: Vec<WorstPatch>,
+}
+
+/// Patches listed in [`PatchPoint::worst`].
+pub const WORST: usize = 8;
+
+/// A patch of [`PatchPoint::worst`], in luminance.
+#[derive(Clone, Debug, Serialize)]
+pub struct WorstPatch {
+    /// Patch id.
+    pub patch: usize,
+    /// Its material's name.
+    pub material: String,
+    /// Its area.
+    pub area: f64,
+    /// Its share of the bake's squared error (area-weighted).
+    pub share: f64,
+    /// The bake's luminance, its error bar (σ) and the reference's.
+    pub baked: f64,
+    pub sigma: f64,
+    pub reference: f64,
 }
 
 /// Bakes frame 0 of `scene` with `lines` lines from `seed`, patches made as `patch_size` says (the scene
 /// must have been loaded with its length, if any; `auto` cut as `auto` says, or the standard
-/// choice), and compares every patch with the path-traced reference of `reference_paths`
+/// choice), solved on pieces if `split` (as the bake command and the service solve,
+/// [`crate::bake::Bake::split`]) or whole, and compares every patch with the path-traced reference of `reference_paths`
 /// paths over all its patches (at least 64 per patch)
 /// ([`crate::direct::reference`]). The lit patches are those [`PatchClass::of`] calls lit on
 /// the reference's radiance (not black on screen), whatever the reference's noise.
@@ -705,6 +737,7 @@ pub fn patch_point(
     (lines, seed): (u64, u64),
     reference_paths: usize,
     auto: Option<crate::adaptive::Adaptive>,
+    split: bool,
 ) -> Result<PatchPoint, String> {
     use crate::adaptive::{Adaptive, adapt};
     let started = Instant::now();
@@ -720,6 +753,9 @@ pub fn patch_point(
         let auto = auto.unwrap_or_else(|| Adaptive::for_lines(lines, bake.scene.patches.len()));
         adapt(&mut bake, &auto, &solve, &Control::default()).map_err(|e| e.to_string())?;
         budget = Some(auto.budget);
+    }
+    if split {
+        bake.split(&Control::default()).map_err(|e| e.to_string())?;
     }
     let scene = &bake.scene;
     let solved = bake.solve_frame(0, &scene.materials, &solve);
@@ -739,6 +775,8 @@ pub fn patch_point(
         .collect();
     let dark = dark_floor(scene, &radiance);
     let (mut error, mut noise, mut weight, mut baked, mut traced) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    let (mut estimated, mut estimated_weight, mut covered) = (0.0, 0.0, 0.0);
+    let mut contributions: Vec<(f64, usize)> = Vec::new();
     for (i, (p, reference)) in scene.patches.iter().zip(&radiance).enumerate() {
         let m = &scene.materials[p.material as usize];
         for (c, &r) in reference.iter().enumerate() {
@@ -746,21 +784,56 @@ pub fn patch_point(
                 continue;
             }
             let half_difference = 0.5 * (first[i].radiance[c] - second[i].radiance[c]);
-            error += p.area * (solved.radiance[i][c] / r - 1.0).powi(2);
+            // A patch no line crossed has no error bar: never covered, and not in the RMS.
+            if let Some(sigma) = solved.stderr[i].map(|e| e[c]) {
+                if (solved.radiance[i][c] - r).abs() <= 2.0 * sigma.hypot(half_difference) {
+                    covered += p.area;
+                }
+                estimated += p.area * (sigma / r).powi(2);
+                estimated_weight += p.area;
+            }
+            let e = p.area * (solved.radiance[i][c] / r - 1.0).powi(2);
+            error += e;
+            match contributions.last_mut() {
+                Some((sum, j)) if *j == i => *sum += e,
+                _ => contributions.push((e, i)),
+            }
             noise += p.area * (half_difference / r).powi(2);
             weight += p.area;
             baked += p.area * solved.radiance[i][c];
             traced += p.area * r;
         }
     }
+    contributions.sort_by(|a, b| b.0.total_cmp(&a.0));
+    let luminance = |c: [f64; 3]| 0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2];
+    let worst = contributions
+        .iter()
+        .take(WORST)
+        .map(|&(e, i)| {
+            let p = &scene.patches[i];
+            WorstPatch {
+                patch: i,
+                material: (scene.materials[p.material as usize].name.clone()).unwrap_or_default(),
+                area: p.area,
+                share: e / error,
+                baked: luminance(solved.radiance[i]),
+                sigma: solved.stderr[i].map_or(f64::INFINITY, luminance),
+                reference: luminance(radiance[i]),
+            }
+        })
+        .collect();
     Ok(PatchPoint {
         scene: name.to_string(),
         patch_size,
+        split,
         patches: scene.patches.len(),
         budget,
         seconds,
         patch_error: ((error - noise).max(0.0) / weight).sqrt(),
         reference_noise: (noise / weight).sqrt(),
         bias: baked / traced - 1.0,
+        estimated_noise: (estimated / estimated_weight).sqrt(),
+        coverage: covered / weight,
+        worst,
     })
 }

@@ -205,6 +205,10 @@ enum Command {
         /// with other seeds to see how much the figures themselves vary.
         #[arg(long, default_value_t = 1)]
         seed: u64,
+        /// Solve the patches whole rather than on their pieces (as bakes did before pieces):
+        /// to see what the pieces change.
+        #[arg(long)]
+        whole: bool,
     },
     /// Write the sample scenes (deterministic) into a directory.
     Samples {
@@ -330,10 +334,14 @@ fn run(cli: Cli) -> Result<(), String> {
             sizes: chosen,
             patch_budget,
             seed,
+            whole,
         } => {
             use radiosity::params::PatchSize::{Auto, Length, Source};
             let mut points = Vec::new();
-            println!("scene\tpatch_size\tpatches\tseconds\tpatch error\treference noise\tbias");
+            println!(
+                "scene\tpatch_size\tpatches\tseconds\tpatch error\treference noise\tbias\t\
+                 estimated noise\tcoverage"
+            );
             for (name, sizes) in [
                 (
                     "cornell_box.gltf",
@@ -381,17 +389,32 @@ fn run(cli: Cli) -> Result<(), String> {
                         (lines, seed),
                         reference_paths,
                         Some(auto),
+                        !whole,
                     )?;
                     println!(
-                        "{}\t{}\t{}\t{:.2}\t{:.4}\t{:.4}\t{:+.4}",
+                        "{}\t{}\t{}\t{:.2}\t{:.4}\t{:.4}\t{:+.4}\t{:.4}\t{:.3}",
                         p.scene,
                         p.patch_size,
                         p.patches,
                         p.seconds,
                         p.patch_error,
                         p.reference_noise,
-                        p.bias
+                        p.bias,
+                        p.estimated_noise,
+                        p.coverage
                     );
+                    for w in &p.worst {
+                        println!(
+                            "  patch {} {} area {:.4}: {:.0}% of the error, {:.4} ± {:.4} against {:.4}",
+                            w.patch,
+                            w.material,
+                            w.area,
+                            100.0 * w.share,
+                            w.baked,
+                            w.sigma,
+                            w.reference
+                        );
+                    }
                     Ok(p)
                 };
                 for size in sizes {

@@ -382,6 +382,76 @@ pub fn merge(scene: &Scene, into: &[u32]) -> Scene {
     merged
 }
 
+/// Makes every face of `scene` a patch of its own: a patch merged from several faces
+/// ([`merge`]) is taken apart (each face with its share of the patch's area, by the areas of
+/// their triangles, and the patch's source); the others stay as they are. Returns the new
+/// scene and, for each of its patches, the patch of `scene` it is (part of). No triangle
+/// changes.
+#[must_use]
+pub fn apart(scene: &Scene) -> (Scene, Vec<u32>) {
+    let members = members(scene);
+    // Each merged patch's triangles' total area in their meshes' own space, to share its area.
+    let mut own_area = vec![0.0f64; scene.patches.len()];
+    let area = |mesh: &TriangleMesh, t: usize| {
+        let [a, b, c] = mesh.triangles[t].map(|v| mesh.positions[v as usize].as_dvec3());
+        crate::scene::subdivide::triangle_area(a, b, c)
+    };
+    for (mesh, _) in traced_meshes(scene) {
+        for (t, f) in mesh.faces.iter().enumerate() {
+            for p in [Some(f.front), f.back].into_iter().flatten() {
+                own_area[p as usize] += area(mesh, t);
+            }
+        }
+    }
+    let mut patches = Vec::with_capacity(scene.patches.len());
+    let mut parents = Vec::with_capacity(scene.patches.len());
+    let mut apart = scene.clone();
+    let meshes =
+        std::iter::once(&mut apart.statics).chain(apart.objects.iter_mut().map(|o| &mut o.mesh));
+    for mesh in meshes {
+        for t in 0..mesh.triangles.len() {
+            let share = area(mesh, t);
+            let mut piece = |p: u32| {
+                let mut patch = scene.patches[p as usize].clone();
+                if members[p as usize] > 1 {
+                    patch.area *= if own_area[p as usize] > 0.0 {
+                        share / own_area[p as usize]
+                    } else {
+                        1.0 / f64::from(members[p as usize])
+                    };
+                    patch.merged = Vec::new();
+                }
+                patches.push(patch);
+                parents.push(p);
+                (patches.len() - 1) as u32
+            };
+            let f = mesh.faces[t];
+            let front = piece(f.front);
+            let back = f.back.map(&mut piece);
+            mesh.faces[t] = Faces { front, back };
+        }
+    }
+    apart.patches = patches;
+    (apart, parents)
+}
+
+/// `pieces` (a scene whose triangles are those of some scene, maybe cut finer) with its faces
+/// put back in the patches they are parts of: piece `k` in `patches[of[k]]`.
+#[must_use]
+pub fn regroup(pieces: &Scene, of: &[u32], patches: Vec<Patch>) -> Scene {
+    let mut grouped = pieces.clone();
+    let meshes = std::iter::once(&mut grouped.statics)
+        .chain(grouped.objects.iter_mut().map(|o| &mut o.mesh));
+    for mesh in meshes {
+        for f in &mut mesh.faces {
+            f.front = of[f.front as usize];
+            f.back = f.back.map(|b| of[b as usize]);
+        }
+    }
+    grouped.patches = patches;
+    grouped
+}
+
 /// Cuts the traced triangles of `scene` as `cuts` says (by global index: the static
 /// triangles, then each moving object's), with the cuts their neighbours need. A triangle's
 /// cuts are a bisection tree in heap order: bit 1 cuts the triangle, bits `2n` and `2n + 1`

@@ -423,6 +423,11 @@ impl Job {
                         Err(e) => return self.fail(e.to_string()),
                     }
                 }
+                match bake.split(&self.control) {
+                    Ok(_) => {}
+                    Err(TraceError::Cancelled) => return,
+                    Err(e) => return self.fail(e.to_string()),
+                }
                 self.traced(&bake, started);
                 bake
             }
@@ -473,13 +478,7 @@ impl Job {
         let memory = bake.list().memory();
         if let Ok(mut s) = self.state.lock() {
             s.timings.trace += started.elapsed().as_secs_f64();
-            s.memory = Some((
-                memory.static_hits + memory.moving_hits,
-                memory.bytes
-                    + bake.tallies().bytes()
-                    + bake.direct().memory()
-                    + bake.area_lights().memory(),
-            ));
+            s.memory = Some((memory.static_hits + memory.moving_hits, bake.bytes()));
         }
     }
 

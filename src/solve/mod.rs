@@ -210,6 +210,198 @@ pub fn solve_lit_from(
     direct: Option<Direct<'_>>,
     start: Option<&[[f64; 3]]>,
 ) -> FrameSolution {
+    solve_grouped(
+        tally,
+        patch_material,
+        materials,
+        params,
+        direct,
+        start,
+        None,
+    )
+}
+
+/// The patches a solve answers for, each the group of some of the patches it solves (the
+/// pieces of [`crate::bake::Bake::split`]): the answer for a group is the mean of its pieces
+/// over its area, and its error bar the spread of that mean between the replicas.
+#[derive(Clone, Debug, Default)]
+pub struct Groups {
+    /// The group of each piece.
+    of: Vec<u32>,
+    /// Each piece's area (weighs what the lines do not sample: its emission and direct light).
+    area: Vec<f64>,
+    /// Each group's pieces: `members[offsets[g]..offsets[g + 1]]`.
+    offsets: Vec<usize>,
+    members: Vec<u32>,
+}
+
+impl Groups {
+    /// Groups of `count` patches, piece `k` in group `of[k]` with area `area[k]`.
+    #[must_use]
+    pub fn new(of: Vec<u32>, area: Vec<f64>, count: usize) -> Self {
+        let mut offsets = vec![0usize; count + 1];
+        for &g in &of {
+            offsets[g as usize + 1] += 1;
+        }
+        for g in 0..count {
+            offsets[g + 1] += offsets[g];
+        }
+        let mut next = offsets.clone();
+        let mut members = vec![0u32; of.len()];
+        for (k, &g) in of.iter().enumerate() {
+            members[next[g as usize]] = k as u32;
+            next[g as usize] += 1;
+        }
+        Self {
+            of,
+            area,
+            offsets,
+            members,
+        }
+    }
+
+    /// Groups.
+    #[must_use]
+    pub fn len(&self) -> usize {
+        self.offsets.len() - 1
+    }
+
+    /// Whether there are no groups.
+    #[must_use]
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The group of each piece.
+    #[must_use]
+    pub fn of(&self) -> &[u32] {
+        &self.of
+    }
+
+    /// Group `g`'s pieces.
+    fn members(&self, g: usize) -> &[u32] {
+        &self.members[self.offsets[g]..self.offsets[g + 1]]
+    }
+
+    /// Bytes it holds.
+    #[must_use]
+    pub fn bytes(&self) -> usize {
+        self.of.len() * (2 * size_of::<u32>() + size_of::<f64>())
+            + self.offsets.len() * size_of::<usize>()
+    }
+
+    /// The most pieces of a group.
+    fn largest(&self) -> usize {
+        (0..self.len())
+            .map(|g| self.members(g).len())
+            .max()
+            .unwrap_or(0)
+    }
+
+    /// Each group's radiance from its pieces' `values`: what the lines do not carry (`source`:
+    /// emission and direct light) averaged over the pieces' area, and what they gather
+    /// (`values − source`) over their `crossings`, as one patch of them all would gather it.
+    /// A piece no line crossed then weighs nothing in the gathered light, rather than
+    /// counting as dark.
+    fn mean<T: Copy + Into<f64>>(
+        &self,
+        values: &[[T; 3]],
+        source: &[[f64; 3]],
+        crossings: &[u64],
+    ) -> Vec<[f64; 3]> {
+        (0..self.len())
+            .map(|g| {
+                let (mut area, mut lines) = (0.0, 0.0);
+                let (mut sourced, mut gathered) = ([0.0; 3], [0.0; 3]);
+                for &k in self.members(g) {
+                    let k = k as usize;
+                    let (a, n) = (self.area[k], crossings[k] as f64);
+                    area += a;
+                    lines += n;
+                    for c in 0..3 {
+                        sourced[c] += a * source[k][c];
+                        gathered[c] += n * (values[k][c].into() - source[k][c]);
+                    }
+                }
+                std::array::from_fn(|c| {
+                    let s = if area > 0.0 { sourced[c] / area } else { 0.0 };
+                    s + if lines > 0.0 {
+                        gathered[c] / lines
+                    } else {
+                        0.0
+                    }
+                })
+            })
+            .collect()
+    }
+
+    /// Each group's variance of the direct light's sampling (`variance` per piece, of its
+    /// reflected radiance), as the area mean weighs it.
+    fn direct_variance(&self, variance: &[[f64; 3]]) -> Vec<[f64; 3]> {
+        (0..self.len())
+            .map(|g| {
+                let members = self.members(g);
+                let area: f64 = members.iter().map(|&k| self.area[k as usize]).sum();
+                std::array::from_fn(|c| {
+                    members
+                        .iter()
+                        .map(|&k| {
+                            let w = if area > 0.0 {
+                                self.area[k as usize] / area
+                            } else {
+                                0.0
+                            };
+                            w * w * variance[k as usize][c]
+                        })
+                        .sum()
+                })
+            })
+            .collect()
+    }
+}
+
+/// [`solve_lit_from`] answering for `groups` of the tally's patches, if given: the pieces are
+/// solved, each group answered by the mean of its pieces ([`Groups`]), its error bar from the
+/// replicas' means. The solve then stops when the pieces can move by `noise / √(pieces)` of
+/// their own standard error, so that their group's answer moves by no more than `noise` of its
+/// (narrower) one.
+#[must_use]
+pub fn solve_grouped(
+    tally: &FrameTally,
+    patch_material: &[u32],
+    materials: &[Material],
+    params: &SolveParams,
+    direct: Option<Direct<'_>>,
+    start: Option<&[[f64; 3]]>,
+    groups: Option<&Groups>,
+) -> FrameSolution {
+    let setup = (tally, patch_material, materials, params);
+    solve_with(setup, direct, start, groups, true)
+}
+
+/// [`solve_lit_from`] without the replicas: the answer, with the first bounce's spread alone
+/// as its error bar (a lower bound), at a sixteenth of the cost.
+#[must_use]
+pub fn solve_answer(
+    tally: &FrameTally,
+    patch_material: &[u32],
+    materials: &[Material],
+    params: &SolveParams,
+    direct: Option<Direct<'_>>,
+    start: Option<&[[f64; 3]]>,
+) -> FrameSolution {
+    let setup = (tally, patch_material, materials, params);
+    solve_with(setup, direct, start, None, false)
+}
+
+/// [`solve_grouped`], with the replicas' error bars or not.
+fn solve_with(
+    (tally, patch_material, materials, params): (&FrameTally, &[u32], &[Material], &SolveParams),
+    direct: Option<Direct<'_>>,
+    start: Option<&[[f64; 3]]>,
+    groups: Option<&Groups>,
+    replicas: bool,
+) -> FrameSolution {
     let patches = patch_material.len();
     let rho: Vec<[f64; 3]> = patch_material
         .iter()
@@ -241,43 +433,85 @@ pub fn solve_lit_from(
     let stop = Stop {
         tolerance: params.tolerance,
         max_iterations: params.max_iterations,
-        noise: params.noise,
+        noise: params.noise / groups.map_or(1.0, |g| (g.largest().max(1) as f64).sqrt()),
         precision: params.precision,
     };
     let light = system.solve::<f64>(&emission, &seen, params.sky, start, &stop);
     let converged = light.converged.iter().all(|&c| c);
     // The spread of each patch's own first bounce, which low sample counts can hide from the
     // replicas' spread.
-    let first = system.first_bounce(&light.values, &seen, params.sky);
+    let first = system.first_bounce(&light.values, &seen, params.sky, groups);
+    let answered = groups.map_or(patches, Groups::len);
     // Replicas of a solve that is no answer would measure nothing: skip them.
-    let error = if converged {
-        replica_errors(tally, &rho, &emission, &seen, &light.values, params)
+    let error = if converged && replicas {
+        let replicas = Replicas {
+            rho: &rho,
+            emission: &emission,
+            seen: &seen,
+            pooled: &light.values,
+            groups,
+        };
+        replica_errors(tally, &replicas, params)
     } else {
-        vec![[None; 3]; patches]
+        vec![[None; 3]; answered]
     };
-    let stderr = (0..patches)
+    // The direct light's own sampling error (of the radiance it reflects), independent of the
+    // lines'.
+    let sampled: Vec<[f64; 3]> = (0..patches)
         .map(|i| {
-            (tally.crossings[i] > 0).then(|| {
+            std::array::from_fn(|c| {
+                direct.map_or(0.0, |d| {
+                    d.variance[i][c] * (rho[i][c] * std::f64::consts::FRAC_1_PI).powi(2)
+                })
+            })
+        })
+        .collect();
+    let (radiance, sampled, crossings, unknown) = match groups {
+        None => {
+            let unknown: Vec<[bool; 3]> = (0..patches)
+                .map(|i| std::array::from_fn(|c| system.unknown(i, c)))
+                .collect();
+            (light.values, sampled, tally.crossings.clone(), unknown)
+        }
+        Some(g) => {
+            let radiance = g.mean(&light.values, &emission, &tally.crossings);
+            let crossings = (0..g.len())
+                .map(|h| {
+                    g.members(h)
+                        .iter()
+                        .map(|&k| tally.crossings[k as usize])
+                        .sum()
+                })
+                .collect();
+            let unknown = (0..g.len())
+                .map(|h| {
+                    std::array::from_fn(|c| {
+                        g.members(h).iter().any(|&k| system.unknown(k as usize, c))
+                    })
+                })
+                .collect();
+            (radiance, g.direct_variance(&sampled), crossings, unknown)
+        }
+    };
+    let stderr = (0..answered)
+        .map(|i| {
+            (crossings[i] > 0).then(|| {
                 std::array::from_fn(|c| {
-                    if !system.unknown(i, c) {
+                    if !unknown[i][c] {
                         return 0.0;
                     }
                     // The spread of the replicas' solutions, and never less than the first
                     // bounce's.
                     let lines = error[i][c].map_or(first[i][c], |e: f64| e.max(first[i][c]));
-                    // The direct light's own sampling error, independent of the lines'.
-                    let sampled = direct.map_or(0.0, |d| {
-                        d.variance[i][c] * (rho[i][c] * std::f64::consts::FRAC_1_PI).powi(2)
-                    });
-                    (lines * lines + sampled).sqrt()
+                    (lines * lines + sampled[i][c]).sqrt()
                 })
             })
         })
         .collect();
     FrameSolution {
-        radiance: light.values,
+        radiance,
         stderr,
-        samples: tally.crossings.clone(),
+        samples: crossings,
         iterations: light.iterations,
         residual: light.residual.iter().copied().fold(0.0, f64::max),
         converged,
@@ -297,12 +531,16 @@ const REPLICA_TOLERANCE: f64 = 1e-5;
 /// would narrow the spread): the others' spread over √(their number) is wider in expectation.
 fn replica_errors(
     tally: &FrameTally,
-    rho: &[[f64; 3]],
-    emission: &[[f64; 3]],
-    seen: &[[f64; 3]],
-    pooled: &[[f64; 3]],
+    replicas: &Replicas<'_>,
     params: &SolveParams,
 ) -> Vec<[Option<f64>; 3]> {
+    let Replicas {
+        rho,
+        emission,
+        seen,
+        pooled,
+        groups,
+    } = *replicas;
     let patches = rho.len();
     let stop = Stop {
         tolerance: REPLICA_TOLERANCE,
@@ -311,27 +549,42 @@ fn replica_errors(
         precision: 0.0,
     };
     // The replicas are solved in parallel (a frame alone, as a static scene is, then uses every
-    // core), and summed in their order: the result does not depend on the thread count.
-    let solved: Vec<(Vec<[bool; 3]>, Solved)> = tally
+    // core), and summed in their order: the result does not depend on the thread count. With
+    // groups, each replica's answer is its groups' means (weighed by the pooled crossings).
+    let solved: Vec<(Vec<[bool; 3]>, Vec<[f64; 3]>, [bool; 3])> = tally
         .replicas()
         .par_iter()
         .map(|replica| {
             let system = System::new(replica, rho);
             let solved = system.solve::<f32>(emission, seen, params.sky, Some(pooled), &stop);
-            let unknown = (0..patches)
+            let unknown: Vec<[bool; 3]> = (0..patches)
                 .map(|i| std::array::from_fn(|c| system.unknown(i, c)))
                 .collect();
-            (unknown, solved)
+            match groups {
+                None => (unknown, solved.values, solved.converged),
+                Some(g) => {
+                    let values = g.mean(&solved.values, emission, &tally.crossings);
+                    let unknown = (0..g.len())
+                        .map(|h| {
+                            std::array::from_fn(|c| {
+                                g.members(h).iter().any(|&k| unknown[k as usize][c])
+                            })
+                        })
+                        .collect();
+                    (unknown, values, solved.converged)
+                }
+            }
         })
         .collect();
-    let mut sum = vec![[0.0; 3]; patches];
-    let mut sum_sq = vec![[0.0; 3]; patches];
-    let mut count = vec![[0usize; 3]; patches];
-    for (unknown, solved) in &solved {
-        for i in 0..patches {
+    let answered = groups.map_or(patches, Groups::len);
+    let mut sum = vec![[0.0; 3]; answered];
+    let mut sum_sq = vec![[0.0; 3]; answered];
+    let mut count = vec![[0usize; 3]; answered];
+    for (unknown, values, converged) in &solved {
+        for i in 0..answered {
             for c in 0..3 {
-                if unknown[i][c] && solved.converged[c] {
-                    let v = solved.values[i][c];
+                if unknown[i][c] && converged[c] {
+                    let v = values[i][c];
                     sum[i][c] += v;
                     sum_sq[i][c] += v * v;
                     count[i][c] += 1;
@@ -339,7 +592,7 @@ fn replica_errors(
             }
         }
     }
-    (0..patches)
+    (0..answered)
         .map(|i| {
             std::array::from_fn(|c| {
                 let k = count[i][c] as f64;
@@ -351,6 +604,17 @@ fn replica_errors(
             })
         })
         .collect()
+}
+
+/// What [`replica_errors`] solves again: the pooled solve's system (reflectances, emission and
+/// the emission the lines do not carry), its answer to start from, and the groups answered.
+#[derive(Clone, Copy)]
+struct Replicas<'a> {
+    rho: &'a [[f64; 3]],
+    emission: &'a [[f64; 3]],
+    seen: &'a [[f64; 3]],
+    pooled: &'a [[f64; 3]],
+    groups: Option<&'a Groups>,
 }
 
 /// When conjugate gradients stop (see the module docs).
@@ -800,34 +1064,49 @@ impl<'a> System<'a> {
     /// the radiance summed over group g's segments, X_g their number) has variance
     /// `K/(K−1) Σ_g (Y_g − m X_g)² / N²`. 0 where a patch is not solved for. Needs the per-group
     /// entries (the pooled tallies, not a replica's).
-    fn first_bounce(&self, l: &[[f64; 3]], seen: &[[f64; 3]], sky: [f64; 3]) -> Vec<[f64; 3]> {
+    fn first_bounce(
+        &self,
+        l: &[[f64; 3]],
+        seen: &[[f64; 3]],
+        sky: [f64; 3],
+        groups: Option<&Groups>,
+    ) -> Vec<[f64; 3]> {
         const K: usize = tally::GROUPS as usize;
-        let mut out = vec![[0.0; 3]; l.len()];
-        for_rows(&mut out, |i| {
-            let d = self.diagonal[i];
-            if d == [0.0; 3] {
-                return [0.0; 3];
-            }
+        let answered = groups.map_or(l.len(), Groups::len);
+        let mut out = vec![[0.0; 3]; answered];
+        for_rows(&mut out, |h| {
+            let single = [h as u32];
+            let members = groups.map_or(&single[..], |g| g.members(h));
             let (mut y, mut x) = ([[0.0; 3]; K], [0.0; K]);
-            let range = self.tally.group_offsets[i]..self.tally.group_offsets[i + 1];
-            for &(j, g, count) in &self.tally.group_entries[range] {
-                let v = match j {
-                    SKY => sky,
-                    ABSORBED => [0.0; 3],
-                    j => std::array::from_fn(|c| l[j as usize][c] - seen[j as usize][c]),
-                };
-                let w = f64::from(count);
-                (0..3).for_each(|c| y[g as usize][c] += w * v[c]);
-                x[g as usize] += w;
+            let mut solved = [false; 3];
+            let mut rho = [0.0; 3];
+            for &i in members {
+                let i = i as usize;
+                let d = self.diagonal[i];
+                if d == [0.0; 3] {
+                    continue;
+                }
+                (0..3).for_each(|c| solved[c] |= d[c] > 0.0);
+                rho = self.rho[i];
+                let range = self.tally.group_offsets[i]..self.tally.group_offsets[i + 1];
+                for &(j, g, count) in &self.tally.group_entries[range] {
+                    let v = match j {
+                        SKY => sky,
+                        ABSORBED => [0.0; 3],
+                        j => std::array::from_fn(|c| l[j as usize][c] - seen[j as usize][c]),
+                    };
+                    let w = f64::from(count);
+                    (0..3).for_each(|c| y[g as usize][c] += w * v[c]);
+                    x[g as usize] += w;
+                }
             }
             let n: f64 = x.iter().sum();
-            debug_assert!(
-                n > 0.0,
-                "patch {i} is solved for but has no per-group entries"
-            );
+            if n == 0.0 {
+                return [0.0; 3];
+            }
             let k = K as f64;
             std::array::from_fn(|c| {
-                if d[c] == 0.0 {
+                if !solved[c] {
                     return 0.0;
                 }
                 let mean = y.iter().map(|yg| yg[c]).sum::<f64>() / n;
@@ -836,7 +1115,7 @@ impl<'a> System<'a> {
                     .zip(&x)
                     .map(|(yg, xg)| (yg[c] - mean * xg).powi(2))
                     .sum();
-                self.rho[i][c] * (k / (k - 1.0) * spread).sqrt() / n
+                rho[c] * (k / (k - 1.0) * spread).sqrt() / n
             })
         });
         out
@@ -911,7 +1190,7 @@ impl Noise {
                 })
             })
             .collect();
-        let sigma = system.first_bounce(&values, problem.seen, problem.sky);
+        let sigma = system.first_bounce(&values, problem.seen, problem.sky, None);
         // The first bounce's spread is a seminorm of the radiance (plus a constant): an error of
         // at most E on every patch moves it by at most ρ·2E·√(K/(K−1)) (each group's term by
         // 2E·X_g). What is left is a lower bound on the spread at the answer.

@@ -1,0 +1,107 @@
+//! Split bakes ([`Bake::split`]): the frames solved on pieces of the patches, each patch
+//! answered by the mean of its pieces.
+
+use radiosity::bake::Bake;
+use radiosity::bench::{PatchClass, dark_floor};
+use radiosity::direct::reference::path_traced;
+use radiosity::loader::{LoadOptions, load};
+use radiosity::scene::Scene;
+use radiosity::solve::SolveParams;
+use radiosity::timeline::{Control, LineParams};
+
+fn sample(name: &str) -> Scene {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("scenes")
+        .join(name);
+    load(&std::fs::read(path).unwrap(), &LoadOptions::default()).unwrap()
+}
+
+#[test]
+fn pieces_bring_the_cornell_box_closer_to_the_path_tracer_and_its_error_bars_cover_it() {
+    // The Cornell box's own 132 triangles: solved whole, the light a patch gathers from a
+    // neighbour is spread evenly over the neighbour (the floor behind a box as bright as the
+    // floor beside it), and every patch carries the error. Both bakes (the same lines) are
+    // compared with one path-traced reference per patch (two independent halves of 1,000
+    // paths): their mean squared relative errors share its noise, so their difference is the
+    // bakes'. At 1M lines `bench-patches` measures 4.6% whole and 1.2% on pieces.
+    let scene = sample("cornell_box.gltf");
+    let params = LineParams {
+        lines: 200_000,
+        bundles: None,
+        seed: 4,
+    };
+    let solve = SolveParams::default();
+    let whole = Bake::trace(scene.clone(), &params).unwrap();
+    let mut pieces = Bake::trace(scene, &params).unwrap();
+    pieces.split(&Control::default()).unwrap();
+    let traced = |seed| path_traced(&whole.scene, whole.tracer(), 0, 1_000, [0.0; 3], seed);
+    let (first, second) = (traced(21), traced(22));
+    let reference: Vec<[f64; 3]> = (first.iter().zip(&second))
+        .map(|(a, b)| std::array::from_fn(|c| 0.5 * (a.radiance[c] + b.radiance[c])))
+        .collect();
+    let scene = &whole.scene;
+    let dark = dark_floor(scene, &reference);
+    // (mean squared relative error, share of patch-channels within two error bars, by area).
+    let measure = |bake: &Bake| {
+        let solved = bake.solve_frame(0, &scene.materials, &solve);
+        let (mut squares, mut covered, mut weight) = (0.0, 0.0, 0.0);
+        for (i, p) in scene.patches.iter().enumerate() {
+            let m = &scene.materials[p.material as usize];
+            for (c, &r) in reference[i].iter().enumerate() {
+                if PatchClass::of(m, c, r, dark) != Some(PatchClass::Lit) {
+                    continue;
+                }
+                let (l, sigma) = (solved.radiance[i][c], solved.stderr[i].unwrap()[c]);
+                let noise = 0.5 * (first[i].radiance[c] - second[i].radiance[c]);
+                squares += p.area * (l / r - 1.0).powi(2);
+                if (l - r).abs() <= 2.0 * sigma.hypot(noise) {
+                    covered += p.area;
+                }
+                weight += p.area;
+            }
+        }
+        (squares / weight, covered / weight)
+    };
+    let ((whole_mse, whole_coverage), (pieces_mse, coverage)) = (measure(&whole), measure(&pieces));
+    eprintln!("whole {whole_mse:.5} {whole_coverage:.3}, pieces {pieces_mse:.5} {coverage:.3}");
+    // Measured: 0.0022 whole, 0.0006 on pieces; with the pieces at depth 0 (no pieces) the
+    // two are equal and this fails.
+    assert!(
+        pieces_mse < 0.5 * whole_mse,
+        "mean squared error whole {whole_mse:.5}, on pieces {pieces_mse:.5}"
+    );
+    // The error bars of the pieces' answer take in how far the pieces moved it: they cover
+    // the path tracer about as often as two standard errors should (95%; over about a
+    // hundred independent patch-channels that share has a standard deviation of 2%).
+    // Measured: 0.90, against 0.58 for the whole bake's and 0.81 without the pieces' move in
+    // the error bars ([`radiosity::bake::SHAPE_ERROR`] 0).
+    assert!(coverage >= 0.85, "{coverage}");
+}
+
+#[test]
+fn a_split_bake_keeps_its_patches_and_a_furnace_stays_exact() {
+    // Every patch of a closed box of reflectance ρ emitting Le has L = Le / (1 − ρ): the
+    // pieces' means must be that whatever the pieces, and the patches the bake answers for
+    // stay the same ones.
+    let scene = sample("furnace.gltf");
+    let patches = scene.patches.clone();
+    let params = LineParams {
+        lines: 20_000,
+        bundles: None,
+        seed: 5,
+    };
+    let mut bake = Bake::trace(scene, &params).unwrap();
+    let solve = SolveParams::default();
+    let whole = bake.solve_frame(0, &bake.scene.materials, &solve);
+    let pieces = bake.split(&Control::default()).unwrap();
+    assert!(pieces > 2 * patches.len(), "{pieces} pieces");
+    assert_eq!(bake.pieces(), Some(pieces));
+    assert_eq!(format!("{:?}", bake.scene.patches), format!("{patches:?}"));
+    let split = bake.solve_frame(0, &bake.scene.materials, &solve);
+    assert_eq!(split.radiance.len(), patches.len());
+    for (a, b) in whole.radiance.iter().zip(&split.radiance) {
+        for c in 0..3 {
+            assert!((a[c] / b[c] - 1.0).abs() < 1e-6, "{a:?} {b:?}");
+        }
+    }
+}
