@@ -36,6 +36,9 @@ pub struct Bake {
     inherited: bool,
     /// The finer pieces the frames are solved on, once [`Bake::split`].
     pieces: Option<Pieces>,
+    /// The scene as it was before [`Bake::split`] cut its triangles for the pieces: the same
+    /// patches, drawn with their own triangles ([`Bake::shown`]).
+    shown: Option<Scene>,
 }
 
 /// What [`Bake::split`] solves: every face of the patches, cut finer where the lines cross it
@@ -101,6 +104,7 @@ impl Bake {
             warnings,
             inherited: false,
             pieces: None,
+            shown: None,
         })
     }
 
@@ -175,7 +179,7 @@ impl Bake {
         };
         self.inherited = lights == Lights::Inherit;
         self.move_crossings(&refinement);
-        self.pieces = None;
+        (self.pieces, self.shown) = (None, None);
         let mut tallies = Tallies::default();
         tallies.update(&self.list, &tracer.surfaces(), scene.patches.len());
         self.warnings = overlap_warnings(&scene, &tracer, &self.list);
@@ -205,7 +209,7 @@ impl Bake {
         (self.scene, self.tracer, self.tallies) = (scene, tracer, tallies);
         (self.direct, self.area) = (direct, area);
         self.inherited = false;
-        self.pieces = None;
+        (self.pieces, self.shown) = (None, None);
         Ok(removed)
     }
 
@@ -266,10 +270,10 @@ impl Bake {
             };
             crossings[of_apart[p as usize] as usize] as f64 * share
         };
-        let faces = SceneTracer::new(&apart);
-        let cuts: Vec<u32> = faces
-            .faces()
-            .iter()
+        // The traced triangles' faces in global order: the static mesh's, then each object's.
+        let meshes = std::iter::once(&apart.statics).chain(apart.objects.iter().map(|o| &o.mesh));
+        let cuts: Vec<u32> = meshes
+            .flat_map(|m| &m.faces)
             .map(|f| {
                 let most = [Some(f.front), f.back]
                     .into_iter()
@@ -284,6 +288,10 @@ impl Bake {
                 ((1u64 << (1u32 << depth)) - 1) as u32 & !1
             })
             .collect();
+        // Nothing to split: the patches are their own pieces.
+        if cuts.iter().all(|&c| c == 0) && apart.patches.len() == self.scene.patches.len() {
+            return Ok(self.scene.patches.len());
+        }
         let (scene, refinement) = refine::cut(&apart, &cuts);
         let of: Vec<u32> = (refinement.parents().iter())
             .map(|&q| of_apart[q as usize])
@@ -300,7 +308,7 @@ impl Bake {
         let grouped = refine::regroup(&scene, &of, self.scene.patches.clone());
         // The patches' own tallies count the same crossings on the same patches: they stay.
         self.tracer = SceneTracer::new(&grouped);
-        self.scene = grouped;
+        self.shown = Some(std::mem::replace(&mut self.scene, grouped));
         let count = scene.patches.len();
         self.pieces = Some(Pieces {
             scene,
@@ -376,6 +384,14 @@ impl Bake {
             + self.direct.memory()
             + self.area.memory()
             + pieces
+    }
+
+    /// The scene to draw: the bake's patches on the triangles they had before [`Bake::split`]
+    /// cut them for the pieces (the same patches, ids and areas as [`Bake::scene`], whose
+    /// triangles are the pieces', with fewer triangles).
+    #[must_use]
+    pub fn shown(&self) -> &Scene {
+        self.shown.as_ref().unwrap_or(&self.scene)
     }
 
     /// The pieces the frames are solved on ([`Bake::split`]), if split.

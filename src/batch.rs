@@ -465,7 +465,7 @@ pub fn bake_one(
         return Outcome::Failed(e.to_string());
     }
     let solve_seconds = started.elapsed().as_secs_f64();
-    let scene = &bake.scene;
+    let scene = bake.shown();
     let times: Vec<f64> = (0..scene.frames.count)
         .map(|f| scene.frames.time(f))
         .collect();

@@ -22,7 +22,9 @@
 //!   their sampling error: the light the interreflection starts from. [`direct::reference`]
 //!   is the path-traced reference the bake is judged against (the continuous scene's radiance
 //!   averaged over each patch, not a discretisation's).
-//! - [`bake`]: a traced scene ready to solve, refine and relight any frame.
+//! - [`bake`]: a traced scene ready to solve, refine and relight any frame; its frames are
+//!   solved on finer pieces of the patches and each patch answered by their mean
+//!   ([`bake::Bake::split`]).
 //! - [`adaptive`]: `patch_size=auto`, patches cut after tracing where the light needs them
 //!   and merged where it does not (the cuts and merges themselves are [`scene::refine`]).
 //! - [`output`]: what people use and look at: the baked glTF (per-vertex radiance), PNG and

@@ -162,7 +162,8 @@ pub async fn serve(
 }
 
 /// Memory a job will need, estimated from the scene before tracing: crossings per line from
-/// `2 A / A(W)` (static once, moving per frame), 8 and 12 bytes each, plus offsets and tallies.
+/// `2 A / A(W)` (static once, moving per frame), 8 and 12 bytes each, plus offsets and the
+/// tallies and direct light of the patches and of the pieces they are solved on.
 fn estimate_bytes(scene: &Scene, lines: u64) -> u64 {
     let aw = scene.bounds.surface_area().max(f64::MIN_POSITIVE);
     let r2 = scene.normalisation.radius.powi(2);
@@ -195,12 +196,17 @@ fn estimate_bytes(scene: &Scene, lines: u64) -> u64 {
             states * scene.patches.len() as f64 * 4.0
         })
         .sum();
-    // The list, plus tallies of about the same size as the static crossings, plus the solver.
+    // The pieces the frames are solved on (`Bake::split`): up to 8 per patch, one per 8
+    // crossings at most.
+    let patches = scene.patches.len() as f64;
+    let pieces = (8.0 * patches).min(patches + (static_hits + moving_hits / frames) / 8.0);
+    // The list, plus the patches' and the pieces' tallies, each of about the same size as the
+    // static crossings, plus the solvers, plus the direct light of patches and pieces.
     let bytes = lines * 8.0
-        + static_hits * 8.0 * 2.0
+        + static_hits * 8.0 * 3.0
         + moving_hits * 12.0
-        + scene.patches.len() as f64 * 200.0
-        + direct;
+        + (patches + pieces) * 200.0
+        + direct * (1.0 + pieces / patches.max(1.0));
     bytes as u64
 }
 
@@ -535,11 +541,11 @@ async fn frame_preview(
                     .flatten()
                     .map(|(_, s)| s.clone())
                     .collect();
-                crate::output::ToneMap::for_timeline(&bake.scene, &solved)
+                crate::output::ToneMap::for_timeline(bake.shown(), &solved)
             }
         };
         let image =
-            crate::output::preview_image(&bake.scene, f, &solution.radiance, &tone, width, height);
+            crate::output::preview_image(bake.shown(), f, &solution.radiance, &tone, width, height);
         Some((crate::output::preview::encode_png(&image), tone.exposure))
     })
     .await

@@ -14,6 +14,10 @@
 //! between patches; it is never taken below the spread of the patch's own first bounce between
 //! the replicas, which low sample counts can hide from the solutions' spread.
 //!
+//! A bake solved on pieces of its patches ([`crate::bake::Bake::split`]) answers for each
+//! patch with the mean of its pieces ([`Groups`]); each replica's answer is grouped the same
+//! way, so the error bar is the spread of the patches' means, not of the noisier pieces'.
+//!
 //! Conjugate gradients stop when the answer can no longer move by a visible share of its own
 //! noise: with `M = D⁻¹S` the transport among the unknowns (row sums `q_i = ρ_i Σ_j S_ij / N_i`
 //! ≤ ρ_i) and `z = D⁻¹r` the preconditioned residual, the error `e` of the iterate solves
@@ -93,7 +97,8 @@ pub struct FrameSolution {
     /// Outgoing radiance per patch, RGB, in the units of the scene's emission.
     pub radiance: Vec<[f64; 3]>,
     /// Standard error per patch and channel; `None` for a patch no line crossed (its radiance
-    /// is then only its emission).
+    /// is then only its emission). A split bake's ([`crate::bake::Bake::split`]) also takes in
+    /// the error of the pieces' shape ([`crate::bake::SHAPE_ERROR`]).
     pub stderr: Vec<Option<[f64; 3]>>,
     /// Crossings of each patch by the lines (0: unsampled).
     pub samples: Vec<u64>,
@@ -551,7 +556,9 @@ fn replica_errors(
     // The replicas are solved in parallel (a frame alone, as a static scene is, then uses every
     // core), and summed in their order: the result does not depend on the thread count. With
     // groups, each replica's answer is its groups' means (weighed by the pooled crossings).
-    let solved: Vec<(Vec<[bool; 3]>, Vec<[f64; 3]>, [bool; 3])> = tally
+    // Per replica: which values it solved for, its values and which channels converged.
+    type Replica = (Vec<[bool; 3]>, Vec<[f64; 3]>, [bool; 3]);
+    let solved: Vec<Replica> = tally
         .replicas()
         .par_iter()
         .map(|replica| {
