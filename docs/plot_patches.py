@@ -1,13 +1,17 @@
 #!/usr/bin/env python3
 """Plots per-patch error against patches from `radiosity bench-patches` output, one panel per
 scene: uniform sizes (and the source's triangles) as a line, `auto` as stars (the standard
-budget, and a third of the best uniform way's patches).
+budget, and a third of the best uniform way's patches); bakes solved on pieces (the default)
+in colour, bakes solved whole (`--whole`, or files from before pieces) in grey.
 
     for s in 1 2 3; do
         ./target/release/radiosity bench-patches --seed $s --out docs/patches-seed$s.json
     done
     pip install matplotlib
     python3 docs/plot_patches.py docs/patches.png docs/patches-seed*.json
+
+The README's figure: `python3 docs/plot_patches.py docs/patches.png docs/patches.json
+docs/patches-whole.json` (the latter the run before pieces, solved whole).
 
 With several files (seeds), each point is their mean, with a bar from the lowest to the
 highest: how much the figure itself moves with the lines and the reference's paths.
@@ -24,7 +28,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 
 def key(p):
-    return (p["scene"], str(p["patch_size"]), p.get("budget"))
+    return (p["scene"], str(p["patch_size"]), p.get("budget"), p.get("split", False))
 
 
 def main(target, sources):
@@ -40,26 +44,33 @@ def main(target, sources):
     for ax in axes.flat[len(scenes):]:
         ax.set_visible(False)
     for ax, scene in zip(axes.flat, scenes):
-        uniform, auto = [], []
-        for k, ps in runs.items():
-            if k[0] != scene:
+        for split in (False, True):
+            uniform, auto = [], []
+            for k, ps in runs.items():
+                if k[0] != scene or k[3] != split:
+                    continue
+                errors = [100 * p["patch_error"] for p in ps]
+                point = (mean(p["patches"] for p in ps), mean(errors), min(errors), max(errors), k)
+                (auto if k[1] == "auto" else uniform).append(point)
+            if not uniform and not auto:
                 continue
-            errors = [100 * p["patch_error"] for p in ps]
-            point = (mean(p["patches"] for p in ps), mean(errors), min(errors), max(errors), k)
-            (auto if k[1] == "auto" else uniform).append(point)
-        uniform.sort()
-        xs = [u[0] for u in uniform]
-        ys = [u[1] for u in uniform]
-        low = [u[1] - u[2] for u in uniform]
-        high = [u[3] - u[1] for u in uniform]
-        ax.errorbar(xs, ys, yerr=[low, high], marker="o", capsize=3, label="uniform / source")
-        for u in uniform:
-            ax.annotate(u[4][1], (u[0], u[1]), textcoords="offset points", xytext=(4, 4),
-                        fontsize=8)
-        for a in sorted(auto):
-            ax.errorbar([a[0]], [a[1]], yerr=[[a[1] - a[2]], [a[3] - a[1]]], marker="*",
-                        markersize=12, capsize=3, linestyle="none",
-                        label=f"auto, budget {a[4][2]}")
+            uniform.sort()
+            style = {} if split else {"color": "0.6", "linestyle": "--"}
+            how = "on pieces" if split else "whole"
+            xs = [u[0] for u in uniform]
+            ys = [u[1] for u in uniform]
+            low = [u[1] - u[2] for u in uniform]
+            high = [u[3] - u[1] for u in uniform]
+            ax.errorbar(xs, ys, yerr=[low, high], marker="o", capsize=3,
+                        label=f"uniform / source, {how}", **style)
+            for u in uniform:
+                ax.annotate(u[4][1], (u[0], u[1]), textcoords="offset points", xytext=(4, 4),
+                            fontsize=8)
+            for a in sorted(auto):
+                star = {} if split else {"color": "0.6"}
+                ax.errorbar([a[0]], [a[1]], yerr=[[a[1] - a[2]], [a[3] - a[1]]], marker="*",
+                            markersize=12, capsize=3, linestyle="none",
+                            label=f"auto, budget {a[4][2]}, {how}", **star)
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
