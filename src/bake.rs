@@ -63,6 +63,17 @@ pub const SPLIT_DEPTH: u32 = 3;
 /// The fewest crossings [`Bake::split`] expects of a piece at frame 0: a face is cut no finer.
 pub const PIECE_CROSSINGS: f64 = 8.0;
 
+/// Lines per piece of [`Bake::split`]'s budget: at most one piece per this many lines
+/// (100,000 for a million lines), the most crossed triangles cut first; a scene with as many
+/// patches is not split. A bound on the cost, not on the error: more pieces measured better
+/// wherever they were tried (`bench-patches`, 1M lines: the Cornell box at 0.1 m read 2.5%
+/// unbounded and 4.9% with one piece per 50 lines; the level at 0.25 m 8.5% unbounded and
+/// 14.2% at one per 10, though the Cornell box at 0.05 m read 8.0% unbounded, 17.1% at one per
+/// 50 and 4.6% at one per 10, its most crossed triangles cut), but the spheres
+/// sample at 4M lines (207,616 patches) made 903,428 pieces unbounded, baked in 3.3 times the
+/// time and 2.4 times the memory, for an estimated error of 8.6% against 9.8%.
+pub const LINES_PER_PIECE: usize = 10;
+
 /// How [`Bake::cut`] gives the new patches their direct light.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Lights {
@@ -244,7 +255,7 @@ impl Bake {
     /// error; solved on pieces, each patch's mean gathers what its pieces see. The noise of
     /// a patch's mean is about that of the patch solved whole (it is made of the same
     /// crossings): measured with `bench-patches`, the per-patch error against the path
-    /// tracer falls by half (README, "Adaptive patches").
+    /// tracer falls two to seven times on the sample scenes (README, "Pieces").
     ///
     /// The patches stay as they are (ids, areas, sources); their triangles are the pieces'
     /// (a patch draws all its pieces). Call it after the patches are final: a cut or merge
@@ -270,22 +281,53 @@ impl Bake {
             };
             crossings[of_apart[p as usize] as usize] as f64 * share
         };
-        // The traced triangles' faces in global order: the static mesh's, then each object's.
+        // The traced triangles' faces in global order (the static mesh's, then each object's):
+        // each triangle's most crossings expected on one of its faces.
         let meshes = std::iter::once(&apart.statics).chain(apart.objects.iter().map(|o| &o.mesh));
-        let cuts: Vec<u32> = meshes
+        let most: Vec<f64> = meshes
             .flat_map(|m| &m.faces)
             .map(|f| {
-                let most = [Some(f.front), f.back]
+                [Some(f.front), f.back]
                     .into_iter()
                     .flatten()
                     .map(expected)
-                    .fold(0.0, f64::max);
-                let depth = (0..=SPLIT_DEPTH)
-                    .take_while(|&d| most / f64::from(1u32 << d) >= PIECE_CROSSINGS)
-                    .last()
-                    .unwrap_or(0);
-                // Every node of the tree down to `depth` (heap order, bit 1 the root).
-                ((1u64 << (1u32 << depth)) - 1) as u32 & !1
+                    .fold(0.0, f64::max)
+            })
+            .collect();
+        // Each triangle cut as deep as its pieces keep `least` crossings each, at most
+        // SPLIT_DEPTH levels.
+        let depth = |most: f64, least: f64| {
+            (0..=SPLIT_DEPTH)
+                .take_while(|&d| most / f64::from(1u32 << d) >= least)
+                .last()
+                .unwrap_or(0)
+        };
+        let pieces = |least: f64| -> f64 {
+            most.iter()
+                .map(|&m| f64::from(1u32 << depth(m, least)))
+                .sum::<f64>()
+        };
+        // The fewest crossings per piece: PIECE_CROSSINGS, or more while the triangles' pieces
+        // would be over the budget (the most crossed are cut first; none, if the triangles
+        // alone are).
+        let budget = (self.list.lines() / LINES_PER_PIECE) as f64;
+        let mut least = PIECE_CROSSINGS;
+        if pieces(least) > budget {
+            let (mut low, mut high) = (least, most.iter().copied().fold(least, f64::max) + 1.0);
+            for _ in 0..60 {
+                let mid = 0.5 * (low + high);
+                if pieces(mid) > budget {
+                    low = mid;
+                } else {
+                    high = mid;
+                }
+            }
+            least = high;
+        }
+        let cuts: Vec<u32> = (most.iter())
+            .map(|&m| {
+                // Every node of the tree down to its depth (heap order, bit 1 the root).
+                ((1u64 << (1u32 << depth(m, least))) - 1) as u32 & !1
             })
             .collect();
         // Nothing to split: the patches are their own pieces.

@@ -133,6 +133,8 @@ struct Summary<'a> {
     frames: usize,
     frame_times: Vec<f64>,
     patches: usize,
+    /// The pieces the frames were solved on (`Bake::split`; the patches if none was cut).
+    pieces: usize,
     lines: usize,
     seed: u64,
     fps: f64,
@@ -439,13 +441,15 @@ pub fn bake_one(
     } else {
         Vec::new()
     };
+    let adapt_seconds = started.elapsed().as_secs_f64();
     // The frames are solved on finer pieces of the patches ([`Bake::split`]).
-    match bake.split(control) {
-        Ok(_) => {}
+    let started = Instant::now();
+    let pieces = match bake.split(control) {
+        Ok(pieces) => pieces,
         Err(TraceError::Cancelled) => return Outcome::Cancelled,
         Err(e) => return Outcome::Failed(e.to_string()),
-    }
-    let adapt_seconds = started.elapsed().as_secs_f64();
+    };
+    let split_seconds = started.elapsed().as_secs_f64();
     let round_seconds: Vec<f64> = rounds.iter().map(|r| r.seconds).collect();
     control.start_stage(0);
     log(&format!(
@@ -506,6 +510,7 @@ pub fn bake_one(
         frames: count,
         frame_times: times,
         patches: scene.patches.len(),
+        pieces,
         lines: bake.list().lines(),
         seed: params.lines.seed,
         fps: params.load.fps,
@@ -538,6 +543,7 @@ pub fn bake_one(
         "trace": trace_seconds,
         "adapt": adapt_seconds,
         "adapt_rounds": round_seconds,
+        "split": split_seconds,
         "solve": solve_seconds,
         "outputs": started.elapsed().as_secs_f64(),
     });
