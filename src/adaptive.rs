@@ -33,6 +33,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::bake::{Bake, Lights};
+use crate::output::tonemap::luminance;
 use crate::scene::refine::{self, Corners, barycentric, longest_edge};
 use crate::scene::subdivide::normal_and_area;
 use crate::solve::SolveParams;
@@ -660,11 +661,6 @@ fn variation(pieces: &[[f64; 3]], auto: &Adaptive) -> Option<f64> {
 /// patches): at 2, Cornell box 3.1% (1,554), panel room 1.4% (3,846), level 13.4% (5,000, the
 /// budget); at 8, 2.6% (576), 1.7% (856), 15.2% (3,004); at 32, 2.5% (306), 2.5% (224).
 const NOISE_COST: f64 = 8.0;
-
-/// Rec. 709 luminance.
-fn luminance(c: [f64; 3]) -> f64 {
-    0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2]
-}
 
 /// Per patch, for each piece of its bisection tree of depth [`DEPTH`] (heap order of the
 /// leaves): the crossings whose segment leaves the patch from that piece, and the sum and sum

@@ -134,27 +134,25 @@ impl Bake {
             seed: self.seed,
         };
         let patches = self.scene.patches.len();
-        let lines_before = self.list.lines();
-        let before = Sampling::for_lines(lines_before as u64, patches, self.seed);
+        let before = self.list.lines();
         self.list
             .add_lines(&self.scene, &self.tracer, &params, control)?;
         self.tallies
             .update(&self.list, &self.tracer.surfaces(), patches);
         self.warnings = overlap_warnings(&self.scene, &self.tracer, &self.list);
-        let after = Sampling::for_lines(self.list.lines() as u64, patches, self.seed);
+        let lines = (before, self.list.lines(), self.seed);
         if let Some(pieces) = &mut self.pieces {
             let count = pieces.scene.patches.len();
             (pieces.tallies).update(&self.list, &pieces.tracer.surfaces(), count);
-            let before = Sampling::for_lines(lines_before as u64, count, self.seed);
-            let after = Sampling::for_lines(self.list.lines() as u64, count, self.seed);
-            if after.density != before.density && !pieces.area.is_empty() {
-                pieces.area = AreaLights::compute(&pieces.scene, &pieces.tracer, after, control)?;
-            }
+            resample(
+                &mut pieces.area,
+                &pieces.scene,
+                &pieces.tracer,
+                lines,
+                control,
+            )?;
         }
-        if after.density != before.density && !self.area.is_empty() {
-            self.area = AreaLights::compute(&self.scene, &self.tracer, after, control)?;
-        }
-        Ok(())
+        resample(&mut self.area, &self.scene, &self.tracer, lines, control)
     }
 
     /// Cuts the traced triangles as `cuts` says (a bisection tree per triangle by global index,
@@ -571,14 +569,13 @@ impl Bake {
                     start,
                     false,
                 );
-                let k = SHAPE_ERROR;
                 for ((e, l), w) in (solution.stderr.iter_mut())
                     .zip(&solution.radiance)
                     .zip(&whole.radiance)
                 {
                     if let Some(e) = e {
                         for c in 0..3 {
-                            e[c] = e[c].hypot(k * (l[c] - w[c]));
+                            e[c] = e[c].hypot(SHAPE_ERROR * (l[c] - w[c]));
                         }
                     }
                 }
@@ -763,6 +760,24 @@ impl Bake {
             })
             .collect()
     }
+}
+
+/// Samples `area`, the area lights of `scene`, again if a bake of `after` lines samples them
+/// more densely than one of `before` (`(before, after, seed)`), as [`Bake::refine`] does.
+fn resample(
+    area: &mut AreaLights,
+    scene: &Scene,
+    tracer: &SceneTracer,
+    (before, after, seed): (usize, usize, u64),
+    control: &Control,
+) -> Result<(), TraceError> {
+    let patches = scene.patches.len();
+    let before = Sampling::for_lines(before as u64, patches, seed);
+    let after = Sampling::for_lines(after as u64, patches, seed);
+    if after.density != before.density && !area.is_empty() {
+        *area = AreaLights::compute(scene, tracer, after, control)?;
+    }
+    Ok(())
 }
 
 /// The irradiance straight from the punctual lights of `direct` at `power` and the sampled

@@ -805,7 +805,7 @@ pub fn patch_point(
         }
     }
     contributions.sort_by(|a, b| b.0.total_cmp(&a.0));
-    let luminance = |c: [f64; 3]| 0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2];
+    let luminance = crate::output::tonemap::luminance;
     let worst = contributions
         .iter()
         .take(WORST)
