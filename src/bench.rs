@@ -684,6 +684,19 @@ pub struct PatchPoint {
     /// lit, non-emitting patches and channels, the reference's own noise taken out in
     /// quadrature (the two are independent).
     pub patch_error: f64,
+    /// The bake's error at the resolution of points rather than patches: over the same
+    /// patch-channels, the area-weighted RMS of (bake − the true radiance at a uniformly random
+    /// point of the patch) over the RMS of the true radiance (a relative L² error of the
+    /// field), the reference's noise taken out. [`PatchPoint::patch_l2_error`] with each
+    /// patch's own variation added ([`crate::direct::reference::Estimate::spread`]): what one
+    /// value per patch cannot show, however exact. A patch-constant answer's error as a
+    /// lightmap: it charges coarse patches for the detail they miss, which the per-patch
+    /// errors do not, and its scale does not depend on the patches (a patch's relative error
+    /// would be relative to a mean that does).
+    pub point_error: f64,
+    /// [`PatchPoint::point_error`] without the patches' own variation: the patches' means
+    /// against the true means, as a relative L² error.
+    pub patch_l2_error: f64,
     /// The reference's own per-patch noise on the same patches (half the difference of its two
     /// independent halves, RMS), for scale.
     pub reference_noise: f64,
@@ -775,6 +788,7 @@ pub fn patch_point(
         .collect();
     let dark = dark_floor(scene, &radiance);
     let (mut error, mut noise, mut weight, mut baked, mut traced) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    let (mut squared_error, mut spread, mut squared) = (0.0, 0.0, 0.0);
     let (mut estimated, mut estimated_weight, mut covered) = (0.0, 0.0, 0.0);
     let mut contributions: Vec<(f64, usize)> = Vec::new();
     for (i, (p, reference)) in scene.patches.iter().zip(&radiance).enumerate() {
@@ -799,6 +813,10 @@ pub fn patch_point(
                 _ => contributions.push((e, i)),
             }
             noise += p.area * (half_difference / r).powi(2);
+            squared_error +=
+                p.area * ((solved.radiance[i][c] - r).powi(2) - half_difference.powi(2));
+            spread += p.area * 0.5 * (first[i].spread[c] + second[i].spread[c]);
+            squared += p.area * r * r;
             weight += p.area;
             baked += p.area * solved.radiance[i][c];
             traced += p.area * r;
@@ -830,6 +848,8 @@ pub fn patch_point(
         budget,
         seconds,
         patch_error: ((error - noise).max(0.0) / weight).sqrt(),
+        point_error: ((squared_error + spread).max(0.0) / squared).sqrt(),
+        patch_l2_error: (squared_error.max(0.0) / squared).sqrt(),
         reference_noise: (noise / weight).sqrt(),
         bias: baked / traced - 1.0,
         estimated_noise: (estimated / estimated_weight).sqrt(),

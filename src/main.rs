@@ -339,8 +339,8 @@ fn run(cli: Cli) -> Result<(), String> {
             use radiosity::params::PatchSize::{Auto, Length, Source};
             let mut points = Vec::new();
             println!(
-                "scene\tpatch_size\tpatches\tseconds\tpatch error\treference noise\tbias\t\
-                 estimated noise\tcoverage"
+                "scene\tpatch_size\tpatches\tseconds\tpatch error\tpatch L2\tpoint error\t\
+                 reference noise\tbias\testimated noise\tcoverage"
             );
             for (name, sizes) in [
                 (
@@ -392,12 +392,14 @@ fn run(cli: Cli) -> Result<(), String> {
                         !whole,
                     )?;
                     println!(
-                        "{}\t{}\t{}\t{:.2}\t{:.4}\t{:.4}\t{:+.4}\t{:.4}\t{:.3}",
+                        "{}\t{}\t{}\t{:.2}\t{:.4}\t{:.4}\t{:.4}\t{:.4}\t{:+.4}\t{:.4}\t{:.3}",
                         p.scene,
                         p.patch_size,
                         p.patches,
                         p.seconds,
                         p.patch_error,
+                        p.patch_l2_error,
+                        p.point_error,
                         p.reference_noise,
                         p.bias,
                         p.estimated_noise,

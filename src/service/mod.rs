@@ -196,10 +196,14 @@ fn estimate_bytes(scene: &Scene, lines: u64) -> u64 {
             states * scene.patches.len() as f64 * 4.0
         })
         .sum();
-    // The pieces the frames are solved on (`Bake::split`): up to 8 per patch, one per 8
-    // crossings at most.
+    // The pieces the frames are solved on (`Bake::split`): one per `PIECE_CROSSINGS`
+    // crossings at most, within its budget of one per `LINES_PER_PIECE` lines (a gap's rim is
+    // cut finer than eight per patch).
     let patches = scene.patches.len() as f64;
-    let pieces = (8.0 * patches).min(patches + (static_hits + moving_hits / frames) / 8.0);
+    let crossings = static_hits + moving_hits / frames;
+    let pieces = (lines / crate::bake::LINES_PER_PIECE as f64)
+        .min(patches + crossings / crate::bake::PIECE_CROSSINGS)
+        .max(patches);
     // The list, plus the patches' and the pieces' tallies, each of about the same size as the
     // static crossings, plus the solvers, plus the direct light of patches and pieces.
     let bytes = lines * 8.0
