@@ -444,7 +444,7 @@ pub fn bake_one(
     let adapt_seconds = started.elapsed().as_secs_f64();
     // The frames are solved on finer pieces of the patches ([`Bake::split`]).
     let started = Instant::now();
-    let pieces = match bake.split(control) {
+    let pieces = match bake.split(&solve, control) {
         Ok(pieces) => pieces,
         Err(TraceError::Cancelled) => return Outcome::Cancelled,
         Err(e) => return Outcome::Failed(e.to_string()),

@@ -768,7 +768,8 @@ pub fn patch_point(
         budget = Some(auto.budget);
     }
     if split {
-        bake.split(&Control::default()).map_err(|e| e.to_string())?;
+        bake.split(&solve, &Control::default())
+            .map_err(|e| e.to_string())?;
     }
     let scene = &bake.scene;
     let solved = bake.solve_frame(0, &scene.materials, &solve);
@@ -788,7 +789,7 @@ pub fn patch_point(
         .collect();
     let dark = dark_floor(scene, &radiance);
     let (mut error, mut noise, mut weight, mut baked, mut traced) = (0.0, 0.0, 0.0, 0.0, 0.0);
-    let (mut squared_error, mut spread, mut squared) = (0.0, 0.0, 0.0);
+    let (mut squared_error, mut spread, mut squared, mut noise_squared) = (0.0, 0.0, 0.0, 0.0);
     let (mut estimated, mut estimated_weight, mut covered) = (0.0, 0.0, 0.0);
     let mut contributions: Vec<(f64, usize)> = Vec::new();
     for (i, (p, reference)) in scene.patches.iter().zip(&radiance).enumerate() {
@@ -817,6 +818,7 @@ pub fn patch_point(
                 p.area * ((solved.radiance[i][c] - r).powi(2) - half_difference.powi(2));
             spread += p.area * 0.5 * (first[i].spread[c] + second[i].spread[c]);
             squared += p.area * r * r;
+            noise_squared += p.area * half_difference.powi(2);
             weight += p.area;
             baked += p.area * solved.radiance[i][c];
             traced += p.area * r;
@@ -848,8 +850,11 @@ pub fn patch_point(
         budget,
         seconds,
         patch_error: ((error - noise).max(0.0) / weight).sqrt(),
-        point_error: ((squared_error + spread).max(0.0) / squared).sqrt(),
-        patch_l2_error: (squared_error.max(0.0) / squared).sqrt(),
+        // The true radiance's mean square over points is the means' (less the reference's
+        // noise, which r² also holds) plus the spread within the patches.
+        point_error: ((squared_error + spread).max(0.0) / (squared - noise_squared + spread))
+            .sqrt(),
+        patch_l2_error: (squared_error.max(0.0) / (squared - noise_squared)).sqrt(),
         reference_noise: (noise / weight).sqrt(),
         bias: baked / traced - 1.0,
         estimated_noise: (estimated / estimated_weight).sqrt(),

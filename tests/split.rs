@@ -33,7 +33,9 @@ fn pieces_bring_the_cornell_box_closer_to_the_path_tracer_and_its_error_bars_cov
     let solve = SolveParams::default();
     let whole = Bake::trace(scene.clone(), &params).unwrap();
     let mut pieces = Bake::trace(scene, &params).unwrap();
-    pieces.split(&Control::default()).unwrap();
+    pieces
+        .split(&SolveParams::default(), &Control::default())
+        .unwrap();
     let traced = |seed| path_traced(&whole.scene, whole.tracer(), 0, 1_000, [0.0; 3], seed);
     let (first, second) = (traced(21), traced(22));
     let reference: Vec<[f64; 3]> = (first.iter().zip(&second))
@@ -64,7 +66,7 @@ fn pieces_bring_the_cornell_box_closer_to_the_path_tracer_and_its_error_bars_cov
     };
     let ((whole_mse, whole_coverage), (pieces_mse, coverage)) = (measure(&whole), measure(&pieces));
     eprintln!("whole {whole_mse:.5} {whole_coverage:.3}, pieces {pieces_mse:.5} {coverage:.3}");
-    // Measured: 0.0022 whole, 0.0006 on pieces; with the pieces at depth 0 (no pieces) the
+    // Measured: 0.0022 whole, 0.00055 on pieces; with the pieces at depth 0 (no pieces) the
     // two are equal and this fails.
     assert!(
         pieces_mse < 0.5 * whole_mse,
@@ -73,7 +75,7 @@ fn pieces_bring_the_cornell_box_closer_to_the_path_tracer_and_its_error_bars_cov
     // The error bars of the pieces' answer take in how far the pieces moved it: they cover
     // the path tracer about as often as two standard errors should (95%; over about a
     // hundred independent patch-channels that share has a standard deviation of 2%).
-    // Measured: 0.90, against 0.58 for the whole bake's and 0.81 without the pieces' move in
+    // Measured: 0.93, against 0.58 for the whole bake's and 0.81 without the pieces' move in
     // the error bars ([`radiosity::bake::SHAPE_ERROR`] 0).
     assert!(coverage >= 0.85, "{coverage}");
 }
@@ -93,7 +95,9 @@ fn a_split_bake_keeps_its_patches_and_a_furnace_stays_exact() {
     let mut bake = Bake::trace(scene, &params).unwrap();
     let solve = SolveParams::default();
     let whole = bake.solve_frame(0, &bake.scene.materials, &solve);
-    let pieces = bake.split(&Control::default()).unwrap();
+    let pieces = bake
+        .split(&SolveParams::default(), &Control::default())
+        .unwrap();
     assert!(pieces > 2 * patches.len(), "{pieces} pieces");
     assert_eq!(bake.pieces(), Some(pieces));
     assert_eq!(format!("{:?}", bake.scene.patches), format!("{patches:?}"));
@@ -130,7 +134,8 @@ fn light_trapped_in_a_gap_stays_there_at_the_sources_own_triangles() {
             seed: 6,
         };
         let mut bake = Bake::trace(scene, &params).unwrap();
-        bake.split(&Control::default()).unwrap();
+        bake.split(&SolveParams::default(), &Control::default())
+            .unwrap();
         let scene = &bake.scene;
         let solved = bake.solve_frame(0, &scene.materials, &SolveParams::default());
         let (mut sum, mut variance) = (0.0, 0.0);
@@ -147,6 +152,6 @@ fn light_trapped_in_a_gap_stays_there_at_the_sources_own_triangles() {
     eprintln!(
         "source {source:.3} ± {source_sigma:.3}, 1 m {metre:.3} ± {metre_sigma:.3}: {bias:+.4}"
     );
-    // Measured: −0.1%; +20.6% without the further cuts (GAP_ROUNDS 0).
+    // Measured: +1.1%; +20.6% without the further cuts (GAP_ROUNDS 0).
     assert!(bias.abs() < 0.05, "{bias:+.4}");
 }

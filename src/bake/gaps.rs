@@ -15,19 +15,26 @@
 //!
 //! (the near part, area ≈ `s·A`, sends `ρ·L̄` where it physically sends its own `ρ·L_n` to what
 //! is near; the share `1 − s` of it that the model sends far is misplaced). The difference is
-//! taken less twice its standard error, so noise alone scores nothing. A piece's score falls
+//! taken less three times its standard error ([`SIGNIFICANCE`]), so that noise alone seldom
+//! scores. A piece's score falls
 //! with its area as it is cut, while the share across a gap's rim stays: the cuts follow the
 //! rim down until its pieces hold too little flux to matter.
 
 use glam::DVec3;
 use rayon::prelude::*;
 
+use super::PIECE_CROSSINGS;
 use crate::output::tonemap::luminance;
 use crate::scene::Scene;
 use crate::scene::refine::Corners;
 use crate::solve::tally::{ABSORBED, SKY, walk_from};
 use crate::timeline::IntersectionList;
 use crate::trace::SceneTracer;
+
+/// Standard errors a piece's near and far light must differ by before any of it counts: noise
+/// alone passes 3σ in about one piece in 370 (a side whose segments all meet one neighbour
+/// shows no spread, hence at least [`PIECE_CROSSINGS`] segments on each side).
+const SIGNIFICANCE: f64 = 3.0;
 
 /// Per piece, the segments leaving it split by length at its width: count, fixed-point sum and
 /// sum of squares of the gathered luminance, near then far.
@@ -115,7 +122,8 @@ pub(super) fn misplaced(
         .map(|(p, s)| {
             let segments = s.count[0] + s.count[1];
             let rho = luminance(scene.materials[p.material as usize].reflectance);
-            if s.count.iter().any(|&n| n < 2) || rho <= 0.0 {
+            // Both sides known from a piece's worth of segments, or no score.
+            if s.count.iter().any(|&n| (n as f64) < PIECE_CROSSINGS) || rho <= 0.0 {
                 return (0.0, segments);
             }
             let (mean, variance): (Vec<f64>, Vec<f64>) = (0..2)
@@ -126,7 +134,8 @@ pub(super) fn misplaced(
                     (mean, (square - mean * mean).max(0.0) * n / (n - 1.0) / n)
                 })
                 .unzip();
-            let difference = (mean[0] - mean[1]).abs() - 2.0 * (variance[0] + variance[1]).sqrt();
+            let difference =
+                (mean[0] - mean[1]).abs() - SIGNIFICANCE * (variance[0] + variance[1]).sqrt();
             let near = s.count[0] as f64 / segments as f64;
             let score = p.area * rho * near * (1.0 - near) * difference.max(0.0);
             (score, segments)

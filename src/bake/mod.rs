@@ -288,7 +288,7 @@ impl Bake {
     /// # Errors
     /// [`TraceError::Cancelled`] if `control` is cancelled while the pieces' light is sampled:
     /// the bake then answers as before (its patches whole, on the pieces' triangles).
-    pub fn split(&mut self, control: &Control) -> Result<usize, TraceError> {
+    pub fn split(&mut self, solve: &SolveParams, control: &Control) -> Result<usize, TraceError> {
         use crate::scene::refine;
         if let Some(pieces) = &self.pieces {
             return Ok(pieces.scene.patches.len());
@@ -363,12 +363,7 @@ impl Bake {
             &self.frame_tally(0),
             (&self.scene, &self.direct, &self.area),
             None,
-            (
-                0,
-                &self.scene.materials,
-                &self.light_power(),
-                &SolveParams::default(),
-            ),
+            (0, &self.scene.materials, &self.light_power(), solve),
             None,
             false,
         );
@@ -380,7 +375,11 @@ impl Bake {
         Self::move_crossings(&mut self.list, &self.scene, &refinement);
         let budget = budget as usize;
         for _ in 0..GAP_ROUNDS {
-            let Some((next, refinement)) = self.cut_gaps(&scene, &of, &whole.radiance, budget)
+            if control.is_cancelled() {
+                break;
+            }
+            let Some((next, refinement)) =
+                self.cut_gaps(&scene, &of, (&whole.radiance, solve.sky), budget)
             else {
                 break;
             };
@@ -390,12 +389,16 @@ impl Bake {
             Self::move_crossings(&mut self.list, &scene, &refinement);
             scene = next;
         }
-        // The bake's patches on the pieces' triangles from here on: if the light's sampling
-        // is cancelled, the bake answers as before (the patches' tallies count the same
-        // crossings on the same patches), without pieces.
+        // The bake's patches on the pieces' triangles from here on: if it is cancelled now,
+        // the bake answers as before (the patches' tallies count the same crossings on the
+        // same patches), without pieces.
         let grouped = refine::regroup(&scene, &of, self.scene.patches.clone());
         self.tracer = SceneTracer::new(&grouped);
-        self.shown = Some(std::mem::replace(&mut self.scene, grouped));
+        let before = std::mem::replace(&mut self.scene, grouped);
+        self.shown.get_or_insert(before);
+        if control.is_cancelled() {
+            return Err(TraceError::Cancelled);
+        }
         let tracer = SceneTracer::new(&scene);
         let sampling = (self.list.lines(), self.seed);
         let (direct, area) = Self::sampled_lights(&scene, &tracer, sampling, control)?;
@@ -417,14 +420,15 @@ impl Bake {
 
     /// One round of [`Bake::split`]'s further cuts ([`gaps`]): the pieces of `scene` (piece `k`
     /// of patch `of[k]`) that misplace more than [`GAP_SHARE`] of the light the patches reflect
-    /// (`radiance`, the patches' answer at frame 0) and have the crossings of two pieces, each
+    /// (`radiance`, the patches' answer at frame 0 under `sky`) and have the crossings of two
+    /// pieces (deforming objects' pieces are not cut), each
     /// bisected once, those that misplace the most first, within `budget` pieces (the cuts
     /// neighbours need included). `None` when nothing is cut.
     fn cut_gaps(
         &self,
         scene: &Scene,
         of: &[u32],
-        radiance: &[[f64; 3]],
+        (radiance, sky): (&[[f64; 3]], [f64; 3]),
         budget: usize,
     ) -> Option<(Scene, crate::scene::refine::Refinement)> {
         use crate::output::tonemap::luminance;
@@ -432,7 +436,7 @@ impl Bake {
         let tracer = SceneTracer::new(scene);
         let brightness: Vec<f64> = radiance.iter().map(|&l| luminance(l)).collect();
         let gathered = |j: u32| brightness[of[j as usize] as usize];
-        let scores = gaps::misplaced(scene, &tracer, &self.list, &gathered, 0.0);
+        let scores = gaps::misplaced(scene, &tracer, &self.list, &gathered, luminance(sky));
         let reflected: f64 = (self.scene.patches.iter())
             .zip(&brightness)
             .map(|(p, &l)| {
@@ -440,9 +444,21 @@ impl Bake {
                 p.area * (l - emitted).max(0.0)
             })
             .sum();
+        // Each piece's triangle (global index), and whether it can be cut (not deforming).
+        let meshes = std::iter::once((&scene.statics, true))
+            .chain(scene.objects.iter().map(|o| (&o.mesh, o.is_rigid())));
+        let mut triangle = vec![(0u32, false); scene.patches.len()];
+        let faces = meshes.flat_map(|(m, cuttable)| m.faces.iter().map(move |f| (f, cuttable)));
+        for (t, (f, cuttable)) in faces.enumerate() {
+            for p in [Some(f.front), f.back].into_iter().flatten() {
+                triangle[p as usize] = (t as u32, cuttable);
+            }
+        }
         let mut order: Vec<(f64, u32)> = (scores.iter().enumerate())
-            .filter(|&(_, &(score, segments))| {
-                score > GAP_SHARE * reflected && segments as f64 >= 2.0 * PIECE_CROSSINGS
+            .filter(|&(k, &(score, segments))| {
+                triangle[k].1
+                    && score > GAP_SHARE * reflected
+                    && segments as f64 >= 2.0 * PIECE_CROSSINGS
             })
             .map(|(k, &(score, _))| (score, k as u32))
             .collect();
@@ -450,19 +466,11 @@ impl Bake {
             return None;
         }
         order.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
-        // Each piece's triangle (global index).
-        let meshes = std::iter::once(&scene.statics).chain(scene.objects.iter().map(|o| &o.mesh));
-        let mut triangle = vec![0u32; scene.patches.len()];
-        for (t, f) in meshes.flat_map(|m| &m.faces).enumerate() {
-            for p in [Some(f.front), f.back].into_iter().flatten() {
-                triangle[p as usize] = t as u32;
-            }
-        }
         let masks = |k: usize| {
             let mut cuts = vec![0u32; tracer.triangles()];
             for &(_, p) in &order[..k] {
                 // The root of the triangle's tree (heap order, bit 1): one bisection.
-                cuts[triangle[p as usize] as usize] = 2;
+                cuts[triangle[p as usize].0 as usize] = 2;
             }
             cuts
         };

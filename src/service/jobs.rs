@@ -423,7 +423,7 @@ impl Job {
                         Err(e) => return self.fail(e.to_string()),
                     }
                 }
-                match bake.split(&self.control) {
+                match bake.split(&self.solve, &self.control) {
                     Ok(_) => {}
                     Err(TraceError::Cancelled) => return,
                     Err(e) => return self.fail(e.to_string()),
