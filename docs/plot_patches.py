@@ -15,6 +15,10 @@ docs/patches-whole.json` (the latter the run before pieces, solved whole).
 
 With several files (seeds), each point is their mean, with a bar from the lowest to the
 highest: how much the figure itself moves with the lines and the reference's paths.
+
+`--measure point_error` (first) plots the error at the resolution of points instead (the
+README's second figure, `docs/patches-point.png`, from `docs/patches.json` alone); points
+without that measure (older files) are left out.
 """
 import json
 import sys
@@ -31,12 +35,19 @@ def key(p):
     return (p["scene"], str(p["patch_size"]), p.get("budget"), p.get("split", False))
 
 
-def main(target, sources):
+LABELS = {
+    "patch_error": "per-patch error against the path tracer (%)",
+    "point_error": "error at points against the path tracer (%)",
+}
+
+
+def main(target, sources, measure="patch_error"):
     runs = {}
     for source in sources:
         with open(source) as f:
             for p in json.load(f):
-                runs.setdefault(key(p), []).append(p)
+                if measure in p:
+                    runs.setdefault(key(p), []).append(p)
     scenes = sorted({k[0] for k in runs})
     columns = min(2, len(scenes))
     rows = (len(scenes) + columns - 1) // columns
@@ -49,7 +60,7 @@ def main(target, sources):
             for k, ps in runs.items():
                 if k[0] != scene or k[3] != split:
                     continue
-                errors = [100 * p["patch_error"] for p in ps]
+                errors = [100 * p[measure] for p in ps]
                 point = (mean(p["patches"] for p in ps), mean(errors), min(errors), max(errors), k)
                 (auto if k[1] == "auto" else uniform).append(point)
             if not uniform and not auto:
@@ -78,7 +89,7 @@ def main(target, sources):
         ax.yaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
         ax.yaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.set_xlabel("patches")
-        ax.set_ylabel("per-patch error against the path tracer (%)")
+        ax.set_ylabel(LABELS[measure])
         ax.set_title(scene)
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
@@ -87,4 +98,8 @@ def main(target, sources):
 
 
 if __name__ == "__main__":
-    main(sys.argv[1], sys.argv[2:])
+    args = sys.argv[1:]
+    if args[0] == "--measure":
+        main(args[2], args[3:], args[1])
+    else:
+        main(args[0], args[1:])

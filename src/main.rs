@@ -176,9 +176,10 @@ enum Command {
         #[arg(long, default_value = "level.gltf")]
         gain_scene: String,
     },
-    /// Measure how patches are made against a path-traced reference: per-patch error, bias,
-    /// patches and seconds of the source's triangles, uniform sizes and auto, on the Cornell
-    /// box, the panel room, the level and the level lit by lamps (README, "Adaptive patches").
+    /// Measure how patches are made against a path-traced reference: per-patch error, the
+    /// error at points (what a lightmap shows), bias, error-bar coverage, patches and seconds
+    /// of the source's triangles, uniform sizes and auto, on the Cornell box, the panel room,
+    /// the level and the level lit by lamps (README, "Against physics").
     BenchPatches {
         /// Directory of the sample scenes.
         #[arg(long, default_value = "scenes")]
