@@ -37,7 +37,7 @@ use crate::output::tonemap::luminance;
 use crate::scene::refine::{self, Corners, barycentric, longest_edge};
 use crate::scene::subdivide::normal_and_area;
 use crate::solve::SolveParams;
-use crate::solve::tally::{ABSORBED, SKY, walk_from};
+use crate::solve::tally::{FixedLight, walk_from};
 use crate::timeline::{Control, TraceError};
 
 /// Frames scored per round at most, spread over the distinct frames of the timeline.
@@ -731,24 +731,13 @@ fn gathered(
     let list = bake.list();
     let surfaces = bake.tracer().surfaces();
     let corners = Corners::new(scene);
-    // Sums in fixed point (a radiance is a whole number of 2^-31 of the brightest), so that
-    // they do not depend on the order the threads add them in: the cuts, and so the patch
-    // ids, are the same on any machine.
-    let sky = luminance(sky);
-    let brightest = radiance
-        .iter()
-        .map(|&l| luminance(l))
-        .fold(sky, f64::max)
-        .max(f64::MIN_POSITIVE);
-    let unit = brightest / f64::from(1u32 << 31);
-    let value = |to: u32| {
-        let g = match to {
-            SKY => sky,
-            ABSORBED => 0.0,
-            j => luminance(radiance[j as usize]),
-        };
-        (g / unit).round().max(0.0) as u64
-    };
+    // Sums in fixed point: the cuts, and so the patch ids, are the same on any machine.
+    let light = FixedLight::new(
+        |j| luminance(radiance[j as usize]),
+        scene.patches.len(),
+        luminance(sky),
+    );
+    let (unit, value) = (light.unit, |to| light.value(to));
     let size = scene.patches.len() * LEAVES;
     let patches = scene.patches.len();
     let (sums, near) = list

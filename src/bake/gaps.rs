@@ -27,14 +27,14 @@ use super::PIECE_CROSSINGS;
 use crate::output::tonemap::luminance;
 use crate::scene::Scene;
 use crate::scene::refine::Corners;
-use crate::solve::tally::{ABSORBED, SKY, walk_from};
+use crate::solve::tally::{FixedLight, walk_from};
 use crate::timeline::IntersectionList;
 use crate::trace::SceneTracer;
 
 /// Standard errors a piece's near and far light must differ by before any of it counts: noise
 /// alone passes 3σ in about one piece in 370 (a side whose segments all meet one neighbour
 /// shows no spread, hence at least [`PIECE_CROSSINGS`] segments on each side).
-const SIGNIFICANCE: f64 = 3.0;
+pub const SIGNIFICANCE: f64 = 3.0;
 
 /// Per piece, the segments leaving it split by length at its width: count, fixed-point sum and
 /// sum of squares of the gathered luminance, near then far.
@@ -66,22 +66,10 @@ pub(super) fn misplaced(
             edge(c[0], c[1]).max(edge(c[1], c[2])).max(edge(c[2], c[0])) as f32
         })
         .collect();
-    // Sums in fixed point (2^-31 of the brightest), so that they do not depend on the order
-    // the threads add them in: the cuts are the same on any machine.
+    // Sums in fixed point: the cuts are the same on any machine.
     let pieces = scene.patches.len();
-    let brightest = (0..pieces as u32)
-        .map(gathered)
-        .fold(sky, f64::max)
-        .max(f64::MIN_POSITIVE);
-    let unit = brightest / f64::from(1u32 << 31);
-    let value = |to: u32| {
-        let g = match to {
-            SKY => sky,
-            ABSORBED => 0.0,
-            j => gathered(j),
-        };
-        (g / unit).round().max(0.0) as u64
-    };
+    let light = FixedLight::new(gathered, pieces, sky);
+    let (unit, value) = (light.unit, |to| light.value(to));
     let surfaces = tracer.surfaces();
     let sides = list
         .bundles(scene)

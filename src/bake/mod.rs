@@ -3,7 +3,7 @@
 //! Tracing happens once (and again only for refinement); relighting — new emission or
 //! reflectance per material — re-solves from the kept tallies without tracing a line.
 
-mod gaps;
+pub mod gaps;
 
 use std::sync::Arc;
 

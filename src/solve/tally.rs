@@ -25,6 +25,42 @@ pub const SKY: u32 = (1 << 27) - 1;
 /// Column of the segments that carry no light: absorbed by the back of a one-sided triangle,
 /// or across a contact (two faces touching, [`crate::trace::coincident`]).
 pub const ABSORBED: u32 = (1 << 27) - 2;
+
+/// The luminance a segment brings from its far end, in fixed point: a whole number of 2^-31 of
+/// the brightest (the sky included), so that sums of them do not depend on the order threads
+/// add them in (what is decided from them, cuts and so patch ids, is the same on any machine).
+pub struct FixedLight<F> {
+    /// Luminance of patch `j`.
+    patch: F,
+    sky: f64,
+    /// The luminance of one unit.
+    pub unit: f64,
+}
+
+impl<F: Fn(u32) -> f64> FixedLight<F> {
+    /// For `patches` patches of luminance `patch(j)` under a sky of luminance `sky`.
+    pub fn new(patch: F, patches: usize, sky: f64) -> Self {
+        let brightest = (0..patches as u32)
+            .map(&patch)
+            .fold(sky, f64::max)
+            .max(f64::MIN_POSITIVE);
+        Self {
+            patch,
+            sky,
+            unit: brightest / f64::from(1u32 << 31),
+        }
+    }
+
+    /// What a segment to `to` (a patch, [`SKY`] or [`ABSORBED`]) brings, in units.
+    pub fn value(&self, to: u32) -> u64 {
+        let g = match to {
+            SKY => self.sky,
+            ABSORBED => 0.0,
+            j => (self.patch)(j),
+        };
+        (g / self.unit).round().max(0.0) as u64
+    }
+}
 /// Patches are numbered below this (the columns have 27 bits in a key).
 pub const MAX_PATCHES: usize = ABSORBED as usize;
 /// Lines fall into this many groups, the independent replicas of the line set
