@@ -72,6 +72,11 @@ async fn relight(
         .unwrap()
 }
 
+/// How long a job may take before a test calls it hung: a guard against hangs, not a check of
+/// speed (a debug build, with the file's tests sharing two cores, took over 60 s for a job
+/// that takes 16 s alone).
+const HANG: Duration = Duration::from_secs(240);
+
 /// Polls a timeline until it ends; its final status document.
 async fn wait(client: &reqwest::Client, base: &str, id: &str, limit: Duration) -> Value {
     let start = Instant::now();
@@ -115,7 +120,7 @@ async fn every_sample_scene_bakes_and_serves_every_frame() {
         let (id, created) = create(&client, &base, "lines=20000&fps=4", name).await;
         let frames = created["frames"].as_u64().unwrap() as usize;
         let loaded = created["patches"].as_u64().unwrap() as usize;
-        let status = wait(&client, &base, &id, Duration::from_secs(60)).await;
+        let status = wait(&client, &base, &id, HANG).await;
         assert_eq!(status["status"], "done", "{name}: {status}");
         // The loaded patches, cut where the light needs them and merged where it does not
         // (patch_size=auto by default), within the budget: one patch per 200 lines, or the
@@ -261,10 +266,7 @@ async fn identical_requests_give_identical_numbers_and_hostile_ones_get_4xx() {
     }
     let (second, _) = create(&client, &base, query, "cornell_moving.gltf").await;
     for id in [&first, &second] {
-        assert_eq!(
-            wait(&client, &base, id, Duration::from_secs(60)).await["status"],
-            "done"
-        );
+        assert_eq!(wait(&client, &base, id, HANG).await["status"], "done");
     }
     for f in 0..9 {
         let get = |id: &str| {
@@ -378,7 +380,7 @@ async fn refine_lowers_the_error_and_relight_needs_no_tracing() {
     let base = start(Config::default()).await;
     let client = reqwest::Client::new();
     let (id, _) = create(&client, &base, "lines=20000&fps=2", "cornell_moving.gltf").await;
-    let done = wait(&client, &base, &id, Duration::from_secs(60)).await;
+    let done = wait(&client, &base, &id, HANG).await;
     let frame = |v: u64| {
         let client = client.clone();
         let url = format!("{base}/v1/timelines/{id}/frames/0");
@@ -404,7 +406,7 @@ async fn refine_lowers_the_error_and_relight_needs_no_tracing() {
         .await
         .unwrap();
     assert_eq!(response.status(), 202);
-    let refined = wait(&client, &base, &id, Duration::from_secs(60)).await;
+    let refined = wait(&client, &base, &id, HANG).await;
     assert_eq!(refined["status"], "done");
     // The progress counts the added lines.
     assert_eq!(refined["progress"]["lines_total"], 80_000);
@@ -424,7 +426,7 @@ async fn refine_lowers_the_error_and_relight_needs_no_tracing() {
     let body = serde_json::json!({"materials": [{"material": "light", "emission": lamp_emission}]});
     let response = relight(&client, &base, &id, &body).await;
     assert_eq!(response.status(), 202, "{}", response.text().await.unwrap());
-    let relit = wait(&client, &base, &id, Duration::from_secs(60)).await;
+    let relit = wait(&client, &base, &id, HANG).await;
     assert_eq!(relit["memory"]["hits"], hits);
     assert_eq!(relit["timings"]["trace"], refined["timings"]["trace"]);
     let doubled = frame(3).await;
@@ -583,10 +585,7 @@ async fn finished_results_survive_a_restart_and_unfinished_jobs_report_interrupt
     let first = start(config.clone()).await;
     let client = reqwest::Client::new();
     let (done, _) = create(&client, &first, "lines=20000&fps=4", "cornell_moving.gltf").await;
-    assert_eq!(
-        wait(&client, &first, &done, Duration::from_secs(60)).await["status"],
-        "done"
-    );
+    assert_eq!(wait(&client, &first, &done, HANG).await["status"], "done");
     let before: Value = get_json(&client, format!("{first}/v1/timelines/{done}/frames/5")).await;
     let patches: Value = get_json(&client, format!("{first}/v1/timelines/{done}/patches")).await;
     // A long job still running when the "restart" happens.
@@ -671,7 +670,7 @@ async fn a_job_over_the_memory_budget_is_refused_before_tracing() {
     );
     // A small job fits, and its measured memory is within the estimate's order.
     let (id, _) = create(&client, &base, "lines=20000&fps=4", "level.gltf").await;
-    let status = wait(&client, &base, &id, Duration::from_secs(60)).await;
+    let status = wait(&client, &base, &id, HANG).await;
     assert_eq!(status["status"], "done");
     assert!(status["memory"]["bytes"].as_u64().unwrap() < 16 << 20);
     let listed: Value = get_json(&client, format!("{base}/v1/timelines")).await;
@@ -689,10 +688,7 @@ async fn a_frame_preview_is_the_png_the_command_line_writes() {
         "cornell_moving.gltf",
     )
     .await;
-    assert_eq!(
-        wait(&client, &base, &id, Duration::from_secs(60)).await["status"],
-        "done"
-    );
+    assert_eq!(wait(&client, &base, &id, HANG).await["status"], "done");
     let url = format!("{base}/v1/timelines/{id}/frames/3/preview.png");
     let response = client
         .get(format!("{url}?width=160&height=120"))
@@ -763,7 +759,7 @@ async fn lamps_relight_by_intensity_without_tracing() {
     let base = start(Config::default()).await;
     let client = reqwest::Client::new();
     let (id, _) = create(&client, &base, "lines=20000&fps=1", "level_lamps.gltf").await;
-    let done = wait(&client, &base, &id, Duration::from_secs(60)).await;
+    let done = wait(&client, &base, &id, HANG).await;
     assert_eq!(done["status"], "done");
     let traced = done["progress"]["lines_traced"].clone();
     let before = radiance(get_json(&client, format!("{base}/v1/timelines/{id}/frames/1")).await);
@@ -776,7 +772,7 @@ async fn lamps_relight_by_intensity_without_tracing() {
     ]});
     let response = relight(&client, &base, &id, &body).await;
     assert_eq!(response.status(), 202);
-    let done = wait(&client, &base, &id, Duration::from_secs(60)).await;
+    let done = wait(&client, &base, &id, HANG).await;
     assert_eq!(
         done["progress"]["lines_traced"], traced,
         "relighting traced lines"
@@ -789,7 +785,7 @@ async fn lamps_relight_by_intensity_without_tracing() {
         {"light": "spot", "intensity": 150.0},
     ]});
     relight(&client, &base, &id, &body).await;
-    wait(&client, &base, &id, Duration::from_secs(60)).await;
+    wait(&client, &base, &id, HANG).await;
     let single = radiance(get_json(&client, format!("{base}/v1/timelines/{id}/frames/1")).await);
     for (d, s) in doubled.iter().zip(&single) {
         assert!(
@@ -832,10 +828,7 @@ async fn concurrent_relights_apply_exactly_the_one_accepted() {
     let base = start(Config::default()).await;
     let client = reqwest::Client::new();
     let (id, _) = create(&client, &base, "lines=20000&fps=1", "level_lamps.gltf").await;
-    assert_eq!(
-        wait(&client, &base, &id, Duration::from_secs(60)).await["status"],
-        "done"
-    );
+    assert_eq!(wait(&client, &base, &id, HANG).await["status"], "done");
     // Only the warm lamp, at intensity k, from eight clients at once.
     let only = |k: f64| {
         serde_json::json!({"lights": [
@@ -857,11 +850,11 @@ async fn concurrent_relights_apply_exactly_the_one_accepted() {
         answers.iter().all(|(_, s)| *s == 202 || *s == 409),
         "{answers:?}"
     );
-    wait(&client, &base, &id, Duration::from_secs(60)).await;
+    wait(&client, &base, &id, HANG).await;
     let url = format!("{base}/v1/timelines/{id}/frames/0");
     let raced = radiance(get_json(&client, url.clone()).await);
     assert_eq!(relight(&client, &base, &id, &only(1.0)).await.status(), 202);
-    wait(&client, &base, &id, Duration::from_secs(60)).await;
+    wait(&client, &base, &id, HANG).await;
     let unit = radiance(get_json(&client, url).await);
     let k = accepted[0] as f64;
     for (r, u) in raced.iter().zip(&unit) {
@@ -926,10 +919,7 @@ async fn parameters_are_strict_and_their_refusals_name_them() {
         "cornell_box.gltf",
     )
     .await;
-    assert_eq!(
-        wait(&client, &base, &id, Duration::from_secs(60)).await["status"],
-        "done"
-    );
+    assert_eq!(wait(&client, &base, &id, HANG).await["status"], "done");
     // Every described route, each with a parameter it does not take (beside one it takes,
     // where it takes some): 400, naming it, and nothing done.
     let spec: Value = serde_json::from_str(radiosity::service::OPENAPI).unwrap();
@@ -986,7 +976,7 @@ async fn reflectance_1_is_capped_with_a_warning_and_relit_only_up_to_the_cap() {
         warnings.contains("max_reflectance 0.999") && warnings.contains("furnace"),
         "{warnings}"
     );
-    let done = wait(&client, &base, &id, Duration::from_secs(60)).await;
+    let done = wait(&client, &base, &id, HANG).await;
     assert_eq!(done["status"], "done", "{done}");
     assert_eq!(done["warnings"], created["warnings"]);
     // The white furnace at the cap: Le / (1 − 0.999) on every sampled patch (exact: closed and
@@ -1010,7 +1000,7 @@ async fn reflectance_1_is_capped_with_a_warning_and_relit_only_up_to_the_cap() {
     let half =
         serde_json::json!({"materials": [{"material": "furnace", "reflectance": [0.5, 0.5, 0.5]}]});
     assert_eq!(relight(&client, &base, &id, &half).await.status(), 202);
-    let done = wait(&client, &base, &id, Duration::from_secs(60)).await;
+    let done = wait(&client, &base, &id, HANG).await;
     assert_eq!(done["status"], "done", "{done}");
     let frame = get_json(&client, format!("{base}/v1/timelines/{id}/frames/0")).await;
     assert!((radiance(frame)[0] - 2.0).abs() < 1e-9);
@@ -1027,7 +1017,7 @@ async fn reflectance_1_is_capped_with_a_warning_and_relit_only_up_to_the_cap() {
     let created: Value = response.json().await.unwrap();
     assert_eq!(created["warnings"], serde_json::json!([]));
     let id = created["id"].as_str().unwrap();
-    let failed = wait(&client, &base, id, Duration::from_secs(60)).await;
+    let failed = wait(&client, &base, id, HANG).await;
     assert_eq!(failed["status"], "failed", "{failed}");
     let error = failed["error"].as_str().unwrap();
     assert!(error.contains("frame 0 did not converge"), "{error}");
@@ -1042,7 +1032,7 @@ async fn a_solve_that_does_not_converge_fails_the_job_with_its_reason() {
     .await;
     let client = reqwest::Client::new();
     let (id, _) = create(&client, &base, "lines=5000&fps=4", "cornell_moving.gltf").await;
-    let failed = wait(&client, &base, &id, Duration::from_secs(60)).await;
+    let failed = wait(&client, &base, &id, HANG).await;
     assert_eq!(failed["status"], "failed", "{failed}");
     let error = failed["error"].as_str().unwrap();
     assert!(
@@ -1093,7 +1083,7 @@ async fn overlapping_faces_are_named_in_the_status_document() {
         .as_str()
         .unwrap()
         .to_string();
-    let done = wait(&client, &base, &id, Duration::from_secs(60)).await;
+    let done = wait(&client, &base, &id, HANG).await;
     assert_eq!(done["status"], "done", "{done}");
     let warnings = done["warnings"].as_array().unwrap();
     assert!(

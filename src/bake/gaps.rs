@@ -119,6 +119,7 @@ pub(super) fn misplaced(
                     let n = s.count[k] as f64;
                     let mean = s.sum[k] as f64 * unit / n;
                     let square = s.square[k] as f64 * unit * unit / n;
+                    // The variance of the mean: the unbiased sample variance over n.
                     (mean, (square - mean * mean).max(0.0) * n / (n - 1.0) / n)
                 })
                 .unzip();

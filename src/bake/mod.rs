@@ -421,9 +421,9 @@ impl Bake {
     /// One round of [`Bake::split`]'s further cuts ([`gaps`]): the pieces of `scene` (piece `k`
     /// of patch `of[k]`) that misplace more than [`GAP_SHARE`] of the light the patches reflect
     /// (`radiance`, the patches' answer at frame 0 under `sky`) and have the crossings of two
-    /// pieces (deforming objects' pieces are not cut), each
-    /// bisected once, those that misplace the most first, within `budget` pieces (the cuts
-    /// neighbours need included). `None` when nothing is cut.
+    /// pieces (deforming objects' are not cut), each bisected once, those that misplace the
+    /// most first, within `budget` pieces (the cuts neighbours need included). `None` when
+    /// nothing is cut.
     fn cut_gaps(
         &self,
         scene: &Scene,
