@@ -196,7 +196,7 @@ fn cut_rounds(
             break;
         }
         let ranked = mark(bake, auto, solve);
-        let marked = within_budget(bake, &ranked, auto.budget);
+        let marked = refine::within_budget(&bake.scene, &ranked, auto.budget);
         let significant: usize = marked.iter().map(|m| m.count_ones() as usize).sum();
         bound = significant < ranked.len();
         let added = if significant == 0 {
@@ -484,35 +484,6 @@ fn scored_frames(bake: &Bake) -> Vec<usize> {
 pub const DEPTH: u32 = 3;
 /// Pieces of a patch's scoring tree.
 const LEAVES: usize = 1 << DEPTH;
-
-/// Each traced triangle's cuts (a heap-ordered bisection tree per triangle,
-/// [`crate::scene::refine::cut`]) from the longest prefix of `order` whose patches, the cuts
-/// the neighbours need included, stay within `budget`.
-fn within_budget(bake: &Bake, order: &[(u32, u32)], budget: usize) -> Vec<u32> {
-    let masks = |k: usize| {
-        let mut cuts = vec![0u32; bake.tracer().triangles()];
-        for &(t, heap) in &order[..k] {
-            cuts[t as usize] |= 1 << heap;
-        }
-        cuts
-    };
-    // More cuts never make fewer patches: the longest prefix is found by bisection.
-    let fits = |k: usize| refine::patches_after(&bake.scene, &masks(k)) <= budget;
-    let (mut fit, mut over) = (0, order.len());
-    if fits(order.len()) {
-        fit = order.len();
-    } else {
-        while over - fit > 1 {
-            let mid = fit + (over - fit) / 2;
-            if fits(mid) {
-                fit = mid;
-            } else {
-                over = mid;
-            }
-        }
-    }
-    masks(fit)
-}
 
 /// The cuts worth making this round, as (traced triangle, heap-ordered node of its bisection
 /// tree), most worth first, each after its parent.

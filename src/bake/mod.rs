@@ -359,14 +359,7 @@ impl Bake {
             return Ok(self.scene.patches.len());
         }
         // The patches' answer at frame 0, for the gap scores: what each piece faces.
-        let whole = Self::solve_state_from(
-            &self.frame_tally(0),
-            (&self.scene, &self.direct, &self.area),
-            None,
-            (0, &self.scene.materials, &self.light_power(), solve),
-            None,
-            false,
-        );
+        let whole = self.whole_answer((0, &self.scene.materials, &self.light_power(), solve), None);
         let (mut scene, refinement) = refine::cut(&apart, &cuts);
         let mut of: Vec<u32> = (refinement.parents().iter())
             .map(|&q| of_apart[q as usize])
@@ -462,34 +455,17 @@ impl Bake {
             })
             .map(|(k, &(score, _))| (score, k as u32))
             .collect();
-        if order.is_empty() {
-            return None;
-        }
         order.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
-        let masks = |k: usize| {
-            let mut cuts = vec![0u32; tracer.triangles()];
-            for &(_, p) in &order[..k] {
-                // The root of the triangle's tree (heap order, bit 1): one bisection.
-                cuts[triangle[p as usize].0 as usize] = 2;
-            }
-            cuts
-        };
-        // More cuts never make fewer pieces: the longest prefix within the budget, by
-        // bisection.
-        let fits = |k: usize| refine::patches_after(scene, &masks(k)) <= budget;
-        let (mut fit, mut over) = (0, order.len() + 1);
-        while over - fit > 1 {
-            let mid = (fit + over) / 2;
-            if fits(mid) {
-                fit = mid;
-            } else {
-                over = mid;
-            }
-        }
-        if fit == 0 {
+        // Each piece's triangle cut once: the root of its tree (heap order, node 1).
+        let order: Vec<(u32, u32)> = order
+            .iter()
+            .map(|&(_, p)| (triangle[p as usize].0, 1))
+            .collect();
+        let cuts = refine::within_budget(scene, &order, budget);
+        if cuts.iter().all(|&c| c == 0) {
             return None;
         }
-        let (next, refinement) = refine::cut(scene, &masks(fit));
+        let (next, refinement) = refine::cut(scene, &cuts);
         (next.patches.len() > scene.patches.len()).then_some((next, refinement))
     }
 
@@ -693,14 +669,7 @@ impl Bake {
                     Self::solve_state_from(&tally, state, Some(&pieces.groups), solve, start, true);
                 // The patches solved whole as well (the answer alone): how far the pieces moved
                 // it says how far the pieces themselves may still be from the light's shape.
-                let whole = Self::solve_state_from(
-                    &self.frame_tally(frame),
-                    (&self.scene, &self.direct, &self.area),
-                    None,
-                    solve,
-                    start,
-                    false,
-                );
+                let whole = self.whole_answer(solve, start);
                 for ((e, l), w) in (solution.stderr.iter_mut())
                     .zip(&solution.radiance)
                     .zip(&whole.radiance)
@@ -752,6 +721,18 @@ impl Bake {
         let state = (&self.scene, &self.direct, &self.area);
         let solve = (frame, materials, power, params);
         Self::solve_state_from(tally, state, None, solve, start, true)
+    }
+
+    /// The answer alone (no replicas) for the bake's patches solved whole at a frame (`solve`:
+    /// frame, materials, the lights' power, parameters), from `start` if given.
+    fn whole_answer(
+        &self,
+        solve: (usize, &[Material], &[[f64; 3]], &SolveParams),
+        start: Option<(usize, &FrameSolution)>,
+    ) -> FrameSolution {
+        let tally = self.frame_tally(solve.0);
+        let state = (&self.scene, &self.direct, &self.area);
+        Self::solve_state_from(&tally, state, None, solve, start, false)
     }
 
     /// Solves `tally`, the tallies of `state`'s patches (the bake's, or its pieces' with their

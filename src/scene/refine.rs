@@ -279,6 +279,40 @@ fn traced_meshes(scene: &Scene) -> Vec<(&TriangleMesh, bool)> {
         .collect()
 }
 
+/// Each traced triangle's cuts (a heap-ordered bisection tree per triangle, as [`cut`] takes
+/// them) from the longest prefix of `order` (traced triangle, node of its tree) whose patches,
+/// the cuts the neighbours need included, stay within `budget`.
+#[must_use]
+pub fn within_budget(scene: &Scene, order: &[(u32, u32)], budget: usize) -> Vec<u32> {
+    let triangles: usize = traced_meshes(scene)
+        .iter()
+        .map(|(m, _)| m.triangles.len())
+        .sum();
+    let masks = |k: usize| {
+        let mut cuts = vec![0u32; triangles];
+        for &(t, heap) in &order[..k] {
+            cuts[t as usize] |= 1 << heap;
+        }
+        cuts
+    };
+    // More cuts never make fewer patches: the longest prefix is found by bisection.
+    let fits = |k: usize| patches_after(scene, &masks(k)) <= budget;
+    let (mut fit, mut over) = (0, order.len());
+    if fits(order.len()) {
+        fit = order.len();
+    } else {
+        while over - fit > 1 {
+            let mid = fit + (over - fit) / 2;
+            if fits(mid) {
+                fit = mid;
+            } else {
+                over = mid;
+            }
+        }
+    }
+    masks(fit)
+}
+
 /// How many patches [`cut`] would make of `scene` with `cuts`, the cuts the neighbours need
 /// included, without building the scene (to keep a budget).
 #[must_use]
