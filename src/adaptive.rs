@@ -33,12 +33,14 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::bake::{Bake, Lights};
-use crate::output::tonemap::luminance;
+use crate::direct::{Part, parts_irradiance};
+use crate::output::tonemap::{LUMINANCE, luminance};
 use crate::scene::refine::{self, Corners, barycentric, longest_edge};
 use crate::scene::subdivide::normal_and_area;
 use crate::solve::SolveParams;
 use crate::solve::tally::{FixedLight, walk_from};
 use crate::timeline::{Control, TraceError};
+use crate::trace::coincident::mix;
 
 /// Frames scored per round at most, spread over the distinct frames of the timeline.
 pub const FRAMES: usize = 3;
@@ -490,10 +492,13 @@ const LEAVES: usize = 1 << DEPTH;
 fn mark(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<(u32, u32)> {
     let scene = &bake.scene;
     let faces = bake.tracer().faces();
-    let mut triangle_of = vec![0u32; scene.patches.len()];
+    // Each patch's face: its traced triangle, and whether it is the back face.
+    let mut face_of = vec![(0u32, false); scene.patches.len()];
     for (g, f) in faces.iter().enumerate() {
-        for p in [Some(f.front), f.back].into_iter().flatten() {
-            triangle_of[p as usize] = g as u32;
+        for (p, back) in [(Some(f.front), false), (f.back, true)] {
+            if let Some(p) = p {
+                face_of[p as usize] = (g as u32, back);
+            }
         }
     }
     // A merged patch (more than one face) is not cut: its pieces would stay in it.
@@ -510,19 +515,26 @@ fn mark(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<(u32, u32)> {
     let mut priority = vec![0.0f64; scene.patches.len() * nodes];
     for frame in scored_frames(bake) {
         let solution = bake.solve_frame(frame, &scene.materials, solve);
-        let stats = leaf_stats(bake, frame, &solution.radiance, solve.sky);
+        let (stats, direct) = leaf_light(bake, frame, &solution.radiance, solve.sky, &face_of);
         priority
             .par_chunks_mut(nodes)
             .zip(stats.par_chunks(3 * LEAVES))
+            .zip(direct.par_chunks(LEAVES))
             .enumerate()
-            .for_each(|(i, (priority, leaves))| {
+            .for_each(|(i, ((priority, leaves), direct))| {
                 if members[i] > 1 {
                     return;
                 }
                 let patch = &scene.patches[i];
                 let rho = luminance(scene.materials[patch.material as usize].reflectance);
-                let leaves: Vec<[f64; 3]> =
-                    leaves.chunks_exact(3).map(|l| [l[0], l[1], l[2]]).collect();
+                let leaves: Vec<Leaf> = (leaves.chunks_exact(3).zip(direct))
+                    .map(|(l, &direct)| Leaf {
+                        crossings: l[0],
+                        sum: l[1],
+                        square: l[2],
+                        direct,
+                    })
+                    .collect();
                 for (heap, priority) in priority.iter_mut().enumerate().skip(1) {
                     let level = heap.ilog2();
                     let span = LEAVES >> level;
@@ -540,7 +552,7 @@ fn mark(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<(u32, u32)> {
     // cut only below a cut parent, so it is worth no more than the cut that makes it.
     let mut worth = vec![0.0f64; faces.len() * nodes];
     for (i, p) in priority.chunks_exact(nodes).enumerate() {
-        let t = triangle_of[i] as usize;
+        let t = face_of[i].0 as usize;
         for (w, &p) in worth[t * nodes..(t + 1) * nodes].iter_mut().zip(p) {
             *w = w.max(p);
         }
@@ -562,33 +574,59 @@ fn mark(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<(u32, u32)> {
     marked
 }
 
-/// How much the light a node gathers varies over its pieces (`[n, Σ, Σ²]` of the radiance
-/// each gathers, the node's leaves of the scoring tree): the crossing-weighted variance of
-/// the pieces' true means, estimated without bias as Σ w_k ((m_k − m̄)² − v_k), v_k the
-/// variance of piece k's mean, less the noise the pieces would show once cut (Σ w_k v_k,
-/// weighed by [`NOISE_COST`]). A node left whole shows m̄ over all its
-/// pieces; cut down to them, each shows its own, noisier. Looking at every piece, not
-/// only the two halves, finds light that a first cut would split evenly (a lamp centred on
-/// the cut).
+/// What a piece of a patch's scoring tree receives: the segments leaving it and the sum and
+/// sum of squares of the radiance they gather (the light the lines carry), and the direct
+/// light it receives from the punctual lights and the sampled emitters (irradiance / π, the
+/// same units, and the variance of its estimate), which the lines do not carry.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+struct Leaf {
+    crossings: f64,
+    sum: f64,
+    square: f64,
+    direct: (f64, f64),
+}
+
+/// The mean radiance pieces gather (the lines' mean with the direct light added) and the
+/// variance of that estimate: the lines' pooled over their crossings, the direct light's
+/// averaged over the pieces (of equal area).
+fn gathered_mean(pieces: &[Leaf]) -> (f64, f64) {
+    let [n, sum, square] = pieces.iter().fold([0.0; 3], |a, p| {
+        [a[0] + p.crossings, a[1] + p.sum, a[2] + p.square]
+    });
+    let mean = sum / n;
+    let k = pieces.len() as f64;
+    let direct = pieces.iter().map(|p| p.direct.0).sum::<f64>() / k;
+    let noise = pieces.iter().map(|p| p.direct.1).sum::<f64>() / (k * k);
+    (
+        mean + direct,
+        (square / n - mean * mean).max(0.0) / (n - 1.0) + noise,
+    )
+}
+
+/// How much the light a node receives varies over its pieces (the node's leaves of the
+/// scoring tree): the crossing-weighted variance of the pieces' true means, estimated without
+/// bias as Σ w_k ((m_k − m̄)² − v_k), v_k the variance of piece k's mean, less the noise the
+/// pieces would show once cut (Σ w_k v_k, weighed by [`NOISE_COST`]). A node left whole
+/// shows m̄ over all its pieces; cut down to them, each shows its own, noisier. Looking at
+/// every piece, not only the two halves, finds light that a first cut would split evenly (a
+/// lamp centred on the cut). A piece's m_k is the radiance its segments gather plus the direct
+/// light sampled on it: a lamp's pool of light on a wall, which no line carries, counts.
 ///
 /// `None` unless each half of the node has [`Adaptive::min_crossings`], is known to
 /// [`Adaptive::precision`], and the pieces differ
 /// beyond their noise: Σ (m_k − m̄)² / v_k, χ² with K − 1 degrees of freedom when they do
 /// not, above its mean by [`Adaptive::significance`] standard deviations.
-fn variation(pieces: &[[f64; 3]], auto: &Adaptive) -> Option<f64> {
+fn variation(pieces: &[Leaf], auto: &Adaptive) -> Option<f64> {
     let (h0, h1) = pieces.split_at(pieces.len() / 2);
-    let crossings = |h: &[[f64; 3]]| h.iter().map(|p| p[0]).sum::<f64>();
+    let crossings = |h: &[Leaf]| h.iter().map(|p| p.crossings).sum::<f64>();
     if crossings(h0) < auto.min_crossings || crossings(h1) < auto.min_crossings {
         return None;
     }
-    // Each half's gathered light known to [`Adaptive::precision`]: a cut into halves whose
-    // light the lines cannot tell makes pieces noisier than what they fix (a dim corner).
-    let known = |h: &[[f64; 3]]| {
-        let [n, sum, square] = h
-            .iter()
-            .fold([0.0; 3], |a, p| [a[0] + p[0], a[1] + p[1], a[2] + p[2]]);
-        let mean = sum / n;
-        (square / n - mean * mean).max(0.0) / (n - 1.0) <= (auto.precision * mean).powi(2)
+    // Each half's light known to [`Adaptive::precision`]: a cut into halves whose light the
+    // lines cannot tell makes pieces noisier than what they fix (a dim corner).
+    let known = |h: &[Leaf]| {
+        let (mean, variance) = gathered_mean(h);
+        variance <= (auto.precision * mean).powi(2)
     };
     if !known(h0) || !known(h1) {
         return None;
@@ -596,10 +634,10 @@ fn variation(pieces: &[[f64; 3]], auto: &Adaptive) -> Option<f64> {
     // (n, mean, variance of the mean) of the pieces with a variance to speak of.
     let stats: Vec<(f64, f64, f64)> = pieces
         .iter()
-        .filter(|p| p[0] >= 2.0)
-        .map(|&[n, sum, square]| {
-            let mean = sum / n;
-            (n, mean, ((square / n - mean * mean).max(0.0) / (n - 1.0)))
+        .filter(|p| p.crossings >= 2.0)
+        .map(|p| {
+            let (mean, variance) = gathered_mean(std::slice::from_ref(p));
+            (p.crossings, mean, variance)
         })
         .collect();
     let total: f64 = stats.iter().map(|s| s.0).sum();
@@ -634,11 +672,93 @@ fn variation(pieces: &[[f64; 3]], auto: &Adaptive) -> Option<f64> {
 const NOISE_COST: f64 = 8.0;
 
 /// Per patch, for each piece of its bisection tree of depth [`DEPTH`] (heap order of the
-/// leaves): the crossings whose segment leaves the patch from that piece, and the sum and sum
-/// of squares of the luminance at the segments' other ends, at `frame` with `radiance`
-/// (`3 × LEAVES` numbers per patch).
-fn leaf_stats(bake: &Bake, frame: usize, radiance: &[[f64; 3]], sky: [f64; 3]) -> Vec<f64> {
-    gathered(bake, frame, radiance, sky).0
+/// leaves), at `frame` with `radiance` (the solution's) and `sky`: the crossings whose segment
+/// leaves the patch from that piece, and the sum and sum of squares of the luminance at the
+/// segments' other ends, the sampled emitters' emission left out (`3 × LEAVES` numbers per
+/// patch); and the direct light the piece receives, sampled on it ([`parts_irradiance`]): the
+/// punctual lights' and the sampled emitters' irradiance / π (their luminance, and the
+/// variance of its estimate; `LEAVES` per patch, 0 where the patch receives none). `face_of`
+/// gives each patch's traced triangle and side; merged and deforming patches get no direct
+/// light here (they are not cut).
+fn leaf_light(
+    bake: &Bake,
+    frame: usize,
+    radiance: &[[f64; 3]],
+    sky: [f64; 3],
+    face_of: &[(u32, bool)],
+) -> (Vec<f64>, Vec<(f64, f64)>) {
+    let scene = &bake.scene;
+    let area = bake.area_lights();
+    // The sampled emitters' light reaches the pieces through their direct light, not the
+    // lines (as in the solve).
+    let carried: Vec<[f64; 3]> = (radiance.iter().zip(&scene.patches))
+        .map(|(l, p)| {
+            if area.samples(p.material) {
+                let e = scene.materials[p.material as usize].emission;
+                [l[0] - e[0], l[1] - e[1], l[2] - e[2]]
+            } else {
+                *l
+            }
+        })
+        .collect();
+    let stats = gathered(bake, frame, &carried, sky).0;
+    let mut direct = vec![(0.0, 0.0); scene.patches.len() * LEAVES];
+    let power = bake.light_power();
+    let (lit, _) = bake.direct_light(frame, &scene.materials, &power);
+    if lit.is_empty() {
+        return (stats, direct);
+    }
+    let members = refine::members(scene);
+    let corners = Corners::new(scene);
+    let mut parts = Vec::new();
+    let mut slots = Vec::new();
+    for (i, &(t, back)) in face_of.iter().enumerate() {
+        if members[i] > 1 || luminance(lit[i]) <= 0.0 || corners.posed(t, Some(frame)).is_none() {
+            continue;
+        }
+        let own = corners.own(t).map(Vec3::as_dvec3);
+        for (k, corners) in leaf_corners(own).into_iter().enumerate() {
+            let seed = mix(((i as u64) << 8) ^ k as u64);
+            parts.push(Part {
+                triangle: t,
+                back,
+                corners,
+                seed,
+            });
+            slots.push(i * LEAVES + k);
+        }
+    }
+    let lights = (scene, bake.tracer(), area);
+    let light = (frame, scene.materials.as_slice(), power.as_slice());
+    let values = parts_irradiance(lights, light, LUMINANCE, &parts);
+    let pi = std::f64::consts::PI;
+    for (slot, (e, v)) in slots.into_iter().zip(values) {
+        direct[slot] = (e / pi, v / (pi * pi));
+    }
+    (stats, direct)
+}
+
+/// The leaves of the bisection tree of depth [`DEPTH`] of the triangle `corners` (its own
+/// space), in heap order, each as its corners' barycentric coordinates: the pieces [`piece`]
+/// tells apart.
+fn leaf_corners(corners: [DVec3; 3]) -> Vec<[[f64; 3]; 3]> {
+    let mut nodes = vec![(corners, [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])];
+    for _ in 0..DEPTH {
+        nodes = nodes
+            .into_iter()
+            .flat_map(|(c, b)| {
+                let k = longest_edge(c.map(DVec3::as_vec3));
+                let (i, j, o) = (k, (k + 1) % 3, (k + 2) % 3);
+                let m = crate::scene::midpoint(c[i], c[j]);
+                let bm = [0, 1, 2].map(|x| 0.5 * (b[i][x] + b[j][x]));
+                [
+                    ([c[i], m, c[o]], [b[i], bm, b[o]]),
+                    ([m, c[j], c[o]], [bm, b[j], b[o]]),
+                ]
+            })
+            .collect();
+    }
+    nodes.into_iter().map(|(_, b)| b).collect()
 }
 
 /// Bins of [`Near`]: segment lengths from 2^-[`NEAR_OFFSET`] (and shorter) to 2^3 (and longer),
@@ -691,7 +811,7 @@ impl Near {
     }
 }
 
-/// [`leaf_stats`], and each patch's [`Near`].
+/// [`leaf_light`]'s lines, and each patch's [`Near`].
 fn gathered(
     bake: &Bake,
     frame: usize,
@@ -799,4 +919,34 @@ fn piece(corners: [DVec3; 3], bary: [f64; 3]) -> usize {
         };
     }
     heap - LEAVES
+}
+
+#[cfg(test)]
+mod tests {
+    use glam::DVec3;
+    use rand::rngs::Xoshiro256PlusPlus;
+    use rand::{RngExt, SeedableRng};
+
+    use super::{LEAVES, leaf_corners, piece};
+
+    /// Every point of a leaf of [`leaf_corners`] is told to that leaf by [`piece`], on
+    /// triangles of every shape (the direct light sampled on a piece is that piece's).
+    #[test]
+    fn leaf_corners_are_the_pieces_piece_tells_apart() {
+        let mut rng = Xoshiro256PlusPlus::seed_from_u64(7);
+        for _ in 0..200 {
+            let corners = [(); 3].map(|()| DVec3::new(rng.random(), rng.random(), rng.random()));
+            let leaves = leaf_corners(corners);
+            assert_eq!(leaves.len(), LEAVES);
+            for (k, leaf) in leaves.iter().enumerate() {
+                // A point well inside the leaf: its centroid pulled a little towards a random
+                // corner.
+                let w = [1.0 + rng.random::<f64>(), 1.0, 1.0];
+                let total: f64 = w.iter().sum();
+                let bary =
+                    [0, 1, 2].map(|x| (0..3).map(|c| w[c] * leaf[c][x]).sum::<f64>() / total);
+                assert_eq!(piece(corners, bary), k, "{corners:?} {bary:?}");
+            }
+        }
+    }
 }

@@ -615,6 +615,19 @@ impl Bake {
         &self.area
     }
 
+    /// The irradiance of every patch straight from the punctual lights at `power` and the
+    /// sampled emitters with `materials`' emission at `frame`, and its variance (both empty when
+    /// there are none).
+    #[must_use]
+    pub fn direct_light(
+        &self,
+        frame: usize,
+        materials: &[Material],
+        power: &[[f64; 3]],
+    ) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
+        direct_light(&self.direct, &self.area, frame, materials, power)
+    }
+
     /// Each light's power (colour × intensity) as the scene gives it.
     #[must_use]
     pub fn light_power(&self) -> Vec<[f64; 3]> {

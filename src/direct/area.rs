@@ -154,7 +154,7 @@ struct Cluster {
 
 /// A cluster as posed at one frame.
 #[derive(Clone, Debug)]
-struct Emitter {
+pub(super) struct Emitter {
     /// Its source triangles' corners.
     triangles: Vec<[DVec3; 3]>,
     /// The convex hull of their corners, in their plane.
@@ -329,6 +329,28 @@ impl AreaLights {
             states,
             ..self.clone()
         }
+    }
+
+    /// The sampled emitters posed with `triangles` (every traced triangle at one frame), each
+    /// with π times `emission` of its material (a material index): a unit form factor to it
+    /// is that irradiance. Emitters of no emission are left out.
+    pub(super) fn posed(
+        &self,
+        scene: &Scene,
+        tracer: &SceneTracer,
+        triangles: &[([glam::Vec3; 3], Faces)],
+        emission: impl Fn(u32) -> f64,
+    ) -> Vec<(Emitter, f64)> {
+        if self.is_empty() {
+            return Vec::new();
+        }
+        clusters(scene, tracer, triangles, &self.slot)
+            .iter()
+            .filter_map(|c| {
+                let le = emission(self.materials[c.slot]);
+                (le > 0.0).then(|| (pose(c, triangles), std::f64::consts::PI * le))
+            })
+            .collect()
     }
 
     /// The static result of the pair (`patch`, `cluster`), if not dark.
@@ -760,7 +782,7 @@ fn pair(
 }
 
 /// What a pair's shadow rays know of the static geometry.
-enum Rays<'a> {
+pub(super) enum Rays<'a> {
     /// Nothing: they are traced through `at`'s occluders.
     Trace,
     /// They are traced through `at`'s (static) occluders, and their verdicts recorded here, a
@@ -958,7 +980,7 @@ fn grid(face: &Face, emitter: &Emitter, density: f64) -> usize {
 /// normal of one stratified direction into that part (uniform in solid angle, Arvo's method)
 /// and V its shadow ray (strata paired at random). Unbiased; exactly 0 where every ray is
 /// blocked, and only the variation of cos θ over the emitter left where none is.
-fn form_factor(
+pub(super) fn form_factor(
     at: &Frame<'_>,
     face: &Face,
     emitter: &Emitter,

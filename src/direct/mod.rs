@@ -508,7 +508,7 @@ fn point(at: &Frame<'_>, light: &Light, index: usize) -> Vec<(f64, f64)> {
                 };
                 let seed = mix((u64::from(patch) << 32) ^ index as u64);
                 let (value, variance) =
-                    patch_irradiance(at, light, &face, (position, axis), seed, hits);
+                    patch_irradiance(at, light, &face, (position, axis), (seed, None), hits);
                 let r2 = radius * radius;
                 Some((patch, area, (value / r2, variance / (r2 * r2))))
             })
@@ -562,13 +562,15 @@ struct Face {
 }
 
 /// Mean irradiance over `face` from a point or spot light at `position`, in units of
-/// 1/(normalised distance)²; 0 for a face the light cannot reach.
+/// 1/(normalised distance)², and its variance; 0 for a face the light cannot reach. Sampled
+/// with `seed` at the subdivision `level` given, or at [`sample_level`]'s for the face's size
+/// and distance.
 fn patch_irradiance(
     at: &Frame<'_>,
     light: &Light,
     face: &Face,
     (position, axis): (DVec3, DVec3),
-    seed: u64,
+    (seed, level): (u64, Option<u32>),
     hits: &mut Vec<Hit>,
 ) -> (f64, f64) {
     let Face {
@@ -611,7 +613,7 @@ fn patch_irradiance(
     let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed);
     sample_points(
         inset(&corners),
-        sample_level(edge, distance),
+        level.unwrap_or_else(|| sample_level(edge, distance)),
         &mut rng,
         &mut points,
     );
@@ -635,7 +637,12 @@ fn patch_irradiance(
             }
         })
         .collect();
-    // Negative: lit but shadowed (its unshadowed irradiance, for the binomial variance below).
+    shadowed_mean(&values)
+}
+
+/// The mean of `values`, one per stratum of [`sample_points`] (negative: the point is lit but
+/// shadowed, its unshadowed value), and its variance.
+fn shadowed_mean(values: &[f64]) -> (f64, f64) {
     let shadowed = values.iter().filter(|&&v| v < 0.0).count();
     let lit = values.iter().filter(|&&v| v > 0.0).count();
     let squares: f64 = values.iter().map(|v| v * v).sum();
@@ -650,6 +657,128 @@ fn patch_irradiance(
         0.0
     };
     (mean, collapsed.max(binomial))
+}
+
+/// A part of one face of a traced triangle, lit by [`parts_irradiance`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Part {
+    /// The traced triangle (global index).
+    pub triangle: u32,
+    /// Whether the part is on the triangle's back face.
+    pub back: bool,
+    /// The part's corners in barycentric coordinates of the triangle's corners.
+    pub corners: [[f64; 3]; 3],
+    /// Seeds its sampling.
+    pub seed: u64,
+}
+
+/// Subdivision level of [`sample_points`] a [`Part`] is sampled at: a point in each of 4 equal
+/// sub-triangles (two pairs of strata for its variance), a shadow ray each per light.
+const PART_LEVEL: u32 = 1;
+
+/// Side of the grid of strata a [`Part`] is sampled at per sampled emitter ([`area`]): 4
+/// points, as for the punctual lights.
+const PART_GRID: usize = 2;
+
+/// The irradiance straight from the lights over each of `parts` at `frame`, weighed over the
+/// colour channels by `weight` (a luminance's coefficients, say), with the variance of its
+/// estimate: the punctual lights at `power` (colour × intensity per light) and the emitters
+/// `area` samples, with `materials`' emission. Each part is sampled with few points (see
+/// [`PART_LEVEL`]), whatever its size: enough to tell where the direct light varies over a
+/// patch (adaptive patches), far coarser than the patches' own direct light.
+#[must_use]
+pub fn parts_irradiance(
+    (scene, tracer, area): (&Scene, &SceneTracer, &area::AreaLights),
+    (frame, materials, power): (usize, &[crate::scene::Material], &[[f64; 3]]),
+    weight: [f64; 3],
+    parts: &[Part],
+) -> Vec<(f64, f64)> {
+    let dot = |c: [f64; 3]| weight[0] * c[0] + weight[1] * c[1] + weight[2] * c[2];
+    let lights: Vec<(&Light, f64, (DVec3, DVec3))> = (scene.lights.iter().zip(power))
+        .map(|(light, &p)| {
+            (
+                light,
+                dot(p),
+                (light.position(frame), light.direction(frame)),
+            )
+        })
+        .filter(|l| l.1 > 0.0)
+        .collect();
+    if parts.is_empty() || (lights.is_empty() && area.is_empty()) {
+        return vec![(0.0, 0.0); parts.len()];
+    }
+    let posed = Posed::at(scene, tracer, frame);
+    let at = posed.frame(scene, tracer, Occluders::All);
+    let emitters = area.posed(scene, tracer, &posed.triangles, |m| {
+        materials.get(m as usize).map_or(0.0, |m| dot(m.emission))
+    });
+    let r2 = scene.normalisation.radius.powi(2);
+    parts
+        .par_iter()
+        .map_init(Vec::new, |hits, part| {
+            let triangle = posed.triangles[part.triangle as usize]
+                .0
+                .map(|c| c.as_dvec3());
+            let (normal, _) = normal_and_area(triangle);
+            let corners = part
+                .corners
+                .map(|b| triangle[0] * b[0] + triangle[1] * b[1] + triangle[2] * b[2]);
+            let face = Face {
+                own: part.triangle,
+                back: part.back,
+                corners,
+                n: if part.back { -normal } else { normal },
+            };
+            let mut sum = (0.0, 0.0);
+            let mut add = |(value, variance): (f64, f64), w: f64| {
+                sum = (sum.0 + w * value, sum.1 + w * w * variance);
+            };
+            for (k, &(light, w, pose)) in lights.iter().enumerate() {
+                let seed = mix(part.seed ^ k as u64);
+                match light.kind {
+                    LightKind::Directional => add(sunlit(&at, pose.1, &face, seed, hits), w),
+                    _ => {
+                        let sampling = (seed, Some(PART_LEVEL));
+                        add(
+                            patch_irradiance(&at, light, &face, pose, sampling, hits),
+                            w / r2,
+                        );
+                    }
+                }
+            }
+            for (k, (emitter, w)) in emitters.iter().enumerate() {
+                let seed = mix(part.seed ^ (lights.len() + k) as u64);
+                let rays = area::Rays::Trace;
+                let f = area::form_factor(&at, &face, emitter, (seed, PART_GRID), rays, hits);
+                add(f, *w);
+            }
+            sum
+        })
+        .collect()
+}
+
+/// Mean irradiance over `face` per lux of a directional light shining along `w`, and its
+/// variance: [`PART_LEVEL`]'s points, a shadow ray each out of the scene.
+fn sunlit(at: &Frame<'_>, w: DVec3, face: &Face, seed: u64, hits: &mut Vec<Hit>) -> (f64, f64) {
+    let cos = -face.n.dot(w);
+    if face.n == DVec3::ZERO || cos <= 0.0 {
+        return (0.0, 0.0);
+    }
+    let mut points = Vec::new();
+    let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed);
+    sample_points(inset(&face.corners), PART_LEVEL, &mut rng, &mut points);
+    let away = w * f64::from(crate::lines::LINE_LENGTH);
+    let values: Vec<f64> = points
+        .iter()
+        .map(|&x| {
+            if at.blocked(x, x - away, face.own, face.back, hits) {
+                -cos
+            } else {
+                cos
+            }
+        })
+        .collect();
+    shadowed_mean(&values)
 }
 
 /// Unit irradiance per patch from a directional light: one bundle of parallel lines.

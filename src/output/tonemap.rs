@@ -13,10 +13,13 @@ use crate::solve::FrameSolution;
 /// "key": 0.18 is middle grey).
 pub const KEY: f64 = 0.18;
 
+/// Rec. 709 luminance's weights of the linear RGB channels.
+pub const LUMINANCE: [f64; 3] = [0.2126, 0.7152, 0.0722];
+
 /// Rec. 709 luminance of a linear RGB colour.
 #[must_use]
 pub fn luminance(c: [f64; 3]) -> f64 {
-    0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2]
+    LUMINANCE[0] * c[0] + LUMINANCE[1] * c[1] + LUMINANCE[2] * c[2]
 }
 
 /// A tone map: `display = x / (1 + Y(x))` per channel with `x = exposure · radiance`, clamped
