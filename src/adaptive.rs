@@ -7,12 +7,15 @@
 //! gathers, at the crossing it leaves a patch from, the radiance of the patch (or sky) at its
 //! other end. Each patch is scored on the pieces its next [`DEPTH`] longest-edge bisections
 //! would make: the segments leaving each piece estimate the radiance that piece gathers, with
-//! their own standard error. A node of that tree whose pieces gather differently beyond their
+//! their own standard error, and the light that reaches it straight from the punctual lights
+//! and the sampled emitters (which the lines do not carry) is sampled on the piece itself, a
+//! few shadow rays each: a lamp's pool of light on a wall and the gradient under a ceiling
+//! panel count. A node of that tree whose pieces gather differently beyond their
 //! noise (a χ² test at [`Adaptive::significance`]) is cut, those that would misplace the most
 //! reflected flux (area × reflectance × the spread of their pieces' light) first, up to the
 //! patch budget (the cuts neighbours need counted). Each round solves a few
 //! frames, scores, cuts, and moves the crossings to the new patches ([`Bake::cut`]): no line
-//! is traced again. The pieces take their patch's direct light for the next round's scores;
+//! is traced again. The pieces take their patch's direct light for the next round's solves;
 //! it is sampled again once, for the final patches. The rounds stop when one adds under 1% of
 //! the patches, or at the budget.
 //!
@@ -586,10 +589,10 @@ struct Leaf {
     direct: (f64, f64),
 }
 
-/// The mean radiance pieces gather (the lines' mean with the direct light added) and the
-/// variance of that estimate: the lines' pooled over their crossings, the direct light's
-/// averaged over the pieces (of equal area).
-fn gathered_mean(pieces: &[Leaf]) -> (f64, f64) {
+/// The mean radiance pieces gather (the lines' mean with the direct light added), the
+/// variance of that estimate, and the lines' part of it: the lines' pooled over their
+/// crossings, the direct light's averaged over the pieces (of equal area).
+fn gathered_mean(pieces: &[Leaf]) -> (f64, f64, f64) {
     let [n, sum, square] = pieces.iter().fold([0.0; 3], |a, p| {
         [a[0] + p.crossings, a[1] + p.sum, a[2] + p.square]
     });
@@ -597,10 +600,8 @@ fn gathered_mean(pieces: &[Leaf]) -> (f64, f64) {
     let k = pieces.len() as f64;
     let direct = pieces.iter().map(|p| p.direct.0).sum::<f64>() / k;
     let noise = pieces.iter().map(|p| p.direct.1).sum::<f64>() / (k * k);
-    (
-        mean + direct,
-        (square / n - mean * mean).max(0.0) / (n - 1.0) + noise,
-    )
+    let lines = (square / n - mean * mean).max(0.0) / (n - 1.0);
+    (mean + direct, lines + noise, lines)
 }
 
 /// How much the light a node receives varies over its pieces (the node's leaves of the
@@ -618,26 +619,43 @@ fn gathered_mean(pieces: &[Leaf]) -> (f64, f64) {
 /// not, above its mean by [`Adaptive::significance`] standard deviations.
 fn variation(pieces: &[Leaf], auto: &Adaptive) -> Option<f64> {
     let (h0, h1) = pieces.split_at(pieces.len() / 2);
-    let crossings = |h: &[Leaf]| h.iter().map(|p| p.crossings).sum::<f64>();
-    if crossings(h0) < auto.min_crossings || crossings(h1) < auto.min_crossings {
+    // The crossings a half needs, as far as the lines carry its light: a half lit mostly
+    // straight from a lamp is known from its direct light, and the lines' noise in its value
+    // is their share of it times their own (a share s of the light needs s² the crossings for
+    // the same noise).
+    let enough = |h: &[Leaf]| {
+        let [n, sum] = h
+            .iter()
+            .fold([0.0; 2], |a, p| [a[0] + p.crossings, a[1] + p.sum]);
+        let direct = h.iter().map(|p| p.direct.0).sum::<f64>() / h.len() as f64;
+        let carried = if n > 0.0 { sum / n } else { 0.0 };
+        let share = if carried + direct > 0.0 {
+            carried / (carried + direct)
+        } else {
+            1.0
+        };
+        n >= (auto.min_crossings * share * share).max(2.0)
+    };
+    if !enough(h0) || !enough(h1) {
         return None;
     }
     // Each half's light known to [`Adaptive::precision`]: a cut into halves whose light the
     // lines cannot tell makes pieces noisier than what they fix (a dim corner).
     let known = |h: &[Leaf]| {
-        let (mean, variance) = gathered_mean(h);
+        let (mean, variance, _) = gathered_mean(h);
         variance <= (auto.precision * mean).powi(2)
     };
     if !known(h0) || !known(h1) {
         return None;
     }
-    // (n, mean, variance of the mean) of the pieces with a variance to speak of.
-    let stats: Vec<(f64, f64, f64)> = pieces
+    // (n, mean, variance of the mean, the lines' part of it) of the pieces with a variance to
+    // speak of.
+    let stats: Vec<(f64, f64, f64, f64)> = pieces
         .iter()
         .filter(|p| p.crossings >= 2.0)
         .map(|p| {
-            let (mean, variance) = gathered_mean(std::slice::from_ref(p));
-            (p.crossings, mean, variance)
+            let (mean, variance, lines) = gathered_mean(std::slice::from_ref(p));
+            (p.crossings, mean, variance, lines)
         })
         .collect();
     let total: f64 = stats.iter().map(|s| s.0).sum();
@@ -647,7 +665,7 @@ fn variation(pieces: &[Leaf], auto: &Adaptive) -> Option<f64> {
     let floor = f64::EPSILON * mean * mean + f64::MIN_POSITIVE;
     let chi2: f64 = stats
         .iter()
-        .map(|&(_, m, v)| (m - mean).powi(2) / v.max(floor))
+        .map(|&(_, m, v, _)| (m - mean).powi(2) / v.max(floor))
         .sum();
     let freedom = stats.len() as f64 - 1.0;
     if freedom < 1.0 || chi2 <= freedom + auto.significance * (2.0 * freedom).sqrt() {
@@ -657,7 +675,7 @@ fn variation(pieces: &[Leaf], auto: &Adaptive) -> Option<f64> {
     // of the node's. Cut only where the variation removed is larger.
     let gain: f64 = stats
         .iter()
-        .map(|&(n, m, v)| n / total * ((m - mean).powi(2) - NOISE_COST * v))
+        .map(|&(n, m, v, _)| n / total * ((m - mean).powi(2) - NOISE_COST * v))
         .sum();
     (gain > 0.0).then_some(gain)
 }

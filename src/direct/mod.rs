@@ -674,11 +674,11 @@ pub struct Part {
 
 /// Subdivision level of [`sample_points`] a [`Part`] is sampled at: a point in each of 4 equal
 /// sub-triangles (two pairs of strata for its variance), a shadow ray each per light.
-const PART_LEVEL: u32 = 1;
+const PART_LEVEL: u32 = 2;
 
 /// Side of the grid of strata a [`Part`] is sampled at per sampled emitter ([`area`]): 4
 /// points, as for the punctual lights.
-const PART_GRID: usize = 2;
+const PART_GRID: usize = 4;
 
 /// The irradiance straight from the lights over each of `parts` at `frame`, weighed over the
 /// colour channels by `weight` (a luminance's coefficients, say), with the variance of its
