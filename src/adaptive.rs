@@ -59,8 +59,10 @@ pub struct Adaptive {
     /// A node is cut when the radiance its pieces gather varies beyond their noise: the χ²
     /// of their differences above its mean by this many of its standard deviations.
     pub significance: f64,
-    /// ... and each of its halves has at least this many crossings (below it the estimates
-    /// say too little, and the halves would be noisier still).
+    /// ... and each of its halves has at least this many crossings times the square of the
+    /// share of its light the lines carry (below it the estimates say too little, and the
+    /// halves would be noisier still; a half lit mostly straight from a lamp is known from its
+    /// direct light, sampled on it, and the lines' noise is their share of its value).
     pub min_crossings: f64,
     /// ... and each half's mean gathered radiance has a relative standard error of at most
     /// this: where the lines cannot yet tell a half's light to this precision, its pieces
