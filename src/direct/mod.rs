@@ -687,9 +687,9 @@ const PART_GRID: usize = 4;
 /// The irradiance straight from the lights over each of `parts` at `frame`, weighed over the
 /// colour channels by `weight` (a luminance's coefficients, say), with the variance of its
 /// estimate: the punctual lights at `power` (colour × intensity per light) and the emitters
-/// `area` samples, with `materials`' emission. Each part is sampled with few points (see
-/// [`PART_LEVEL`]), whatever its size: enough to tell where the direct light varies over a
-/// patch (adaptive patches), far coarser than the patches' own direct light.
+/// `area` samples, with `materials`' emission. Each part is sampled at 16 stratified points,
+/// whatever its size: enough to tell where the direct light varies over a patch (adaptive
+/// patches), coarser than the patches' own direct light.
 #[must_use]
 pub fn parts_irradiance(
     (scene, tracer, area): (&Scene, &SceneTracer, &area::AreaLights),
