@@ -591,10 +591,10 @@ struct Leaf {
     direct: (f64, f64),
 }
 
-/// The mean radiance pieces gather (the lines' mean with the direct light added), the
-/// variance of that estimate, and the lines' part of it: the lines' pooled over their
-/// crossings, the direct light's averaged over the pieces (of equal area).
-fn gathered_mean(pieces: &[Leaf]) -> (f64, f64, f64) {
+/// The mean radiance pieces gather (the lines' mean with the direct light added) and the
+/// variance of that estimate: the lines' pooled over their crossings, the direct light's
+/// averaged over the pieces (of equal area).
+fn gathered_mean(pieces: &[Leaf]) -> (f64, f64) {
     let [n, sum, square] = pieces.iter().fold([0.0; 3], |a, p| {
         [a[0] + p.crossings, a[1] + p.sum, a[2] + p.square]
     });
@@ -603,7 +603,7 @@ fn gathered_mean(pieces: &[Leaf]) -> (f64, f64, f64) {
     let direct = pieces.iter().map(|p| p.direct.0).sum::<f64>() / k;
     let noise = pieces.iter().map(|p| p.direct.1).sum::<f64>() / (k * k);
     let lines = (square / n - mean * mean).max(0.0) / (n - 1.0);
-    (mean + direct, lines + noise, lines)
+    (mean + direct, lines + noise)
 }
 
 /// How much the light a node receives varies over its pieces (the node's leaves of the
@@ -615,8 +615,8 @@ fn gathered_mean(pieces: &[Leaf]) -> (f64, f64, f64) {
 /// lamp centred on the cut). A piece's m_k is the radiance its segments gather plus the direct
 /// light sampled on it: a lamp's pool of light on a wall, which no line carries, counts.
 ///
-/// `None` unless each half of the node has [`Adaptive::min_crossings`], is known to
-/// [`Adaptive::precision`], and the pieces differ
+/// `None` unless each half of the node has [`Adaptive::min_crossings`] (as far as the lines
+/// carry its light), is known to [`Adaptive::precision`], and the pieces differ
 /// beyond their noise: Σ (m_k − m̄)² / v_k, χ² with K − 1 degrees of freedom when they do
 /// not, above its mean by [`Adaptive::significance`] standard deviations.
 fn variation(pieces: &[Leaf], auto: &Adaptive) -> Option<f64> {
@@ -644,20 +644,19 @@ fn variation(pieces: &[Leaf], auto: &Adaptive) -> Option<f64> {
     // Each half's light known to [`Adaptive::precision`]: a cut into halves whose light the
     // lines cannot tell makes pieces noisier than what they fix (a dim corner).
     let known = |h: &[Leaf]| {
-        let (mean, variance, _) = gathered_mean(h);
+        let (mean, variance) = gathered_mean(h);
         variance <= (auto.precision * mean).powi(2)
     };
     if !known(h0) || !known(h1) {
         return None;
     }
-    // (n, mean, variance of the mean, the lines' part of it) of the pieces with a variance to
-    // speak of.
-    let stats: Vec<(f64, f64, f64, f64)> = pieces
+    // (n, mean, variance of the mean) of the pieces with a variance to speak of.
+    let stats: Vec<(f64, f64, f64)> = pieces
         .iter()
         .filter(|p| p.crossings >= 2.0)
         .map(|p| {
-            let (mean, variance, lines) = gathered_mean(std::slice::from_ref(p));
-            (p.crossings, mean, variance, lines)
+            let (mean, variance) = gathered_mean(std::slice::from_ref(p));
+            (p.crossings, mean, variance)
         })
         .collect();
     let total: f64 = stats.iter().map(|s| s.0).sum();
@@ -667,7 +666,7 @@ fn variation(pieces: &[Leaf], auto: &Adaptive) -> Option<f64> {
     let floor = f64::EPSILON * mean * mean + f64::MIN_POSITIVE;
     let chi2: f64 = stats
         .iter()
-        .map(|&(_, m, v, _)| (m - mean).powi(2) / v.max(floor))
+        .map(|&(_, m, v)| (m - mean).powi(2) / v.max(floor))
         .sum();
     let freedom = stats.len() as f64 - 1.0;
     if freedom < 1.0 || chi2 <= freedom + auto.significance * (2.0 * freedom).sqrt() {
@@ -677,7 +676,7 @@ fn variation(pieces: &[Leaf], auto: &Adaptive) -> Option<f64> {
     // of the node's. Cut only where the variation removed is larger.
     let gain: f64 = stats
         .iter()
-        .map(|&(n, m, v, _)| n / total * ((m - mean).powi(2) - NOISE_COST * v))
+        .map(|&(n, m, v)| n / total * ((m - mean).powi(2) - NOISE_COST * v))
         .sum();
     (gain > 0.0).then_some(gain)
 }
