@@ -520,7 +520,8 @@ fn mark(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<(u32, u32)> {
     let mut priority = vec![0.0f64; scene.patches.len() * nodes];
     for frame in scored_frames(bake) {
         let solution = bake.solve_frame(frame, &scene.materials, solve);
-        let (stats, direct) = leaf_light(bake, frame, &solution.radiance, solve.sky, &face_of);
+        let faces = (face_of.as_slice(), members.as_slice());
+        let (stats, direct) = leaf_light(bake, frame, &solution.radiance, solve.sky, faces);
         priority
             .par_chunks_mut(nodes)
             .zip(stats.par_chunks(3 * LEAVES))
@@ -697,14 +698,14 @@ const NOISE_COST: f64 = 8.0;
 /// patch); and the direct light the piece receives, sampled on it ([`parts_irradiance`]): the
 /// punctual lights' and the sampled emitters' irradiance / π (their luminance, and the
 /// variance of its estimate; `LEAVES` per patch, 0 where the patch receives none). `face_of`
-/// gives each patch's traced triangle and side; merged and deforming patches get no direct
-/// light here (they are not cut).
+/// gives each patch's traced triangle and side, `members` its faces ([`refine::members`]);
+/// merged and deforming patches get no direct light here (they are not cut).
 fn leaf_light(
     bake: &Bake,
     frame: usize,
     radiance: &[[f64; 3]],
     sky: [f64; 3],
-    face_of: &[(u32, bool)],
+    (face_of, members): (&[(u32, bool)], &[u32]),
 ) -> (Vec<f64>, Vec<(f64, f64)>) {
     let scene = &bake.scene;
     let area = bake.area_lights();
@@ -727,7 +728,6 @@ fn leaf_light(
     if lit.is_empty() {
         return (stats, direct);
     }
-    let members = refine::members(scene);
     let corners = Corners::new(scene);
     let mut parts = Vec::new();
     let mut slots = Vec::new();
