@@ -18,7 +18,8 @@ highest: how much the figure itself moves with the lines and the reference's pat
 
 `--measure point_error` (first) plots the error at the resolution of points instead (the
 README's second figure, `docs/patches-point.png`, from `docs/patches.json` alone); points
-without that measure (older files) are left out.
+without that measure (older files) are left out, and an error below what the reference
+resolves (`point_resolution`) is drawn at that resolution under a hollow triangle.
 """
 import json
 import sys
@@ -55,12 +56,18 @@ def main(target, sources, measure="patch_error"):
     for ax in axes.flat[len(scenes):]:
         ax.set_visible(False)
     for ax, scene in zip(axes.flat, scenes):
+        bounds = []
         for split in (False, True):
             uniform, auto = [], []
             for k, ps in runs.items():
                 if k[0] != scene or k[3] != split:
                     continue
-                errors = [100 * p[measure] for p in ps]
+                # The error at points below what the reference resolves: drawn at that
+                # resolution, an upper bound (marked below).
+                floor = "point_resolution" if measure == "point_error" else None
+                errors = [100 * max(p[measure], p.get(floor, 0.0) if floor else 0.0) for p in ps]
+                if floor and any(p[measure] < p.get(floor, 0.0) for p in ps):
+                    bounds.append((mean(p["patches"] for p in ps), mean(errors)))
                 point = (mean(p["patches"] for p in ps), mean(errors), min(errors), max(errors), k)
                 (auto if k[1] == "auto" else uniform).append(point)
             if not uniform and not auto:
@@ -82,6 +89,11 @@ def main(target, sources, measure="patch_error"):
                 ax.errorbar([a[0]], [a[1]], yerr=[[a[1] - a[2]], [a[3] - a[1]]], marker="*",
                             markersize=12, capsize=3, linestyle="none",
                             label=f"auto, budget {a[4][2]}, {how}", **star)
+        for x, y in bounds:
+            ax.plot([x], [y], "v", markersize=14, markerfacecolor="none", color="k")
+        if bounds:
+            ax.plot([], [], "v", markerfacecolor="none", color="k",
+                    label="below what the reference resolves (drawn there)")
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())

@@ -175,18 +175,25 @@ impl std::fmt::Display for TraceReport {
     }
 }
 
-/// One point of the speed/accuracy trade: a scene baked with a line budget.
+/// One point of the speed/accuracy trade: a scene baked with a line budget, its patches made
+/// as a bake makes them, solved on pieces, against physics.
 #[derive(Clone, Debug, Serialize)]
 pub struct AccuracyPoint {
     /// Scene file.
     pub scene: String,
+    /// How the patches were made.
+    pub patch_size: crate::params::PatchSize,
     /// What the error is measured against.
     pub reference: String,
     /// Frames baked.
     pub frames: usize,
+    /// The frames measured (all of them against a closed form; a few against the path tracer).
+    pub measured_frames: Vec<usize>,
     /// Lines traced.
     pub lines: usize,
-    /// Wall time: tracing, tallying and solving every frame.
+    /// Patches the bake answered for.
+    pub patches: usize,
+    /// Wall time: tracing, making the patches, cutting the pieces and solving every frame.
     pub seconds: f64,
     /// The bake against the reference.
     #[serde(flatten)]
@@ -271,28 +278,55 @@ impl AreaRms {
     }
 }
 
-/// A bake's error against a reference.
+/// A bake's error against a reference, over the frames the reference has.
 #[derive(Clone, Debug, Default, PartialEq, Serialize)]
 pub struct Measured {
     /// Area-weighted RMS of the per-patch relative error `(l − r) / r` over lit, non-emitting
     /// values ([`PatchClass::Lit`] by the reference: (patch, channel, frame) with `r` above the
-    /// frame's [`dark_floor`], a material that emits nothing and reflects in that channel). The
+    /// frame's [`dark_floor`], a material that emits nothing and reflects in that channel), the
+    /// reference's own noise taken out in quadrature (from its two halves' difference). The
     /// error a viewer sees on a wall. `None` when the scene has no such value (the furnace,
     /// where everything emits).
     pub lit_error: Option<f64>,
-    /// The same over emitting patches (channels that reflect); `None` when there are none.
+    /// The relative L² error of the patch-constant answer against the true radiance at
+    /// uniformly random points on the lit values: the patches' means against the true means
+    /// plus each patch's own variation ([`crate::direct::reference::Estimate::spread`]), what a
+    /// baked lightmap shows. `None` against a closed form, which gives only the means.
+    pub point_error: Option<f64>,
+    /// The smallest [`Measured::point_error`] the reference resolves: the square root of twice
+    /// the standard error of the squared error at points, which the reference's estimate of the
+    /// patches' own variation dominates (its paths' noise at a point is far larger than the
+    /// variation within a small patch; measured from its two halves). An error at points below
+    /// it reads anywhere from 0 to about it.
+    pub point_resolution: Option<f64>,
+    /// [`Measured::point_error`] without the patches' own variation: the patches' means
+    /// against the true means, as a relative L² error.
+    pub patch_l2_error: Option<f64>,
+    /// The area-weighted mean of the bake over the reference's, minus 1, on the lit values.
+    pub bias: Option<f64>,
+    /// The reference's own per-patch noise on the lit values (area-weighted RMS, relative).
+    pub reference_noise: Option<f64>,
+    /// The bake's error bars on the lit values a line sampled: area-weighted RMS of σ / r.
+    pub estimated_noise: Option<f64>,
+    /// The same as [`Measured::lit_error`] over emitting patches (channels that reflect), the
+    /// reference's noise left in; `None` when there are none.
     pub emitter_error: Option<f64>,
     /// `sqrt(Σ A (l − r)² / Σ A r²)` over every value that reflects, emitters included: the
     /// measure of the figures before issue 12, which bright emitters dominate. Kept only to
     /// compare with those figures.
     pub total_error: f64,
-    /// Fraction of lit, non-emitting values within 2σ of the reference (σ combining the reported
-    /// errors of the bake and of the reference; a patch the bake did not sample has no σ and
-    /// counts as within). `None` without such values.
+    /// Share (by area) of the lit, non-emitting values within 2σ of the reference, σ the bake's
+    /// error bar and the reference's own standard error in quadrature (a patch the bake did
+    /// not sample has no σ and counts as outside): about 0.95 when the error bars are honest.
+    /// `None` without such values.
     pub coverage: Option<f64>,
     /// Median of |l − r| / σ over the lit, non-emitting values: about 0.67 for honest Gaussian
     /// error bars, less when they are conservative. `None` without such values.
     pub median_z: Option<f64>,
+    /// The mean of the square of the reference's half difference over its own variance on the
+    /// lit values: about 1 when the reference's own error estimate is honest (which
+    /// [`Measured::coverage`] relies on). `None` against a closed form.
+    pub reference_calibration: Option<f64>,
     /// Lit, non-emitting (patch, channel, frame) values measured.
     pub lit_values: usize,
     /// Emitting (patch, channel, frame) values measured.
@@ -300,46 +334,134 @@ pub struct Measured {
     /// Non-emitting values that reflect but are dark in the reference (0, or at most its
     /// [`dark_floor`]): left out of every measure above but `total_error`.
     pub dark_values: usize,
+    /// (share of the lit squared error, patch), most first, at most [`WORST`]; the frame's
+    /// own when one frame is measured.
+    #[serde(skip)]
+    pub worst: Vec<(f64, usize)>,
 }
 
-/// A scene's reference radiance per frame, with its own standard error (0 for closed forms).
+/// Per frame, per patch, per channel.
+type PerFrame<T> = Vec<Vec<[T; 3]>>;
+
+/// A scene's reference radiance at some of its frames, with its own standard error (0 for
+/// closed forms), and for a path-traced one the half difference of its two independent halves
+/// (a draw of its noise) and the variance of the true radiance over each patch.
 struct Reference {
     name: String,
-    values: Vec<Vec<[f64; 3]>>,
-    sigma: Vec<Vec<[f64; 3]>>,
+    /// The frames the values are for.
+    frames: Vec<usize>,
+    values: PerFrame<f64>,
+    sigma: PerFrame<f64>,
+    half_difference: Option<PerFrame<f64>>,
+    /// The spread and half the difference of its two halves' estimates.
+    spread: Option<PerFrame<(f64, f64)>>,
+}
+
+/// The path-traced reference ([`crate::direct::reference::path_traced`]) of `bake`'s patches
+/// at `frames`: per frame, two independent estimates of half of `paths` each (at least 32 per
+/// patch each), their mean the reference, half their difference a draw of its noise.
+fn path_traced(
+    bake: &crate::bake::Bake,
+    frames: &[usize],
+    paths: usize,
+    sky: [f64; 3],
+    seed: u64,
+) -> Reference {
+    let scene = &bake.scene;
+    let per_patch = (paths / 2 / scene.patches.len().max(1)).max(32);
+    let mut reference = Reference {
+        name: format!("path tracer, {per_patch} paths per patch twice"),
+        frames: frames.to_vec(),
+        values: Vec::new(),
+        sigma: Vec::new(),
+        half_difference: Some(Vec::new()),
+        spread: Some(Vec::new()),
+    };
+    for &frame in frames {
+        let traced = |seed| {
+            crate::direct::reference::path_traced(scene, bake.tracer(), frame, per_patch, sky, seed)
+        };
+        let (first, second) = (traced(seed + 6), traced(seed + 1006));
+        let both = |f: &dyn Fn(
+            &crate::direct::reference::Estimate,
+            &crate::direct::reference::Estimate,
+            usize,
+        ) -> f64|
+         -> Vec<[f64; 3]> {
+            first
+                .iter()
+                .zip(&second)
+                .map(|(a, b)| std::array::from_fn(|c| f(a, b, c)))
+                .collect()
+        };
+        reference
+            .values
+            .push(both(&|a, b, c| 0.5 * (a.radiance[c] + b.radiance[c])));
+        reference
+            .sigma
+            .push(both(&|a, b, c| 0.5 * a.stderr[c].hypot(b.stderr[c])));
+        if let Some(h) = reference.half_difference.as_mut() {
+            h.push(both(&|a, b, c| 0.5 * (a.radiance[c] - b.radiance[c])));
+        }
+        if let Some(s) = reference.spread.as_mut() {
+            let mean = both(&|a, b, c| 0.5 * (a.spread[c] + b.spread[c]));
+            let apart = both(&|a, b, c| 0.5 * (a.spread[c] - b.spread[c]));
+            s.push(
+                (mean.iter().zip(&apart))
+                    .map(|(m, d)| std::array::from_fn(|c| (m[c], d[c])))
+                    .collect(),
+            );
+        }
+    }
+    reference
 }
 
 /// A bake timed from tracing to the last frame solved.
 struct Timed {
+    bake: crate::bake::Bake,
     solved: Vec<crate::solve::FrameSolution>,
-    lines: usize,
     seconds: f64,
 }
 
-/// Bakes `scene` with `lines` lines and solves every frame.
-fn timed_bake(scene: &Scene, lines: u64, seed: u64) -> Result<Timed, TraceError> {
+/// Bakes `scene` with `lines` lines from `seed` as the bake command does: traced, its patches
+/// cut and merged if `auto`, split into pieces if `split`, every frame solved.
+fn timed_bake(
+    scene: &Scene,
+    lines: u64,
+    seed: u64,
+    (auto, split): (bool, bool),
+) -> Result<Timed, TraceError> {
     let start = Instant::now();
-    let bake = crate::bake::Bake::trace(
-        scene.clone(),
-        &LineParams {
-            lines,
-            bundles: None,
-            seed,
-        },
-    )?;
-    let solved = bake.solve_all(&scene.materials, &crate::solve::SolveParams::default());
+    let params = LineParams {
+        lines,
+        bundles: None,
+        seed,
+    };
+    let mut bake = crate::bake::Bake::trace(scene.clone(), &params)?;
+    let solve = crate::solve::SolveParams::default();
+    if auto {
+        let standard = crate::adaptive::Adaptive::for_lines(lines, bake.scene.patches.len());
+        crate::adaptive::adapt(&mut bake, &standard, &solve, &Control::default())?;
+    }
+    if split {
+        bake.split(&solve, &Control::default())?;
+    }
+    let solved = bake.solve_all(&bake.scene.materials, &solve);
     let seconds = start.elapsed().as_secs_f64();
+    let solved = solved.iter().map(|s| (**s).clone()).collect();
     Ok(Timed {
-        solved: solved.iter().map(|s| (**s).clone()).collect(),
-        lines: bake.list().lines(),
+        bake,
+        solved,
         seconds,
     })
 }
 
-/// Closed-form references where the sample scenes have one: the furnace (L = Le / (1 − ρ)) and
-/// the parallel squares' receiver (ρ · F, the emitter being black).
+/// Closed-form references where the sample scenes have one, per patch of `scene` (its
+/// patches however made): the furnace (L = Le / (1 − ρ)) and the parallel squares' receiver
+/// (ρ · F, the emitter being black: the area mean over the patch's triangles).
 fn closed_form(name: &str, scene: &Scene) -> Option<Reference> {
     let frames = scene.frames.count;
+    let emission = |p: &crate::scene::Patch| scene.materials[p.material as usize].emission;
     let per_patch: Vec<[f64; 3]> = match name {
         "furnace.gltf" => scene
             .patches
@@ -349,83 +471,154 @@ fn closed_form(name: &str, scene: &Scene) -> Option<Reference> {
                 [0, 1, 2].map(|c| m.emission[c] / (1.0 - m.reflectance[c]))
             })
             .collect(),
-        "parallel_squares.gltf" => scene
-            .patches
-            .iter()
-            .enumerate()
-            .map(|(i, p)| {
-                let m = &scene.materials[p.material as usize];
-                if m.is_emitter() {
-                    return m.emission;
-                }
-                let n = scene.normalisation;
-                let t = scene.statics.triangles[i];
-                let corners = t.map(|v| n.to_scene(scene.statics.positions[v as usize].as_dvec3()));
+        "parallel_squares.gltf" => {
+            // Σ area · ρF over each patch's front faces (the receiver faces the emitter), then
+            // over the patch's area.
+            let mut sums = vec![(0.0, 0.0); scene.patches.len()];
+            let (n, mesh) = (scene.normalisation, &scene.statics);
+            for (t, faces) in mesh.triangles.iter().zip(&mesh.faces) {
+                let corners = t.map(|v| n.to_scene(mesh.positions[v as usize].as_dvec3()));
+                let area = 0.5 * (corners[1] - corners[0]).cross(corners[2] - corners[0]).length();
                 let f = crate::solve::analytic::triangle_to_parallel_rectangle(
                     corners,
                     (-0.5, 0.5),
                     (-0.5, 0.5),
                     0.0,
                 );
-                m.reflectance.map(|r| r * f)
-            })
-            .collect(),
+                let (sum, a) = &mut sums[faces.front as usize];
+                *sum += area * f;
+                *a += area;
+            }
+            (scene.patches.iter().zip(sums))
+                .map(|(p, (sum, a))| {
+                    let m = &scene.materials[p.material as usize];
+                    if m.is_emitter() || a <= 0.0 {
+                        return emission(p);
+                    }
+                    m.reflectance.map(|r| r * sum / a)
+                })
+                .collect()
+        }
         _ => return None,
     };
     Some(Reference {
         name: "closed form".into(),
+        frames: (0..frames).collect(),
         sigma: vec![vec![[0.0; 3]; per_patch.len()]; frames],
         values: vec![per_patch; frames],
+        half_difference: None,
+        spread: None,
     })
 }
 
-/// The error of `solved` against `reference` ([`Measured`]).
+/// The error of `solved` (every frame of the bake) against `reference` at its frames
+/// ([`Measured`]).
 fn compare(
     scene: &Scene,
     solved: &[crate::solve::FrameSolution],
     reference: &Reference,
 ) -> Measured {
     let (mut lit, mut emitters) = (AreaRms::default(), AreaRms::default());
-    let (mut num, mut den, mut within, mut dark_values) = (0.0, 0.0, 0usize, 0usize);
+    let (mut num, mut den, mut dark_values) = (0.0, 0.0, 0usize);
+    let (mut within, mut noise, mut estimated, mut sampled) = (0.0, 0.0, 0.0, 0.0);
+    let (mut squared_error, mut spread, mut squared, mut noise_squared) = (0.0, 0.0, 0.0, 0.0);
+    let (mut baked, mut traced, mut calibration, mut spread_noise) = (0.0, 0.0, 0.0, 0.0);
+    let mut contributions: Vec<(f64, usize)> = Vec::new();
     let mut z = Vec::new();
-    for (f, s) in solved.iter().enumerate() {
-        let dark = dark_floor(scene, &reference.values[f]);
+    for (k, &f) in reference.frames.iter().enumerate() {
+        let s = &solved[f];
+        let values = &reference.values[k];
+        let dark = dark_floor(scene, values);
         for (i, p) in scene.patches.iter().enumerate() {
             let m = &scene.materials[p.material as usize];
+            // The halves' difference in this patch's spread, over its channels (which share
+            // their paths).
+            let mut spread_apart = 0.0;
             for c in 0..3 {
                 if m.reflectance[c] <= 0.0 {
                     continue;
                 }
-                let (l, r) = (s.radiance[i][c], reference.values[f][i][c]);
+                let (l, r) = (s.radiance[i][c], values[i][c]);
                 num += p.area * (l - r).powi(2);
                 den += p.area * r * r;
                 match PatchClass::of(m, c, r, dark) {
                     Some(PatchClass::Emitter) => emitters.add(p.area, (l - r) / r),
                     Some(PatchClass::Lit) => {
-                        lit.add(p.area, (l - r) / r);
-                        let sigma = s.stderr[i]
-                            .map_or(f64::INFINITY, |e| e[c])
-                            .hypot(reference.sigma[f][i][c]);
-                        within += usize::from((l - r).abs() <= 2.0 * sigma + 1e-9 * r);
-                        if sigma > 0.0 {
-                            z.push((l - r).abs() / sigma);
+                        let e = (l - r) / r;
+                        lit.add(p.area, e);
+                        if reference.frames.len() == 1 {
+                            match contributions.last_mut() {
+                                Some((sum, j)) if *j == i => *sum += p.area * e * e,
+                                _ => contributions.push((p.area * e * e, i)),
+                            }
+                        }
+                        let own = reference.sigma[k][i][c];
+                        let h = (reference.half_difference.as_ref()).map_or(0.0, |h| h[k][i][c]);
+                        if own > 0.0 {
+                            calibration += p.area * (h / own).powi(2);
+                        }
+                        noise += p.area * (h / r).powi(2);
+                        squared_error += p.area * ((l - r).powi(2) - h * h);
+                        if let Some(s) = reference.spread.as_ref() {
+                            spread += p.area * s[k][i][c].0;
+                            spread_apart += p.area * s[k][i][c].1;
+                        }
+                        squared += p.area * r * r;
+                        noise_squared += p.area * h * h;
+                        baked += p.area * l;
+                        traced += p.area * r;
+                        // A patch no line crossed has no error bar: never covered.
+                        if let Some(e) = s.stderr[i] {
+                            let sigma = e[c].hypot(own);
+                            if (l - r).abs() <= 2.0 * sigma + 1e-9 * r {
+                                within += p.area;
+                            }
+                            if sigma > 0.0 {
+                                z.push((l - r).abs() / sigma);
+                            }
+                            estimated += p.area * (e[c] / r).powi(2);
+                            sampled += p.area;
                         }
                     }
                     None => dark_values += usize::from(!m.is_emitter()),
                 }
             }
+            spread_noise += spread_apart * spread_apart;
         }
     }
     z.sort_by(f64::total_cmp);
+    contributions.sort_by(|a, b| b.0.total_cmp(&a.0));
+    contributions.truncate(WORST);
+    let area = lit.area;
+    let measured = lit.values > 0 && area > 0.0;
+    let path_traced = reference.half_difference.is_some();
     Measured {
-        lit_error: lit.value(),
+        lit_error: measured.then(|| ((lit.sum - noise).max(0.0) / area).sqrt()),
+        point_error: (measured && reference.spread.is_some()).then(|| {
+            // The true radiance's mean square over points is the means' (less the reference's
+            // noise, which r² also holds) plus the spread within the patches.
+            ((squared_error + spread).max(0.0) / (squared - noise_squared + spread)).sqrt()
+        }),
+        patch_l2_error: measured
+            .then(|| (squared_error.max(0.0) / (squared - noise_squared)).sqrt()),
+        point_resolution: (measured && reference.spread.is_some()).then(|| {
+            (2.0 * spread_noise.sqrt() / (squared - noise_squared + spread).max(f64::MIN_POSITIVE))
+                .sqrt()
+        }),
+        bias: measured.then(|| baked / traced - 1.0),
+        reference_noise: (measured && path_traced).then(|| (noise / area).sqrt()),
+        estimated_noise: (sampled > 0.0).then(|| (estimated / sampled).sqrt()),
         emitter_error: emitters.value(),
         total_error: (num / den.max(f64::MIN_POSITIVE)).sqrt(),
-        coverage: (lit.values > 0).then(|| within as f64 / lit.values as f64),
+        coverage: measured.then(|| within / area),
         median_z: z.get(z.len() / 2).copied(),
+        reference_calibration: (measured && path_traced).then(|| calibration / area),
         lit_values: lit.values,
         emitter_values: emitters.values,
         dark_values,
+        worst: (contributions.iter())
+            .map(|&(e, i)| (e / lit.sum, i))
+            .collect(),
     }
 }
 
@@ -454,41 +647,59 @@ pub fn estimated_error(
     lit.value()
 }
 
-/// Sweeps the line budget on each scene and measures error against time. Scenes without a
-/// closed form are measured against a bake with `reference_factor` times the largest budget
-/// (another seed).
+/// How `bench-accuracy` measures each bake against physics where no closed form exists.
+#[derive(Clone, Copy, Debug)]
+pub struct PathReference {
+    /// Paths of the reference per measured frame, over all the bake's patches (at least 64
+    /// per patch).
+    pub paths: usize,
+    /// Frames measured, spread evenly over the timeline from frame 0.
+    pub frames: usize,
+}
+
+/// The `count` frames of a timeline of `frames` measured against the path tracer: evenly
+/// spread from frame 0 (frame k·frames/count), so an animation that returns to its start is
+/// measured on its way out.
+fn measured_frames(frames: usize, count: usize) -> Vec<usize> {
+    let count = count.clamp(1, frames.max(1));
+    (0..count).map(|k| k * frames / count).collect()
+}
+
+/// Sweeps the line budget on each scene (its patches made as `patch_size` says, split into
+/// pieces and solved as a bake does) and measures error against time: against the closed form
+/// where the scene has one (every frame), else against the path tracer
+/// ([`PathReference`]) at a few frames.
+///
+/// # Errors
+/// When a scene cannot be traced or cut.
 pub fn accuracy(
     scenes: &[(String, Scene)],
     budgets: &[u64],
-    reference_factor: u64,
+    patch_size: crate::params::PatchSize,
+    reference: PathReference,
     mut progress: impl FnMut(&AccuracyPoint),
 ) -> Result<Vec<AccuracyPoint>, TraceError> {
     let mut points = Vec::new();
+    let auto = patch_size == crate::params::PatchSize::Auto;
     for (name, scene) in scenes {
-        let reference = match closed_form(name, scene) {
-            Some(r) => r,
-            None => {
-                let lines = reference_factor * budgets.iter().copied().max().unwrap_or(1);
-                let solved = timed_bake(scene, lines, 0x5EED)?.solved;
-                Reference {
-                    name: format!("{lines} lines"),
-                    values: solved.iter().map(|s| s.radiance.clone()).collect(),
-                    sigma: solved
-                        .iter()
-                        .map(|s| s.stderr.iter().map(|e| e.unwrap_or([0.0; 3])).collect())
-                        .collect(),
-                }
-            }
-        };
         for &lines in budgets {
-            let run = timed_bake(scene, lines, 1)?;
+            let run = timed_bake(scene, lines, 1, (auto, true))?;
+            let baked = &run.bake.scene;
+            let against = closed_form(name, baked).unwrap_or_else(|| {
+                let frames = measured_frames(baked.frames.count, reference.frames);
+                let sky = crate::solve::SolveParams::default().sky;
+                path_traced(&run.bake, &frames, reference.paths, sky, 0x5EED)
+            });
             let point = AccuracyPoint {
                 scene: name.clone(),
-                reference: reference.name.clone(),
-                frames: scene.frames.count,
-                lines: run.lines,
+                patch_size,
+                reference: against.name.clone(),
+                frames: baked.frames.count,
+                measured_frames: against.frames.clone(),
+                lines: run.bake.list().lines(),
+                patches: baked.patches.len(),
                 seconds: run.seconds,
-                error: compare(scene, &run.solved, &reference),
+                error: compare(baked, &run.solved, &against),
             };
             progress(&point);
             points.push(point);
@@ -519,18 +730,18 @@ pub fn multiframe_gain(
     lines: u64,
     load_frame: impl Fn(f64) -> Option<Scene>,
 ) -> Result<Option<MultiframeGain>, TraceError> {
-    let whole = timed_bake(scene, lines, 1)?;
+    let whole = timed_bake(scene, lines, 1, (false, false))?;
     let start = Instant::now();
     for f in 0..scene.frames.count {
         let Some(single) = load_frame(scene.frames.time(f)) else {
             return Ok(None);
         };
-        timed_bake(&single, lines, 1)?;
+        timed_bake(&single, lines, 1, (false, false))?;
     }
     let independent_seconds = start.elapsed().as_secs_f64();
     Ok(Some(MultiframeGain {
         frames: scene.frames.count,
-        lines: whole.lines,
+        lines: whole.bake.list().lines(),
         multiframe_seconds: whole.seconds,
         independent_seconds,
         ratio: independent_seconds / whole.seconds,
@@ -595,8 +806,11 @@ mod tests {
         }
         let reference = Reference {
             name: "hand-made".into(),
+            frames: vec![0],
             sigma: vec![vec![[0.0; 3]; values.len()]],
             values: vec![values],
+            half_difference: None,
+            spread: None,
         };
         let m = compare(&scene, &[solution(solved, stderr)], &reference);
         assert!(close(m.lit_error, 0.03), "{m:?}");
@@ -606,6 +820,83 @@ mod tests {
         assert!(m.lit_values > 0 && m.emitter_values > 0 && m.dark_values > 0);
         // The former measure: the light alone puts it far above the walls' 3%.
         assert!(m.total_error > 10.0 * 0.03, "{m:?}");
+    }
+
+    /// A path-traced reference's own noise is taken out of the per-patch error (from its
+    /// halves' difference), its patches' variation added at points, and its own standard
+    /// error widens the error bars the coverage counts.
+    #[test]
+    fn a_path_traced_reference_s_noise_is_taken_out_and_its_variation_counted_at_points() {
+        let scene = sample("cornell_box.gltf");
+        let n = scene.patches.len();
+        let r: Vec<[f64; 3]> = (0..n).map(|i| [1.0 + (i % 4) as f64, 0.5, 2.0]).collect();
+        let scaled = |k: f64| -> Vec<[f64; 3]> { r.iter().map(|r| r.map(|x| k * x)).collect() };
+        let reference = |sigma: f64, variation: f64, noise: f64| Reference {
+            name: "hand-made".into(),
+            frames: vec![0],
+            values: vec![r.clone()],
+            sigma: vec![scaled(sigma)],
+            half_difference: Some(vec![scaled(noise)]),
+            spread: Some(vec![
+                (r.iter())
+                    .map(|r| r.map(|x| ((variation * x).powi(2), 0.0)))
+                    .collect(),
+            ]),
+        };
+        // 5% off everywhere against a reference whose own noise is 3%: 4% is the bake's.
+        let solved = [solution(scaled(1.05), vec![Some([0.01; 3]); n])];
+        let m = compare(&scene, &solved, &reference(0.0, 0.0, 0.03));
+        assert!(close(m.lit_error, 0.04), "{m:?}");
+        assert!(
+            close(m.reference_noise, 0.03) && close(m.bias, 0.05),
+            "{m:?}"
+        );
+        // Exact means, and a variation of 10% within every patch: the error at points is
+        // 0.1 over the RMS of the true radiance at points, √(1 + 0.01); none on the means.
+        let exact = [solution(r.clone(), vec![Some([0.01; 3]); n])];
+        let m = compare(&scene, &exact, &reference(0.0, 0.1, 0.0));
+        let point = 0.1 / 1.01f64.sqrt();
+        assert!(close(m.point_error, point), "{m:?} against {point}");
+        assert!(close(m.patch_l2_error, 0.0), "{m:?}");
+        // 5% off with error bars of 2% of the radiance: outside two of them, inside once the
+        // reference's own 3% are added in quadrature (2 × 3.6% > 5%).
+        let bars = |k: f64| -> Vec<Option<[f64; 3]>> { scaled(k).into_iter().map(Some).collect() };
+        let off = [solution(scaled(1.05), bars(0.02))];
+        let covered = |sigma| compare(&scene, &off, &reference(sigma, 0.0, 0.0)).coverage;
+        assert!(close(covered(0.0), 0.0) && close(covered(0.03), 1.0));
+    }
+
+    /// The parallel squares' closed form follows the patches however they are made: the area
+    /// mean over the receiver's patches is ρ times the square-to-square form factor.
+    #[test]
+    fn the_parallel_squares_closed_form_holds_for_any_patches() {
+        let sample = crate::samples::all()
+            .into_iter()
+            .find(|s| s.file_name == "parallel_squares.gltf")
+            .unwrap();
+        let options = crate::loader::LoadOptions {
+            patch_size: Some(0.3),
+            ..Default::default()
+        };
+        let scene = crate::loader::load(sample.gltf.as_bytes(), &options).unwrap();
+        let reference = closed_form("parallel_squares.gltf", &scene).unwrap();
+        let (mut sum, mut area) = (0.0, 0.0);
+        for (p, l) in scene.patches.iter().zip(&reference.values[0]) {
+            if !scene.materials[p.material as usize].is_emitter() {
+                sum += p.area * l[0];
+                area += p.area;
+            }
+        }
+        assert!(scene.patches.len() > 8);
+        assert!((sum / area - 0.5 * 0.19982).abs() < 1e-4, "{}", sum / area);
+    }
+
+    #[test]
+    fn measured_frames_spread_from_frame_zero() {
+        assert_eq!(measured_frames(25, 3), [0, 8, 16]);
+        assert_eq!(measured_frames(2, 3), [0, 1]);
+        assert_eq!(measured_frames(1, 3), [0]);
+        assert_eq!(measured_frames(61, 1), [0]);
     }
 
     #[test]
@@ -655,8 +946,11 @@ mod tests {
         assert_eq!(estimated_error(&scene, &solved), None);
         let reference = Reference {
             name: "closed form".into(),
+            frames: vec![0],
             values: vec![vec![[1000.0; 3]; n]],
             sigma: vec![vec![[0.0; 3]; n]],
+            half_difference: None,
+            spread: None,
         };
         let m = compare(&scene, &solved, &reference);
         assert_eq!((m.lit_error, m.coverage, m.median_z), (None, None, None));
@@ -694,6 +988,9 @@ pub struct PatchPoint {
     /// errors do not, and its scale does not depend on the patches (a patch's relative error
     /// would be relative to a mean that does).
     pub point_error: f64,
+    /// The smallest [`PatchPoint::point_error`] the reference resolves
+    /// ([`Measured::point_resolution`]).
+    pub point_resolution: f64,
     /// [`PatchPoint::point_error`] without the patches' own variation: the patches' means
     /// against the true means, as a relative L² error.
     pub patch_l2_error: f64,
@@ -706,9 +1003,12 @@ pub struct PatchPoint {
     /// of σ / reference, σ the error bar the bake reports.
     pub estimated_noise: f64,
     /// Share of those patch-channels (by area) whose error is within twice the error bar (the
-    /// bake's σ and the reference's noise in quadrature): about 0.95 when the error bars are
-    /// honest.
+    /// bake's σ and the reference's own standard error in quadrature): about 0.95 when the
+    /// error bars are honest ([`Measured::coverage`]).
     pub coverage: f64,
+    /// [`Measured::reference_calibration`]: about 1 when the reference's own standard error,
+    /// which the coverage takes, is honest.
+    pub reference_calibration: f64,
     /// The patches that hold most of the squared error, most first (at most [`WORST`]).
     pub worst: Vec<WorstPatch>,
 }
@@ -774,74 +1074,24 @@ pub fn patch_point(
     let scene = &bake.scene;
     let solved = bake.solve_frame(0, &scene.materials, &solve);
     let seconds = started.elapsed().as_secs_f64();
-    // Two independent references of half the paths each: their mean is the reference, and
-    // their difference measures its noise without trusting its own error estimate (which is
-    // conservative: taken out of the error, it would flatter the bakes it is noisiest for).
-    let paths = (reference_paths / 2 / scene.patches.len().max(1)).max(32);
-    let traced = |seed| {
-        crate::direct::reference::path_traced(scene, bake.tracer(), 0, paths, [0.0; 3], seed)
-    };
-    let (first, second) = (traced(seed + 6), traced(seed + 1006));
-    let radiance: Vec<[f64; 3]> = first
-        .iter()
-        .zip(&second)
-        .map(|(a, b)| std::array::from_fn(|c| 0.5 * (a.radiance[c] + b.radiance[c])))
-        .collect();
-    let dark = dark_floor(scene, &radiance);
-    let (mut error, mut noise, mut weight, mut baked, mut traced) = (0.0, 0.0, 0.0, 0.0, 0.0);
-    let (mut squared_error, mut spread, mut squared, mut noise_squared) = (0.0, 0.0, 0.0, 0.0);
-    let (mut estimated, mut estimated_weight, mut covered) = (0.0, 0.0, 0.0);
-    let mut contributions: Vec<(f64, usize)> = Vec::new();
-    for (i, (p, reference)) in scene.patches.iter().zip(&radiance).enumerate() {
-        let m = &scene.materials[p.material as usize];
-        for (c, &r) in reference.iter().enumerate() {
-            if PatchClass::of(m, c, r, dark) != Some(PatchClass::Lit) {
-                continue;
-            }
-            let half_difference = 0.5 * (first[i].radiance[c] - second[i].radiance[c]);
-            // A patch no line crossed has no error bar: never covered, and not in the RMS.
-            if let Some(sigma) = solved.stderr[i].map(|e| e[c]) {
-                if (solved.radiance[i][c] - r).abs() <= 2.0 * sigma.hypot(half_difference) {
-                    covered += p.area;
-                }
-                estimated += p.area * (sigma / r).powi(2);
-                estimated_weight += p.area;
-            }
-            let e = p.area * (solved.radiance[i][c] / r - 1.0).powi(2);
-            error += e;
-            match contributions.last_mut() {
-                Some((sum, j)) if *j == i => *sum += e,
-                _ => contributions.push((e, i)),
-            }
-            noise += p.area * (half_difference / r).powi(2);
-            squared_error +=
-                p.area * ((solved.radiance[i][c] - r).powi(2) - half_difference.powi(2));
-            spread += p.area * 0.5 * (first[i].spread[c] + second[i].spread[c]);
-            squared += p.area * r * r;
-            noise_squared += p.area * half_difference.powi(2);
-            weight += p.area;
-            baked += p.area * solved.radiance[i][c];
-            traced += p.area * r;
-        }
-    }
-    contributions.sort_by(|a, b| b.0.total_cmp(&a.0));
+    let reference = path_traced(&bake, &[0], reference_paths, [0.0; 3], seed);
+    let measured = compare(scene, std::slice::from_ref(&solved), &reference);
     let luminance = crate::output::tonemap::luminance;
-    let worst = contributions
-        .iter()
-        .take(WORST)
-        .map(|&(e, i)| {
+    let worst = (measured.worst.iter())
+        .map(|&(share, i)| {
             let p = &scene.patches[i];
             WorstPatch {
                 patch: i,
                 material: (scene.materials[p.material as usize].name.clone()).unwrap_or_default(),
                 area: p.area,
-                share: e / error,
+                share,
                 baked: luminance(solved.radiance[i]),
                 sigma: solved.stderr[i].map_or(f64::INFINITY, luminance),
-                reference: luminance(radiance[i]),
+                reference: luminance(reference.values[0][i]),
             }
         })
         .collect();
+    let unmeasured = || format!("{name}: no lit, non-emitting patch to measure");
     Ok(PatchPoint {
         scene: name.to_string(),
         patch_size,
@@ -849,16 +1099,15 @@ pub fn patch_point(
         patches: scene.patches.len(),
         budget,
         seconds,
-        patch_error: ((error - noise).max(0.0) / weight).sqrt(),
-        // The true radiance's mean square over points is the means' (less the reference's
-        // noise, which r² also holds) plus the spread within the patches.
-        point_error: ((squared_error + spread).max(0.0) / (squared - noise_squared + spread))
-            .sqrt(),
-        patch_l2_error: (squared_error.max(0.0) / (squared - noise_squared)).sqrt(),
-        reference_noise: (noise / weight).sqrt(),
-        bias: baked / traced - 1.0,
-        estimated_noise: (estimated / estimated_weight).sqrt(),
-        coverage: covered / weight,
+        patch_error: measured.lit_error.ok_or_else(unmeasured)?,
+        point_error: measured.point_error.ok_or_else(unmeasured)?,
+        point_resolution: measured.point_resolution.ok_or_else(unmeasured)?,
+        patch_l2_error: measured.patch_l2_error.ok_or_else(unmeasured)?,
+        reference_noise: measured.reference_noise.ok_or_else(unmeasured)?,
+        bias: measured.bias.ok_or_else(unmeasured)?,
+        estimated_noise: measured.estimated_noise.ok_or_else(unmeasured)?,
+        coverage: measured.coverage.ok_or_else(unmeasured)?,
+        reference_calibration: measured.reference_calibration.ok_or_else(unmeasured)?,
         worst,
     })
 }

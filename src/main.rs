@@ -150,8 +150,9 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
-    /// Measure the speed/accuracy trade on the sample scenes: error against lines and seconds,
-    /// error-bar coverage, and the multiframe gain at equal error.
+    /// Measure the speed/accuracy trade on the sample scenes against physics: error against
+    /// lines and seconds (bakes made as the bake command makes them: patches, pieces, every
+    /// frame), error-bar coverage, and the multiframe gain at equal error.
     BenchAccuracy {
         /// Directory of the sample scenes.
         #[arg(long, default_value = "scenes")]
@@ -160,16 +161,26 @@ enum Command {
         #[arg(
             long,
             value_delimiter = ',',
-            default_value = "10000,30000,100000,300000,1000000"
+            default_value = "30000,100000,300000,1000000"
         )]
         budgets: Vec<u64>,
-        /// Lines of the reference bake, as a multiple of the largest budget.
-        #[arg(long, default_value_t = 16)]
-        reference_factor: u64,
+        /// How patches are made: auto (the default), source, or a length.
+        #[arg(long, default_value = "auto")]
+        patch_size: radiosity::params::PatchSize,
+        /// Paths of the path-traced reference per measured frame, over all of a bake's patches
+        /// (at least 64 per patch), for the scenes without a closed form.
+        #[arg(long, default_value_t = 4_000_000)]
+        reference_paths: usize,
+        /// Frames measured against the path tracer, spread over the timeline from frame 0.
+        #[arg(long, default_value_t = 3)]
+        reference_frames: usize,
+        /// Measure only this scene (a file name in --scenes).
+        #[arg(long)]
+        only: Option<String>,
         /// Frames per second for the animated scenes.
         #[arg(long, default_value_t = 12.0)]
         fps: f64,
-        /// Lines for the multiframe gain measurement.
+        /// Lines for the multiframe gain measurement (0: not measured; nor with --only).
         #[arg(long, default_value_t = 100_000)]
         gain_lines: u64,
         /// Scene of the multiframe gain measurement (60 frames over its 2 s animation).
@@ -341,7 +352,7 @@ fn run(cli: Cli) -> Result<(), String> {
             let mut points = Vec::new();
             println!(
                 "scene\tpatch_size\tpatches\tseconds\tpatch error\tpatch L2\tpoint error\t\
-                 reference noise\tbias\testimated noise\tcoverage"
+                 resolved to\treference noise\tbias\testimated noise\tcoverage"
             );
             for (name, sizes) in [
                 (
@@ -393,7 +404,7 @@ fn run(cli: Cli) -> Result<(), String> {
                         !whole,
                     )?;
                     println!(
-                        "{}\t{}\t{}\t{:.2}\t{:.4}\t{:.4}\t{:.4}\t{:.4}\t{:+.4}\t{:.4}\t{:.3}",
+                        "{}\t{}\t{}\t{:.2}\t{:.4}\t{:.4}\t{:.4}\t{:.4}\t{:.4}\t{:+.4}\t{:.4}\t{:.3}",
                         p.scene,
                         p.patch_size,
                         p.patches,
@@ -401,6 +412,7 @@ fn run(cli: Cli) -> Result<(), String> {
                         p.patch_error,
                         p.patch_l2_error,
                         p.point_error,
+                        p.point_resolution,
                         p.reference_noise,
                         p.bias,
                         p.estimated_noise,
@@ -443,7 +455,10 @@ fn run(cli: Cli) -> Result<(), String> {
         Command::BenchAccuracy {
             scenes,
             budgets,
-            reference_factor,
+            patch_size,
+            reference_paths,
+            reference_frames,
+            only,
             fps,
             gain_lines,
             gain_scene,
@@ -456,54 +471,73 @@ fn run(cli: Cli) -> Result<(), String> {
                 loader::load(&bytes, &options).map_err(|e| format!("{}: {e}", path.display()))
             };
             let mut set = Vec::new();
-            for (name, patch_size) in [
-                ("furnace.gltf", None),
-                ("parallel_squares.gltf", Some(0.2)),
-                ("cornell_moving.gltf", None),
-                ("level.gltf", None),
-            ] {
+            let names = [
+                "furnace.gltf",
+                "parallel_squares.gltf",
+                "cornell_moving.gltf",
+                "level.gltf",
+            ];
+            for name in names {
+                if only.as_ref().is_some_and(|o| o != name) {
+                    continue;
+                }
                 let options = LoadOptions {
                     fps,
-                    patch_size,
+                    patch_size: patch_size.length(),
                     ..LoadOptions::default()
                 };
                 set.push((name.to_string(), load_scene(name, options)?));
             }
-            let points = radiosity::bench::accuracy(&set, &budgets, reference_factor, |p| {
+            if set.is_empty() {
+                return Err(format!("--only: no sample scene is named {only:?}"));
+            }
+            let reference = radiosity::bench::PathReference {
+                paths: reference_paths,
+                frames: reference_frames,
+            };
+            let points = radiosity::bench::accuracy(&set, &budgets, patch_size, reference, |p| {
                 let show = |x: Option<f64>, digits: usize| {
                     x.map_or_else(|| "-".to_string(), |x| format!("{x:.digits$}"))
                 };
                 let e = &p.error;
                 eprintln!(
-                    "{:<22} {:>9} lines {:>8.3} s  lit error {}  coverage {}  median |z| {}  emitters {}",
+                    "{:<22} {:>9} lines {:>6} patches {:>8.3} s  per-patch {}  at points {} (resolved to {})  coverage {}  median |z| {}  estimated {}  emitters {}",
                     p.scene,
                     p.lines,
+                    p.patches,
                     p.seconds,
                     show(e.lit_error, 4),
+                    show(e.point_error, 4),
+                    show(e.point_resolution, 4),
                     show(e.coverage, 3),
                     show(e.median_z, 2),
+                    show(e.estimated_noise, 4),
                     show(e.emitter_error, 4)
                 );
             })
             .map_err(|e| e.to_string())?;
-            // 60 frames: the samples' animations last 2 s.
+            // 60 frames: the samples' animations last 2 s. Not with --only or --gain-lines 0.
             let moving = LoadOptions {
                 fps: 29.5,
                 ..LoadOptions::default()
             };
-            let scene = load_scene(&gain_scene, moving.clone())?;
-            let gain = radiosity::bench::multiframe_gain(&scene, gain_lines, |t| {
-                load_scene(
-                    &gain_scene,
-                    LoadOptions {
-                        start: Some(t),
-                        end: Some(t),
-                        ..moving.clone()
-                    },
-                )
-                .ok()
-            })
-            .map_err(|e| e.to_string())?;
+            let gain = if only.is_some() || gain_lines == 0 {
+                None
+            } else {
+                let scene = load_scene(&gain_scene, moving.clone())?;
+                radiosity::bench::multiframe_gain(&scene, gain_lines, |t| {
+                    load_scene(
+                        &gain_scene,
+                        LoadOptions {
+                            start: Some(t),
+                            end: Some(t),
+                            ..moving.clone()
+                        },
+                    )
+                    .ok()
+                })
+                .map_err(|e| e.to_string())?
+            };
             let report = serde_json::json!({ "points": points, "multiframe_gain": gain });
             println!(
                 "{}",
