@@ -478,7 +478,10 @@ fn closed_form(name: &str, scene: &Scene) -> Option<Reference> {
             let (n, mesh) = (scene.normalisation, &scene.statics);
             for (t, faces) in mesh.triangles.iter().zip(&mesh.faces) {
                 let corners = t.map(|v| n.to_scene(mesh.positions[v as usize].as_dvec3()));
-                let area = 0.5 * (corners[1] - corners[0]).cross(corners[2] - corners[0]).length();
+                let area = 0.5
+                    * (corners[1] - corners[0])
+                        .cross(corners[2] - corners[0])
+                        .length();
                 let f = crate::solve::analytic::triangle_to_parallel_rectangle(
                     corners,
                     (-0.5, 0.5),
