@@ -518,10 +518,10 @@ fn mark(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<(u32, u32)> {
     // bench measured it from two references).
     let nodes = LEAVES;
     let mut priority = vec![0.0f64; scene.patches.len() * nodes];
+    let patch_faces = (face_of.as_slice(), members.as_slice());
     for frame in scored_frames(bake) {
         let solution = bake.solve_frame(frame, &scene.materials, solve);
-        let faces = (face_of.as_slice(), members.as_slice());
-        let (stats, direct) = leaf_light(bake, frame, &solution.radiance, solve.sky, faces);
+        let (stats, direct) = leaf_light(bake, frame, &solution.radiance, solve.sky, patch_faces);
         priority
             .par_chunks_mut(nodes)
             .zip(stats.par_chunks(3 * LEAVES))

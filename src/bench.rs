@@ -1,6 +1,7 @@
 //! Benchmarks run by the `bench` command: what the engine costs on a given scene, measured in
 //! one run so that ratios are meaningful on a shared machine.
 
+use std::array::from_fn;
 use std::borrow::Borrow;
 use std::time::Instant;
 
@@ -369,51 +370,50 @@ fn path_traced(
 ) -> Reference {
     let scene = &bake.scene;
     let per_patch = (paths / 2 / scene.patches.len().max(1)).max(32);
-    let mut reference = Reference {
-        name: format!("path tracer, {per_patch} paths per patch twice"),
-        frames: frames.to_vec(),
-        values: Vec::new(),
-        sigma: Vec::new(),
-        half_difference: Some(Vec::new()),
-        spread: Some(Vec::new()),
-    };
+    let (mut values, mut sigma, mut half_difference, mut spread) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     for &frame in frames {
         let traced = |seed| {
             crate::direct::reference::path_traced(scene, bake.tracer(), frame, per_patch, sky, seed)
         };
         let (first, second) = (traced(seed + 6), traced(seed + 1006));
-        let both = |f: &dyn Fn(
-            &crate::direct::reference::Estimate,
-            &crate::direct::reference::Estimate,
-            usize,
-        ) -> f64|
-         -> Vec<[f64; 3]> {
-            first
-                .iter()
-                .zip(&second)
-                .map(|(a, b)| std::array::from_fn(|c| f(a, b, c)))
-                .collect()
-        };
-        reference
-            .values
-            .push(both(&|a, b, c| 0.5 * (a.radiance[c] + b.radiance[c])));
-        reference
-            .sigma
-            .push(both(&|a, b, c| 0.5 * a.stderr[c].hypot(b.stderr[c])));
-        if let Some(h) = reference.half_difference.as_mut() {
-            h.push(both(&|a, b, c| 0.5 * (a.radiance[c] - b.radiance[c])));
-        }
-        if let Some(s) = reference.spread.as_mut() {
-            let mean = both(&|a, b, c| 0.5 * (a.spread[c] + b.spread[c]));
-            let apart = both(&|a, b, c| 0.5 * (a.spread[c] - b.spread[c]));
-            s.push(
-                (mean.iter().zip(&apart))
-                    .map(|(m, d)| std::array::from_fn(|c| (m[c], d[c])))
-                    .collect(),
-            );
-        }
+        let pairs = || first.iter().zip(&second);
+        values.push(
+            pairs()
+                .map(|(a, b)| from_fn(|c| 0.5 * (a.radiance[c] + b.radiance[c])))
+                .collect(),
+        );
+        sigma.push(
+            pairs()
+                .map(|(a, b)| from_fn(|c| 0.5 * a.stderr[c].hypot(b.stderr[c])))
+                .collect(),
+        );
+        half_difference.push(
+            pairs()
+                .map(|(a, b)| from_fn(|c| 0.5 * (a.radiance[c] - b.radiance[c])))
+                .collect(),
+        );
+        spread.push(
+            pairs()
+                .map(|(a, b)| {
+                    from_fn(|c| {
+                        (
+                            0.5 * (a.spread[c] + b.spread[c]),
+                            0.5 * (a.spread[c] - b.spread[c]),
+                        )
+                    })
+                })
+                .collect(),
+        );
     }
-    reference
+    Reference {
+        name: format!("path tracer, {per_patch} paths per patch twice"),
+        frames: frames.to_vec(),
+        values,
+        sigma,
+        half_difference: Some(half_difference),
+        spread: Some(spread),
+    }
 }
 
 /// A bake timed from tracing to the last frame solved.
@@ -478,10 +478,8 @@ fn closed_form(name: &str, scene: &Scene) -> Option<Reference> {
             let (n, mesh) = (scene.normalisation, &scene.statics);
             for (t, faces) in mesh.triangles.iter().zip(&mesh.faces) {
                 let corners = t.map(|v| n.to_scene(mesh.positions[v as usize].as_dvec3()));
-                let area = 0.5
-                    * (corners[1] - corners[0])
-                        .cross(corners[2] - corners[0])
-                        .length();
+                let area =
+                    crate::scene::subdivide::triangle_area(corners[0], corners[1], corners[2]);
                 let f = crate::solve::analytic::triangle_to_parallel_rectangle(
                     corners,
                     (-0.5, 0.5),
