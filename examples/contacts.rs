@@ -100,11 +100,7 @@ fn trace(
     options: &LoadOptions,
     lines: u64,
 ) -> Result<Bake, Box<dyn std::error::Error>> {
-    let params = LineParams {
-        lines,
-        bundles: None,
-        seed: 1,
-    };
+    let params = LineParams { lines, seed: 1 };
     Ok(Bake::trace(load(gltf, options)?, &params)?)
 }
 

@@ -7,10 +7,11 @@
 
 use std::time::Instant;
 
+use radiosity::control::Control;
 use radiosity::direct::DirectLight;
 use radiosity::direct::area::{AreaLights, Sampling};
 use radiosity::loader::{LoadOptions, load};
-use radiosity::timeline::{Control, IntersectionList, LineParams};
+use radiosity::timeline::{IntersectionList, LineParams};
 use radiosity::trace::SceneTracer;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -53,11 +54,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let area_time = t.elapsed().as_secs_f64();
         let (pairs, retraced) = area.pair_counts();
         let t = Instant::now();
-        let params = LineParams {
-            lines,
-            bundles: None,
-            seed: 1,
-        };
+        let params = LineParams { lines, seed: 1 };
         IntersectionList::build(&scene, &tracer, &params, &control)?;
         let line_time = t.elapsed().as_secs_f64();
         println!(

@@ -22,7 +22,6 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             scene,
             &LineParams {
                 lines: 10_000_000,
-                bundles: None,
                 seed: 1,
             },
         )?;

@@ -36,13 +36,13 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::bake::{Bake, Lights};
+use crate::control::{Control, TraceError};
 use crate::direct::{Part, parts_irradiance};
 use crate::output::tonemap::{LUMINANCE, luminance};
 use crate::scene::refine::{self, Corners, barycentric, longest_edge};
 use crate::scene::subdivide::normal_and_area;
 use crate::solve::SolveParams;
 use crate::solve::tally::{FixedLight, walk_from};
-use crate::timeline::{Control, TraceError};
 use crate::trace::coincident::mix;
 
 /// Frames scored per round at most, spread over the distinct frames of the timeline.

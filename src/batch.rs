@@ -19,7 +19,6 @@
 //! forced; a scene that fails does not stop the others. A frame whose solve does not converge
 //! fails its scene before anything is written.
 
-use std::hash::Hasher;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -28,12 +27,13 @@ use serde::Serialize;
 
 use crate::adaptive::{self, Adaptive};
 use crate::bake::Bake;
+use crate::control::{Control, TraceError};
 use crate::loader::{self, LoadOptions};
 use crate::output::{self, FrameSpec, ToneMap};
 use crate::params::PatchSize;
 use crate::scene::Scene;
 use crate::solve::{FrameSolution, SolveParams};
-use crate::timeline::{Control, LineParams, TraceError};
+use crate::timeline::LineParams;
 
 /// What to bake with; the same names as the service's parameters.
 #[derive(Clone, Debug, PartialEq)]
@@ -98,9 +98,6 @@ impl Default for Outputs {
         }
     }
 }
-
-/// Largest side of a preview, pixels: a preview, not a render farm.
-pub const MAX_PREVIEW_SIDE: u32 = 2048;
 
 /// Memory the previews of one scene may hold at once, bytes.
 const RENDER_MEMORY: usize = 1 << 30;
@@ -196,33 +193,47 @@ pub fn scenes(inputs: &[PathBuf]) -> std::io::Result<Vec<PathBuf>> {
     Ok(out)
 }
 
-/// The content hash of a scene and its parameters (FNV-1a, 64 bits).
+/// The content hash of a scene and its parameters: SHA-256 over a version tag, the scene's
+/// bytes (length-prefixed) and a canonical JSON of every parameter that changes the outputs
+/// (keys sorted, numbers as `serde_json` writes them: the shortest text that reads
+/// back to the same `f64`) with the crate's version, in hexadecimal. Stable across builds,
+/// platforms and Rust versions, unlike a hash of `{:?}` output (issue 14).
 fn content_hash(bytes: &[u8], params: &BatchParams) -> String {
-    struct Fnv(u64);
-    impl Hasher for Fnv {
-        fn finish(&self) -> u64 {
-            self.0
-        }
-        fn write(&mut self, bytes: &[u8]) {
-            for &b in bytes {
-                self.0 = (self.0 ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3);
-            }
-        }
-    }
-    let mut h = Fnv(0xcbf2_9ce4_8422_2325);
-    h.write(bytes);
-    let described = format!(
-        "{:?}|{}|{:?}|{:?}|{:?}|{:?}|{}",
-        params.load,
-        params.auto,
-        params.patch_budget,
-        params.lines,
-        params.sky,
-        params.outputs,
-        env!("CARGO_PKG_VERSION")
-    );
-    h.write(described.as_bytes());
-    format!("{:016x}", h.finish())
+    use sha2::{Digest, Sha256};
+    let load = &params.load;
+    let outputs = &params.outputs;
+    let described = serde_json::json!({
+        "version": env!("CARGO_PKG_VERSION"),
+        "load": {
+            "fps": load.fps,
+            "animation": load.animation,
+            "start": load.start,
+            "end": load.end,
+            "patch_size": load.patch_size,
+            "max_frames": load.max_frames,
+            "max_patches": load.max_patches,
+            "max_work": load.max_work,
+            "max_reflectance": load.max_reflectance,
+        },
+        "auto": params.auto,
+        "patch_budget": params.patch_budget,
+        "lines": params.lines.lines,
+        "seed": params.lines.seed,
+        "sky": params.sky,
+        "max_iterations": params.max_iterations,
+        "outputs": {
+            "glb_frames": outputs.glb_frames.to_string(),
+            "preview_frames": outputs.preview_frames.to_string(),
+            "preview_size": [outputs.preview_size.0, outputs.preview_size.1],
+            "gif": outputs.gif,
+        },
+    });
+    let mut h = Sha256::new();
+    h.update(b"radiosity content hash 2\0");
+    h.update((bytes.len() as u64).to_le_bytes());
+    h.update(bytes);
+    h.update(described.to_string().as_bytes());
+    h.finalize().iter().map(|b| format!("{b:02x}")).collect()
 }
 
 /// `radiance.bin`, little-endian: the magic `RADB`, u32 version 1, u32 frames F, u32 patches P,
@@ -579,5 +590,68 @@ mod tests {
         assert_eq!(gif_frames(1001, 1e12), (vec![0], 20));
         assert_eq!(frame_name(7, 25, "png"), "frame_0007.png");
         assert_eq!(frame_name(7, 100_000, "glb"), "frame_00007.glb");
+    }
+
+    fn params() -> BatchParams {
+        BatchParams {
+            load: LoadOptions::default(),
+            auto: true,
+            patch_budget: None,
+            lines: LineParams {
+                lines: 1_000_000,
+                seed: 1,
+            },
+            sky: [0.0; 3],
+            outputs: Outputs::default(),
+            force: false,
+            max_iterations: SolveParams::default().max_iterations,
+        }
+    }
+
+    #[test]
+    fn the_content_hash_is_sha256_of_the_bytes_and_every_parameter_that_changes_the_outputs() {
+        let base = content_hash(b"scene", &params());
+        assert_eq!(base.len(), 64);
+        assert!(base.bytes().all(|b| b.is_ascii_hexdigit()));
+        // Deterministic, and not a hash of the bytes alone.
+        assert_eq!(base, content_hash(b"scene", &params()));
+        assert_ne!(base, content_hash(b"scenf", &params()));
+        // The bytes are length-prefixed: moving a byte from the scene to the parameters'
+        // text cannot give the same input.
+        assert_ne!(content_hash(b"", &params()), content_hash(b"{", &params()));
+        let changed: Vec<fn(&mut BatchParams)> = vec![
+            |p| p.load.fps += 1.0,
+            |p| p.load.animation = Some("door".into()),
+            |p| p.load.start = Some(0.5),
+            |p| p.load.end = Some(1.5),
+            |p| p.load.patch_size = Some(0.25),
+            |p| p.load.max_frames += 1,
+            |p| p.load.max_patches += 1,
+            |p| p.load.max_work += 1,
+            |p| p.load.max_reflectance = 0.99,
+            |p| p.auto = false,
+            |p| p.patch_budget = Some(500),
+            |p| p.lines.lines += 1,
+            |p| p.lines.seed = 2,
+            |p| p.sky = [0.0, 0.0, 1e-9],
+            |p| p.max_iterations += 1,
+            |p| p.outputs.glb_frames = FrameSpec::List(vec![output::FrameItem::First]),
+            |p| p.outputs.preview_frames = FrameSpec::All,
+            |p| p.outputs.preview_size = (640, 481),
+            |p| p.outputs.gif = false,
+        ];
+        let mut seen = std::collections::HashSet::from([base.clone()]);
+        for (k, change) in changed.iter().enumerate() {
+            let mut p = params();
+            change(&mut p);
+            assert!(
+                seen.insert(content_hash(b"scene", &p)),
+                "change {k} left the hash"
+            );
+        }
+        // Only `force` does not change what is written.
+        let mut p = params();
+        p.force = true;
+        assert_eq!(content_hash(b"scene", &p), base);
     }
 }

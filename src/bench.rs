@@ -8,8 +8,9 @@ use std::time::Instant;
 use rayon::prelude::*;
 use serde::Serialize;
 
+use crate::control::{Control, TraceError};
 use crate::scene::{Material, Scene};
-use crate::timeline::{Control, IntersectionList, LineParams, TraceError};
+use crate::timeline::{IntersectionList, LineParams};
 use crate::trace::{Hit, Line, SceneTracer};
 
 /// Tracing figures: the multiframe list against tracing every frame independently.
@@ -65,11 +66,7 @@ pub fn trace(scene: &Scene, lines: u64, seed: u64) -> Result<TraceReport, TraceE
     let list = IntersectionList::build(
         scene,
         &tracer,
-        &LineParams {
-            lines,
-            bundles: None,
-            seed,
-        },
+        &LineParams { lines, seed },
         &Control::default(),
     )?;
     let list_seconds = start.elapsed().as_secs_f64();
@@ -432,11 +429,7 @@ fn timed_bake(
     (auto, split): (bool, bool),
 ) -> Result<Timed, TraceError> {
     let start = Instant::now();
-    let params = LineParams {
-        lines,
-        bundles: None,
-        seed,
-    };
+    let params = LineParams { lines, seed };
     let mut bake = crate::bake::Bake::trace(scene.clone(), &params)?;
     let solve = crate::solve::SolveParams::default();
     if auto {
@@ -1055,11 +1048,7 @@ pub fn patch_point(
 ) -> Result<PatchPoint, String> {
     use crate::adaptive::{Adaptive, adapt};
     let started = Instant::now();
-    let params = LineParams {
-        lines,
-        bundles: None,
-        seed,
-    };
+    let params = LineParams { lines, seed };
     let mut bake = crate::bake::Bake::trace(scene, &params).map_err(|e| e.to_string())?;
     let solve = crate::solve::SolveParams::default();
     let mut budget = None;

@@ -32,6 +32,8 @@
 //! - [`params`]: the rules on parameters that the CLI and the HTTP API share (the sky's
 //!   `r,g,b`, a timeline's start and end), so the two front ends cannot disagree.
 //! - [`service`]: the HTTP service (axum): jobs, their status and their frames.
+//! - [`control`]: progress and cancellation of long work, shared by the bake command and the
+//!   service.
 //! - [`batch`]: batch baking of scenes into files (`radiosity bake`).
 //! - [`bench`](mod@bench): the measurements behind the README's figures (`radiosity bench`).
 //! - [`samples`]: the generator of the sample scenes in `scenes/`.
@@ -42,6 +44,7 @@ pub mod adaptive;
 pub mod bake;
 pub mod batch;
 pub mod bench;
+pub mod control;
 pub mod direct;
 pub mod lines;
 pub mod loader;

@@ -270,11 +270,7 @@ fn run(cli: Cli) -> Result<(), String> {
                 auto,
                 patch_budget,
                 load: args.try_into()?,
-                lines: radiosity::timeline::LineParams {
-                    lines,
-                    bundles: None,
-                    seed,
-                },
+                lines: radiosity::timeline::LineParams { lines, seed },
                 sky: sky.0,
                 outputs: radiosity::batch::Outputs {
                     glb_frames,
@@ -604,9 +600,9 @@ async fn shutdown_signal() {
     tracing::info!("shutting down");
 }
 
-/// `WIDTHxHEIGHT`, each side from 1 to [`radiosity::batch::MAX_PREVIEW_SIDE`].
+/// `WIDTHxHEIGHT`, each side from 1 to [`radiosity::output::preview::MAX_PREVIEW_SIDE`].
 fn parse_size(s: &str) -> Result<(u32, u32), String> {
-    let max = radiosity::batch::MAX_PREVIEW_SIDE;
+    let max = radiosity::output::preview::MAX_PREVIEW_SIDE;
     let side = |t: &str| {
         t.trim()
             .parse::<u32>()
@@ -653,7 +649,7 @@ fn bake(
     if scenes.is_empty() {
         return Err("no .glb or .gltf scene in the inputs".into());
     }
-    let control = std::sync::Arc::new(radiosity::timeline::Control::default());
+    let control = std::sync::Arc::new(radiosity::control::Control::default());
     let handler = control.clone();
     ctrlc::set_handler(move || handler.cancel()).map_err(|e| format!("Ctrl-C handler: {e}"))?;
     let progress = Progress::new(control.clone());
@@ -703,7 +699,7 @@ fn bake(
 }
 
 /// Progress of a batch: on a terminal, a bar per stage with its ETA (indicatif), following the
-/// stage's [`radiosity::timeline::Control`]; otherwise (CI logs) one plain line per stage.
+/// stage's [`radiosity::control::Control`]; otherwise (CI logs) one plain line per stage.
 struct Progress {
     bar: Option<indicatif::ProgressBar>,
     ticker: Option<(
@@ -716,7 +712,7 @@ impl Progress {
     /// Resolution of the bar: the stage's fraction in thousandths.
     const STEPS: u64 = 1000;
 
-    fn new(control: std::sync::Arc<radiosity::timeline::Control>) -> Self {
+    fn new(control: std::sync::Arc<radiosity::control::Control>) -> Self {
         use std::io::IsTerminal;
         if !std::io::stderr().is_terminal() {
             return Self {

@@ -7,11 +7,12 @@ mod common;
 use glam::DVec3;
 use radiosity::adaptive::{Adaptive, adapt};
 use radiosity::bake::{Bake, Lights};
+use radiosity::control::Control;
 use radiosity::direct::reference::path_traced;
 use radiosity::loader::{LoadOptions, load};
 use radiosity::scene::Scene;
 use radiosity::solve::SolveParams;
-use radiosity::timeline::{Control, LineParams};
+use radiosity::timeline::LineParams;
 use serde_json::json;
 
 fn sample(name: &str, options: &LoadOptions) -> Scene {
@@ -22,11 +23,7 @@ fn sample(name: &str, options: &LoadOptions) -> Scene {
 }
 
 fn lines(n: u64) -> LineParams {
-    LineParams {
-        lines: n,
-        bundles: None,
-        seed: 3,
-    }
+    LineParams { lines: n, seed: 3 }
 }
 
 /// The moving Cornell box at 4 frames per second.

@@ -123,15 +123,7 @@ fn scene(plate: Option<(f64, f64)>, slide: Option<f64>, fps: f64) -> Scene {
 }
 
 fn bake(scene: Scene, lines: u64, seed: u64) -> Bake {
-    Bake::trace(
-        scene,
-        &LineParams {
-            lines,
-            bundles: None,
-            seed,
-        },
-    )
-    .unwrap()
+    Bake::trace(scene, &LineParams { lines, seed }).unwrap()
 }
 
 /// The mean over triangle `t` of `f`, by the midpoint rule on its 4^5 sub-triangles.

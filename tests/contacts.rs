@@ -241,15 +241,7 @@ fn bake_under_sky(scene: Scene, lines: u64, seed: u64, sky: f64) -> (Bake, Vec<F
         sky: [sky; 3],
         ..SolveParams::default()
     };
-    let bake = Bake::trace(
-        scene,
-        &LineParams {
-            lines,
-            bundles: None,
-            seed,
-        },
-    )
-    .unwrap();
+    let bake = Bake::trace(scene, &LineParams { lines, seed }).unwrap();
     let solved = (0..bake.scene.frames.count)
         .map(|f| bake.solve_frame(f, &bake.scene.materials, &params))
         .collect();

@@ -19,22 +19,19 @@ use std::path::{Path, PathBuf};
 use common::Doc;
 use radiosity::bake::Bake;
 use radiosity::batch::{BatchParams, Outcome, Outputs, bake_one};
+use radiosity::control::Control;
 use radiosity::loader::{LoadError, LoadOptions, MAX_REFLECTANCE, load};
 use radiosity::output::{FrameItem, FrameSpec};
 use radiosity::scene::Scene;
 use radiosity::solve::{FrameSolution, SolveParams};
-use radiosity::timeline::{Control, LineParams};
+use radiosity::timeline::LineParams;
 use serde_json::json;
 
 /// Relative error allowed on a furnace's answer (see the module's comment).
 const FURNACE_TOLERANCE: f64 = 1e-6;
 
 fn lines(n: u64) -> LineParams {
-    LineParams {
-        lines: n,
-        bundles: None,
-        seed: 1,
-    }
+    LineParams { lines: n, seed: 1 }
 }
 
 /// A material named `name` reflecting ρ (metallic 0) and emitting `strength` (white, through

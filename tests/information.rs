@@ -10,15 +10,7 @@ use radiosity::solve::information::Information;
 use radiosity::timeline::LineParams;
 
 fn information(scene: Scene, lines: u64) -> Information {
-    let bake = Bake::trace(
-        scene,
-        &LineParams {
-            lines,
-            bundles: None,
-            seed: 5,
-        },
-    )
-    .unwrap();
+    let bake = Bake::trace(scene, &LineParams { lines, seed: 5 }).unwrap();
     Information::measure(
         &bake.scene,
         bake.list(),

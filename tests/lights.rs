@@ -78,7 +78,6 @@ fn bake(scene: Scene) -> Bake {
         scene,
         &LineParams {
             lines: 20_000,
-            bundles: None,
             seed: 3,
         },
     )

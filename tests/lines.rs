@@ -380,10 +380,9 @@ fn each_frame_extracted_from_the_list_equals_that_frame_traced_alone() {
         &tracer,
         &LineParams {
             lines: 5_000,
-            bundles: None,
             seed: 11,
         },
-        &radiosity::timeline::Control::default(),
+        &radiosity::control::Control::default(),
     )
     .unwrap();
     let lines: Vec<Line> = list.regenerate_lines(&scene).collect();
@@ -424,10 +423,9 @@ fn the_list_does_not_depend_on_the_number_of_threads() {
                 &tracer,
                 &LineParams {
                     lines: 3_000,
-                    bundles: None,
                     seed: 5,
                 },
-                &radiosity::timeline::Control::default(),
+                &radiosity::control::Control::default(),
             )
             .unwrap()
         })
@@ -450,28 +448,27 @@ fn refinement_adds_lines_without_touching_the_old_ones() {
     let tracer = SceneTracer::new(&scene);
     let params = LineParams {
         lines: 2_000,
-        bundles: None,
         seed: 9,
     };
     let first = IntersectionList::build(
         &scene,
         &tracer,
         &params,
-        &radiosity::timeline::Control::default(),
+        &radiosity::control::Control::default(),
     )
     .unwrap();
     let mut more = IntersectionList::build(
         &scene,
         &tracer,
         &params,
-        &radiosity::timeline::Control::default(),
+        &radiosity::control::Control::default(),
     )
     .unwrap();
     more.add_lines(
         &scene,
         &tracer,
         &params,
-        &radiosity::timeline::Control::default(),
+        &radiosity::control::Control::default(),
     )
     .unwrap();
     assert!(more.lines() > first.lines() * 19 / 10);
@@ -497,10 +494,9 @@ fn scene_statistics_match_their_predictions() {
         &tracer,
         &LineParams {
             lines: 20_000,
-            bundles: None,
             seed: 1,
         },
-        &radiosity::timeline::Control::default(),
+        &radiosity::control::Control::default(),
     )
     .unwrap();
     let stats = SceneStats::measure(&scene, &list, 0);
@@ -518,13 +514,12 @@ fn scene_statistics_match_their_predictions() {
 
 #[test]
 fn a_cancelled_trace_leaves_the_list_as_it_was() {
-    use radiosity::timeline::{Control, TraceError};
+    use radiosity::control::{Control, TraceError};
     let scene = animated_scene(4.0);
     let tracer = SceneTracer::new(&scene);
     let control = Control::default();
     let params = LineParams {
         lines: 2_000,
-        bundles: None,
         seed: 1,
     };
     let mut list = IntersectionList::build(&scene, &tracer, &params, &control).unwrap();

@@ -89,10 +89,9 @@ fn closed_scenes_are_watertight_at_every_frame() {
             &tracer,
             &LineParams {
                 lines: 20_000,
-                bundles: None,
                 seed: 3,
             },
-            &radiosity::timeline::Control::default(),
+            &radiosity::control::Control::default(),
         )
         .unwrap();
         let mut hits = Vec::new();

@@ -18,11 +18,7 @@ fn sample(name: &str, options: &LoadOptions) -> Scene {
 }
 
 fn lines(n: u64, seed: u64) -> LineParams {
-    LineParams {
-        lines: n,
-        bundles: None,
-        seed,
-    }
+    LineParams { lines: n, seed }
 }
 
 #[test]
@@ -286,7 +282,7 @@ fn refinement_lowers_the_error() {
         (s.radiance[p][0], s.stderr[p].unwrap()[0])
     };
     let (_, coarse) = receiver(&bake);
-    bake.refine(30_000, &radiosity::timeline::Control::default())
+    bake.refine(30_000, &radiosity::control::Control::default())
         .unwrap();
     let (value, fine) = receiver(&bake);
     assert!(fine < coarse / 3.0, "error {coarse} → {fine}");

@@ -3,11 +3,12 @@
 
 use radiosity::bake::Bake;
 use radiosity::bench::{PatchClass, dark_floor};
+use radiosity::control::Control;
 use radiosity::direct::reference::path_traced;
 use radiosity::loader::{LoadOptions, load};
 use radiosity::scene::Scene;
 use radiosity::solve::SolveParams;
-use radiosity::timeline::{Control, LineParams};
+use radiosity::timeline::LineParams;
 
 fn sample(name: &str) -> Scene {
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -27,7 +28,6 @@ fn pieces_bring_the_cornell_box_closer_to_the_path_tracer_and_its_error_bars_cov
     let scene = sample("cornell_box.gltf");
     let params = LineParams {
         lines: 200_000,
-        bundles: None,
         seed: 4,
     };
     let solve = SolveParams::default();
@@ -89,7 +89,6 @@ fn a_split_bake_keeps_its_patches_and_a_furnace_stays_exact() {
     let patches = scene.patches.clone();
     let params = LineParams {
         lines: 20_000,
-        bundles: None,
         seed: 5,
     };
     let mut bake = Bake::trace(scene, &params).unwrap();
@@ -130,7 +129,6 @@ fn light_trapped_in_a_gap_stays_there_at_the_sources_own_triangles() {
         let scene = load(&std::fs::read(path).unwrap(), &options).unwrap();
         let params = LineParams {
             lines: 200_000,
-            bundles: None,
             seed: 6,
         };
         let mut bake = Bake::trace(scene, &params).unwrap();

@@ -9,12 +9,13 @@ use std::sync::Arc;
 
 use rayon::prelude::*;
 
+use crate::control::{Control, TraceError};
 use crate::direct::DirectLight;
 use crate::direct::area::{AreaLights, Sampling};
 use crate::scene::{Light, Material, Scene};
 use crate::solve::tally::{FrameTally, Tallies};
 use crate::solve::{Direct, FrameSolution, Groups, SolveParams, solve_answer, solve_grouped};
-use crate::timeline::{Control, IntersectionList, LineParams, TraceError};
+use crate::timeline::{IntersectionList, LineParams};
 use crate::trace::SceneTracer;
 
 /// A traced scene, ready to solve any frame with any materials.
@@ -144,7 +145,6 @@ impl Bake {
     pub fn refine(&mut self, lines: u64, control: &Control) -> Result<(), TraceError> {
         let params = LineParams {
             lines,
-            bundles: None,
             seed: self.seed,
         };
         let patches = self.scene.patches.len();

@@ -49,9 +49,9 @@ use rand::{RngExt, SeedableRng};
 use rayon::prelude::*;
 
 use super::{Face, Frame, Occluders, Posed, geometry_key, triangle_point};
+use crate::control::{Control, TraceError};
 use crate::scene::subdivide::normal_and_area;
 use crate::scene::{Faces, Material, Motion, Scene};
-use crate::timeline::{Control, TraceError};
 use crate::trace::coincident::mix;
 use crate::trace::{FrameMeshes, SceneTracer};
 

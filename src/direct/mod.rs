@@ -30,10 +30,10 @@ use rand::rngs::Xoshiro256PlusPlus;
 use rand::{RngExt, SeedableRng};
 use rayon::prelude::*;
 
+use crate::control::{Control, TraceError};
 use crate::lines::parallel_bundle;
 use crate::scene::subdivide::normal_and_area;
 use crate::scene::{Faces, Light, LightKind, Scene};
-use crate::timeline::{Control, TraceError};
 use crate::trace::coincident::{COINCIDENT, mix, resolve};
 use crate::trace::{FrameMeshes, Hit, Line, SceneTracer};
 

@@ -14,6 +14,10 @@ pub use crate::scene::Projection;
 /// Samples per pixel side.
 const SUPERSAMPLE: u32 = 2;
 
+/// Largest side of a preview, pixels (the bake command's `--preview-size`, the service's
+/// preview routes): a preview, not a render farm.
+pub const MAX_PREVIEW_SIDE: u32 = 2048;
+
 /// Colour behind everything, linear.
 const BACKGROUND: [f32; 3] = [0.02, 0.02, 0.025];
 

@@ -11,9 +11,10 @@ use tokio::sync::{Semaphore, watch};
 use super::store::{Record, Store};
 use crate::adaptive::{self, Adaptive};
 use crate::bake::Bake;
+use crate::control::{Control, TraceError};
 use crate::scene::{Material, Scene};
 use crate::solve::{FrameSolution, NotConverged, SolveParams};
-use crate::timeline::{Control, LineParams, TraceError};
+use crate::timeline::LineParams;
 
 /// Where a job is in its life.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
@@ -247,7 +248,6 @@ impl Job {
             auto: None,
             lines: LineParams {
                 lines: record.lines,
-                bundles: None,
                 seed: record.seed,
             },
             lines_total: AtomicU64::new(record.lines),

@@ -197,7 +197,6 @@ impl CreateQuery {
         params::validate_load(&options)?;
         let lines = LineParams {
             lines,
-            bundles: None,
             seed: self.seed.unwrap_or(1),
         };
         Ok((options, lines, self.sky.unwrap_or_default().0, auto))
@@ -267,10 +266,10 @@ pub(super) struct PreviewQuery {
 }
 
 impl PreviewQuery {
-    /// Width, height (each from 1 to [`crate::batch::MAX_PREVIEW_SIDE`]) and the exposure (> 0)
+    /// Width, height (each from 1 to [`crate::output::preview::MAX_PREVIEW_SIDE`]) and the exposure (> 0)
     /// if one is asked for.
     pub(super) fn validate(self) -> Result<(u32, u32, Option<f64>), ApiError> {
-        let max = crate::batch::MAX_PREVIEW_SIDE;
+        let max = crate::output::preview::MAX_PREVIEW_SIDE;
         let side = |name: &str, value: Option<u32>, default: u32| match value {
             None => Ok(default),
             Some(s) if (1..=max).contains(&s) => Ok(s),

@@ -10,7 +10,7 @@
 
 pub mod stats;
 
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use crate::control::{Control, TraceError};
 
 use rayon::prelude::*;
 
@@ -24,8 +24,6 @@ pub struct LineParams {
     /// Total number of lines (approximately: the grids' random offsets move it by a fraction of
     /// a percent).
     pub lines: u64,
-    /// Number of bundles (directions); defaults to √lines.
-    pub bundles: Option<u32>,
     /// Seed of the line set: the same seed gives the same lines, whatever the thread count.
     pub seed: u64,
 }
@@ -77,79 +75,6 @@ pub struct FrameHit {
     pub frame: u32,
     /// The crossing.
     pub hit: Hit,
-}
-
-/// Why lines could not be added.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
-pub enum TraceError {
-    /// The list would hold more crossings than its 32-bit offsets address (about 32 GiB of
-    /// crossings: far beyond any memory budget, so a caller's budget check comes first).
-    #[error("more than 2^32 crossings in one intersection list: use fewer lines")]
-    TooManyHits,
-    /// [`Control::cancel`] was called; the list is as it was before.
-    #[error("cancelled")]
-    Cancelled,
-}
-
-/// Progress and cancellation shared between a running trace and whoever watches it (another
-/// thread): checked between bundles, so a cancel takes effect within one bundle's work.
-#[derive(Debug, Default)]
-pub struct Control {
-    cancelled: AtomicBool,
-    /// Line traversals done and to do (a line counts once for the static geometry and once
-    /// per frame for the moving objects).
-    done: AtomicU64,
-    total: AtomicU64,
-}
-
-impl Control {
-    /// Asks the trace to stop.
-    pub fn cancel(&self) {
-        self.cancelled.store(true, Ordering::Relaxed);
-    }
-
-    /// Whether [`Control::cancel`] was called.
-    #[must_use]
-    pub fn is_cancelled(&self) -> bool {
-        self.cancelled.load(Ordering::Relaxed)
-    }
-
-    /// Fraction of the current stage's work done (the tracing, unless a caller started another
-    /// stage), in [0, 1].
-    #[must_use]
-    pub fn fraction(&self) -> f64 {
-        let total = self.total.load(Ordering::Relaxed);
-        if total == 0 {
-            0.0
-        } else {
-            self.done.load(Ordering::Relaxed) as f64 / total as f64
-        }
-    }
-
-    /// Starts measuring a new stage of `work` units from zero (a trace adds its own work to
-    /// it); cancellation is unaffected.
-    pub fn start_stage(&self, work: u64) {
-        self.done.store(0, Ordering::Relaxed);
-        self.total.store(work, Ordering::Relaxed);
-    }
-
-    /// Adds `work` units to do in the current stage.
-    pub fn add_work(&self, work: u64) {
-        self.total.fetch_add(work, Ordering::Relaxed);
-    }
-
-    /// Records `work` more units done in the current stage.
-    pub fn advance(&self, work: u64) {
-        self.done.fetch_add(work, Ordering::Relaxed);
-    }
-
-    pub(crate) fn check(&self) -> Result<(), TraceError> {
-        if self.is_cancelled() {
-            Err(TraceError::Cancelled)
-        } else {
-            Ok(())
-        }
-    }
 }
 
 /// A batch of lines in the list and where its lines start.
@@ -229,13 +154,7 @@ impl IntersectionList {
         control: &Control,
     ) -> Result<(), TraceError> {
         let index = self.batches.len() as u32;
-        let batch = Batch::for_budget(
-            params.lines,
-            params.bundles,
-            &scene.bounds,
-            params.seed,
-            index,
-        );
+        let batch = Batch::for_budget(params.lines, None, &scene.bounds, params.seed, index);
         let bundles: Vec<Bundle> = (0..batch.bundles)
             .into_par_iter()
             .map(|k| {
@@ -255,7 +174,7 @@ impl IntersectionList {
         } else {
             self.frames as u64
         };
-        control.total.fetch_add(lines * passes, Ordering::Relaxed);
+        control.add_work(lines * passes);
 
         // Nothing is appended to the list until everything is traced: a cancelled or failed
         // batch leaves the list as it was.
@@ -265,9 +184,7 @@ impl IntersectionList {
                 if control.is_cancelled() {
                     return (Vec::new(), Vec::new());
                 }
-                control
-                    .done
-                    .fetch_add(bundle.origins.len() as u64, Ordering::Relaxed);
+                control.advance(bundle.origins.len() as u64);
                 let mut counts = Vec::with_capacity(bundle.origins.len());
                 let mut hits = Vec::new();
                 for line in lines_of(bundle) {
@@ -294,9 +211,7 @@ impl IntersectionList {
                         if control.is_cancelled() {
                             return Vec::new();
                         }
-                        control
-                            .done
-                            .fetch_add(bundle.origins.len() as u64, Ordering::Relaxed);
+                        control.advance(bundle.origins.len() as u64);
                         trace_moving_bundle(tracer, bundle, frame, &deformed)
                     })
                     .collect();
