@@ -19,6 +19,7 @@
 //! forced; a scene that fails does not stop the others. A frame whose solve does not converge
 //! fails its scene before anything is written.
 
+use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -468,15 +469,24 @@ pub fn bake_one(
         bake.scene.frames.count
     ));
     let started = Instant::now();
-    let frames = bake.solve_all_with(&bake.scene.materials, &solve, control);
+    let (mut frames, mut failed) = (Vec::with_capacity(bake.scene.frames.count), None);
+    let power = bake.light_power();
+    let solving = (&bake.scene.materials[..], &power[..], &solve);
+    // Each distinct frame solved is one unit of the stage's work.
+    control.add_work(bake.solve_runs().iter().map(Vec::len).sum::<usize>() as u64);
+    let progress = |n: usize| control.advance(n as u64);
+    bake.solve_frames(solving, (usize::MAX, control), &progress, |f, s| {
+        if let Err(e) = s.ensure_converged(f, &solve) {
+            failed = Some(e);
+            return ControlFlow::Break(());
+        }
+        frames.push(s.clone());
+        ControlFlow::Continue(())
+    });
     if control.is_cancelled() {
         return Outcome::Cancelled;
     }
-    if let Some(e) = frames
-        .iter()
-        .enumerate()
-        .find_map(|(f, s)| s.ensure_converged(f, &solve).err())
-    {
+    if let Some(e) = failed {
         return Outcome::Failed(e.to_string());
     }
     let solve_seconds = started.elapsed().as_secs_f64();

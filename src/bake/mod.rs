@@ -5,6 +5,7 @@
 
 pub mod gaps;
 
+use std::ops::ControlFlow;
 use std::sync::Arc;
 
 use rayon::prelude::*;
@@ -807,13 +808,25 @@ impl Bake {
     }
 
     /// Solves every frame; frames with identical tallies and direct light share one solution.
+    /// Every frame is answered, converged or not (check [`FrameSolution::ensure_converged`]).
     #[must_use]
     pub fn solve_all(
         &self,
         materials: &[Material],
         params: &SolveParams,
     ) -> Vec<Arc<FrameSolution>> {
-        self.solve_all_with(materials, params, &Control::default())
+        let mut frames = Vec::with_capacity(self.scene.frames.count);
+        let power = self.light_power();
+        self.solve_frames(
+            (materials, &power, params),
+            (usize::MAX, &Control::default()),
+            &|_| {},
+            |_, s| {
+                frames.push(s.clone());
+                ControlFlow::Continue(())
+            },
+        );
+        frames
     }
 
     /// The runs frames are solved in: the distinct frames (those that share no other's
@@ -852,39 +865,61 @@ impl Bake {
             .collect()
     }
 
-    /// [`Bake::solve_all`], adding each distinct frame to solve as one unit of work to
-    /// `control`'s current stage. The runs ([`Bake::solve_runs`]) are solved in parallel.
-    #[must_use]
-    pub fn solve_all_with(
+    /// Solves every frame with `materials`, the lights at `power` and `params`, and gives each
+    /// to `serve` in frame order: the one rule for which frames are solved, shared and served,
+    /// that the bake command and the service both follow. The runs of [`Bake::solve_runs`] are
+    /// solved `at_once` at a time in parallel (the service: one per thread, so that a stream
+    /// sees its first frames soon; a bake: all of them), and after each batch every frame up
+    /// to the next distinct frame not yet solved is served (a frame shares its
+    /// representative's solution, which comes no later than it). `solved` is told, from any
+    /// thread, how many distinct frames each run solved (a progress bar's work). Stops when
+    /// `control` is cancelled or `serve` breaks (a frame that does not converge, say): the
+    /// frames after it are neither solved nor served.
+    pub fn solve_frames(
         &self,
-        materials: &[Material],
-        params: &SolveParams,
-        control: &Control,
-    ) -> Vec<Arc<FrameSolution>> {
+        (materials, power, params): (&[Material], &[[f64; 3]], &SolveParams),
+        (at_once, control): (usize, &Control),
+        solved: &(dyn Fn(usize) + Sync),
+        mut serve: impl FnMut(usize, &Arc<FrameSolution>) -> ControlFlow<()>,
+    ) {
         let representatives = self.representatives();
         let runs = self.solve_runs();
-        control.add_work(runs.iter().map(Vec::len).sum::<usize>() as u64);
-        let power = self.light_power();
-        let solved: Vec<(usize, Arc<FrameSolution>)> = runs
-            .par_iter()
-            .flat_map_iter(|run| {
-                let solved = self.solve_run(run, materials, &power, params);
-                control.advance(run.len() as u64);
-                solved
-            })
-            .collect();
-        let mut by_frame: Vec<Option<Arc<FrameSolution>>> = vec![None; representatives.len()];
-        for (f, s) in solved {
-            by_frame[f] = Some(s);
+        let count = representatives.len();
+        let mut by_frame: Vec<Option<Arc<FrameSolution>>> = vec![None; count];
+        let mut frame = 0;
+        let at_once = at_once.max(1);
+        for (k, batch) in runs.chunks(at_once).enumerate() {
+            if control.is_cancelled() {
+                return;
+            }
+            let frames: Vec<(usize, Arc<FrameSolution>)> = batch
+                .par_iter()
+                .flat_map_iter(|run| {
+                    if control.is_cancelled() {
+                        return Vec::new();
+                    }
+                    let frames = self.solve_run(run, materials, power, params);
+                    solved(run.len());
+                    frames
+                })
+                .collect();
+            if control.is_cancelled() {
+                return;
+            }
+            for (f, s) in frames {
+                by_frame[f] = Some(s);
+            }
+            let next = runs.get((k + 1) * at_once).map_or(count, |run| run[0]);
+            for f in frame..next {
+                let Some(solution) = &by_frame[representatives[f]] else {
+                    return;
+                };
+                if serve(f, solution).is_break() {
+                    return;
+                }
+            }
+            frame = next;
         }
-        representatives
-            .iter()
-            .map(|&r| {
-                by_frame[r]
-                    .clone()
-                    .unwrap_or_else(|| Arc::new(self.solve_frame(r, materials, params)))
-            })
-            .collect()
     }
 }
 

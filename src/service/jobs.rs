@@ -1,6 +1,7 @@
 //! Jobs: one timeline each, traced and solved off the async runtime, a bounded number at once.
 
 use std::collections::HashMap;
+use std::ops::ControlFlow;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
 use std::time::Instant;
@@ -482,8 +483,8 @@ impl Job {
         }
     }
 
-    /// Solves every frame for the current version by the bake command's runs
-    /// ([`Bake::solve_runs`]: the same answers), a run per core at a time and in order, so
+    /// Solves every frame for the current version as the bake command does
+    /// ([`Bake::solve_frames`]: the same answers), a run per core at a time and in order, so
     /// that streams see the frames in order. A frame that does not converge stops the work:
     /// the frames before it are kept, it and those after are not.
     fn solve_frames(&self, bake: &Bake) -> Result<(), NotConverged> {
@@ -492,56 +493,31 @@ impl Job {
         let version = self.version.load(Ordering::Acquire);
         self.frames_solved.store(0, Ordering::Release);
         let params = self.solve;
-        let representatives = bake.representatives();
         let materials = self.materials.lock().map(|m| m.clone()).unwrap_or_default();
         let power: Vec<[f64; 3]> = self
             .lights
             .lock()
             .map(|l| l.iter().map(LightSetting::power).collect())
             .unwrap_or_default();
-        // The bake command's runs ([`Bake::solve_runs`]), as many at a time as there are
-        // threads, in order: after each batch the frames up to the next distinct frame not
-        // yet solved are served (a frame shares its representative's solution, which comes
-        // no later than it).
-        let runs = bake.solve_runs();
-        let threads = rayon::current_num_threads().max(1);
-        let frames = representatives.len();
-        let mut by_frame: Vec<Option<Arc<FrameSolution>>> = vec![None; frames];
-        let mut frame = 0;
-        for (k, batch) in runs.chunks(threads).enumerate() {
-            if self.control.is_cancelled() {
-                return Ok(());
+        // The bake command's rule ([`Bake::solve_frames`]), a run per thread at a time, each
+        // frame published as soon as it is served.
+        let threads = rayon::current_num_threads();
+        let mut failed = None;
+        let solving = (&materials[..], &power[..], &params);
+        bake.solve_frames(solving, (threads, &self.control), &|_| {}, |f, solution| {
+            if let Err(e) = solution.ensure_converged(f, &params) {
+                failed = Some(e);
+                return ControlFlow::Break(());
             }
-            let solved: Vec<(usize, Arc<FrameSolution>)> = {
-                use rayon::prelude::*;
-                batch
-                    .par_iter()
-                    .flat_map_iter(|run| bake.solve_run(run, &materials, &power, &params))
-                    .collect()
-            };
-            let failed = solved
-                .iter()
-                .find_map(|(f, s)| s.ensure_converged(*f, &params).err());
-            for (f, s) in solved {
-                by_frame[f] = Some(s);
-            }
-            // Served: the frames before the first distinct frame not solved (or failed).
-            let next = runs
-                .get((k + 1) * threads)
-                .map_or(frames, |run| run[0])
-                .min(failed.as_ref().map_or(frames, |e| e.frame));
             if let Ok(mut results) = self.results.write() {
-                for f in frame..next {
-                    let solution = by_frame[representatives[f]].clone();
-                    results[f] = solution.map(|s| (version, s));
-                }
+                results[f] = Some((version, solution.clone()));
             }
-            frame = next;
-            self.frames_solved.store(frame, Ordering::Release);
-            self.solved.send_replace(frame);
-            if let Some(e) = failed {
-                return Err(e);
-            }
+            self.frames_solved.store(f + 1, Ordering::Release);
+            self.solved.send_replace(f + 1);
+            ControlFlow::Continue(())
+        });
+        if let Some(e) = failed {
+            return Err(e);
         }
         if let Ok(mut s) = self.state.lock() {
             s.timings.solve += started.elapsed().as_secs_f64();
