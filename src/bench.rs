@@ -353,6 +353,9 @@ struct Reference {
     half_difference: Option<PerFrame<f64>>,
     /// The spread and half the difference of its two halves' estimates.
     spread: Option<PerFrame<(f64, f64)>>,
+    /// Per frame and patch, the share of its area no surface touches (what can be seen of it,
+    /// which it is measured over and weighs by); all of it if `None`.
+    visible: Option<Vec<Vec<f64>>>,
 }
 
 /// The path-traced reference ([`crate::direct::reference::path_traced`]) of `bake`'s patches
@@ -369,6 +372,7 @@ fn path_traced(
     let per_patch = (paths / 2 / scene.patches.len().max(1)).max(32);
     let (mut values, mut sigma, mut half_difference, mut spread) =
         (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let mut visible = Vec::new();
     for &frame in frames {
         let traced = |seed| {
             crate::direct::reference::path_traced(scene, bake.tracer(), frame, per_patch, sky, seed)
@@ -388,6 +392,11 @@ fn path_traced(
         half_difference.push(
             pairs()
                 .map(|(a, b)| from_fn(|c| 0.5 * (a.radiance[c] - b.radiance[c])))
+                .collect(),
+        );
+        visible.push(
+            pairs()
+                .map(|(a, b)| 0.5 * (a.visible + b.visible))
                 .collect(),
         );
         spread.push(
@@ -410,6 +419,7 @@ fn path_traced(
         sigma,
         half_difference: Some(half_difference),
         spread: Some(spread),
+        visible: Some(visible),
     }
 }
 
@@ -502,6 +512,7 @@ fn closed_form(name: &str, scene: &Scene) -> Option<Reference> {
         values: vec![per_patch; frames],
         half_difference: None,
         spread: None,
+        visible: None,
     })
 }
 
@@ -525,6 +536,8 @@ fn compare(
         let dark = dark_floor(scene, values);
         for (i, p) in scene.patches.iter().enumerate() {
             let m = &scene.materials[p.material as usize];
+            // What can be seen of the patch weighs (a floor patch under a box, the rest).
+            let area = p.area * reference.visible.as_ref().map_or(1.0, |v| v[k][i]);
             // The halves' difference in this patch's spread, over its channels (which share
             // their paths).
             let mut spread_apart = 0.0;
@@ -533,45 +546,45 @@ fn compare(
                     continue;
                 }
                 let (l, r) = (s.radiance[i][c], values[i][c]);
-                num += p.area * (l - r).powi(2);
-                den += p.area * r * r;
+                num += area * (l - r).powi(2);
+                den += area * r * r;
                 match PatchClass::of(m, c, r, dark) {
-                    Some(PatchClass::Emitter) => emitters.add(p.area, (l - r) / r),
+                    Some(PatchClass::Emitter) => emitters.add(area, (l - r) / r),
                     Some(PatchClass::Lit) => {
                         let e = (l - r) / r;
-                        lit.add(p.area, e);
+                        lit.add(area, e);
                         if reference.frames.len() == 1 {
                             match contributions.last_mut() {
-                                Some((sum, j)) if *j == i => *sum += p.area * e * e,
-                                _ => contributions.push((p.area * e * e, i)),
+                                Some((sum, j)) if *j == i => *sum += area * e * e,
+                                _ => contributions.push((area * e * e, i)),
                             }
                         }
                         let own = reference.sigma[k][i][c];
                         let h = (reference.half_difference.as_ref()).map_or(0.0, |h| h[k][i][c]);
                         if own > 0.0 {
-                            calibration += p.area * (h / own).powi(2);
+                            calibration += area * (h / own).powi(2);
                         }
-                        noise += p.area * (h / r).powi(2);
-                        squared_error += p.area * ((l - r).powi(2) - h * h);
+                        noise += area * (h / r).powi(2);
+                        squared_error += area * ((l - r).powi(2) - h * h);
                         if let Some(s) = reference.spread.as_ref() {
-                            spread += p.area * s[k][i][c].0;
-                            spread_apart += p.area * s[k][i][c].1;
+                            spread += area * s[k][i][c].0;
+                            spread_apart += area * s[k][i][c].1;
                         }
-                        squared += p.area * r * r;
-                        noise_squared += p.area * h * h;
-                        baked += p.area * l;
-                        traced += p.area * r;
+                        squared += area * r * r;
+                        noise_squared += area * h * h;
+                        baked += area * l;
+                        traced += area * r;
                         // A patch no line crossed has no error bar: never covered.
                         if let Some(e) = s.stderr[i] {
                             let sigma = e[c].hypot(own);
                             if (l - r).abs() <= 2.0 * sigma + 1e-9 * r {
-                                within += p.area;
+                                within += area;
                             }
                             if sigma > 0.0 {
                                 z.push((l - r).abs() / sigma);
                             }
-                            estimated += p.area * (e[c] / r).powi(2);
-                            sampled += p.area;
+                            estimated += area * (e[c] / r).powi(2);
+                            sampled += area;
                         }
                     }
                     None => dark_values += usize::from(!m.is_emitter()),
@@ -805,6 +818,7 @@ mod tests {
             values: vec![values],
             half_difference: None,
             spread: None,
+            visible: None,
         };
         let m = compare(&scene, &[solution(solved, stderr)], &reference);
         assert!(close(m.lit_error, 0.03), "{m:?}");
@@ -836,6 +850,7 @@ mod tests {
                     .map(|r| r.map(|x| ((variation * x).powi(2), 0.0)))
                     .collect(),
             ]),
+            visible: None,
         };
         // 5% off everywhere against a reference whose own noise is 3%: 4% is the bake's.
         let solved = [solution(scaled(1.05), vec![Some([0.01; 3]); n])];
@@ -945,6 +960,7 @@ mod tests {
             sigma: vec![vec![[0.0; 3]; n]],
             half_difference: None,
             spread: None,
+            visible: None,
         };
         let m = compare(&scene, &solved, &reference);
         assert_eq!((m.lit_error, m.coverage, m.median_z), (None, None, None));

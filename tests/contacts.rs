@@ -362,8 +362,42 @@ fn a_box_on_the_floor_leaves_its_contact_dark() {
     assert!(around > 0.3 * reference, "{around} {reference}");
 }
 
+/// The share of floor triangle `c` (scene units) outside the square `|x|, |z| ≤ half` that a
+/// box standing on it covers: its triangle clipped to the square (Sutherland–Hodgman) in the
+/// floor's plane.
+fn open_share(c: &[glam::DVec3; 3], half: f64) -> f64 {
+    let area = |p: &[glam::DVec2]| {
+        let n = p.len();
+        0.5 * (0..n)
+            .map(|k| p[k].perp_dot(p[(k + 1) % n]))
+            .sum::<f64>()
+            .abs()
+    };
+    let triangle: Vec<glam::DVec2> = c.iter().map(|v| glam::DVec2::new(v.x, v.z)).collect();
+    let mut inside = triangle.clone();
+    // Each side of the square as (axis, sign): keep sign·p[axis] ≤ half.
+    for (axis, sign) in [(0, 1.0), (0, -1.0), (1, 1.0), (1, -1.0)] {
+        let d = |p: glam::DVec2| sign * p[axis] - half;
+        let mut out = Vec::new();
+        for k in 0..inside.len() {
+            let (a, b) = (inside[k], inside[(k + 1) % inside.len()]);
+            if d(a) <= 0.0 {
+                out.push(a);
+            }
+            if (d(a) <= 0.0) != (d(b) <= 0.0) {
+                out.push(a + (b - a) * (d(a) / (d(a) - d(b))));
+            }
+        }
+        inside = out;
+        if inside.is_empty() {
+            break;
+        }
+    }
+    1.0 - area(&inside) / area(&triangle)
+}
+
 #[test]
-fn a_floor_patch_partly_under_the_box_is_the_average_of_its_parts() {
+fn a_floor_patch_partly_under_the_box_answers_for_what_can_be_seen_of_it() {
     let (lines, seed) = (1_000_000, 2);
     let coarse = Room {
         step: COARSE,
@@ -375,24 +409,39 @@ fn a_floor_patch_partly_under_the_box_is_the_average_of_its_parts() {
         ..coarse
     };
     let (cut, cut_s) = bake(cut_room.scene(), lines, seed + 1);
-    // Per floor cell of the grid that the box's edge crosses: the area average of the whole
-    // bake's two triangles against that of the cut bake's pieces in the cell.
+    // Per floor cell of the grid that the box's edge crosses: the mean over what can be seen
+    // (the part the box does not cover) of the whole bake's two triangles, each answering for
+    // its visible part, against that of the cut bake's pieces in the cell (those under the box
+    // weigh nothing). Taking the whole triangles' answers as area averages, dark under the box,
+    // reads 11 to 25 standard errors off.
     let cell_of = |c: &[glam::DVec3; 3]| {
         let centre = (c[0] + c[1] + c[2]) / 3.0;
         let k = |v: f64| ((v + f64::from(ROOM)) / f64::from(COARSE)).floor() as i32;
         (k(centre.x), k(centre.z))
     };
     let per_cell = |scene: &Scene, s: &FrameSolution| {
-        let mut cells: std::collections::BTreeMap<(i32, i32), Vec<u32>> = Default::default();
+        type Cell = Vec<(u32, f64)>;
+        let mut cells: std::collections::BTreeMap<(i32, i32), Cell> = Default::default();
         for (p, c) in patch_corners(scene, 0) {
             let patch = &scene.patches[p as usize];
             if patch.source.node == node("floor") && patch.side == Side::Front {
-                cells.entry(cell_of(&c)).or_default().push(p);
+                let seen = patch.area * open_share(&c, f64::from(BOX));
+                cells.entry(cell_of(&c)).or_default().push((p, seen));
             }
         }
+        let mean = |patches: Cell| {
+            let total: f64 = patches.iter().map(|q| q.1).sum();
+            let (mut m, mut var) = (0.0, 0.0);
+            for (p, seen) in patches {
+                let w = seen / total;
+                m += w * s.radiance[p as usize][0];
+                var += (w * s.stderr[p as usize].map_or(0.0, |e| e[0])).powi(2);
+            }
+            (m, var.sqrt())
+        };
         cells
             .into_iter()
-            .map(|(k, patches)| (k, mean(scene, s, &patches)))
+            .map(|(k, patches)| (k, mean(patches)))
             .collect::<std::collections::BTreeMap<_, _>>()
     };
     let (a, b) = (

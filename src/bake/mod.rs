@@ -677,7 +677,7 @@ impl Bake {
         match &self.pieces {
             Some(pieces) => {
                 let tally = (pieces.tallies).frame(&self.list, &pieces.tracer.surfaces(), frame);
-                let state = (&pieces.scene, &pieces.direct, &pieces.area);
+                let state = (&pieces.scene, &pieces.tracer, &pieces.direct, &pieces.area);
                 let solve = (frame, materials, power, params);
                 let mut solution =
                     Self::solve_state_from(&tally, state, Some(&pieces.groups), solve, start, true);
@@ -732,7 +732,7 @@ impl Bake {
         params: &SolveParams,
         start: Option<(usize, &FrameSolution)>,
     ) -> FrameSolution {
-        let state = (&self.scene, &self.direct, &self.area);
+        let state = (&self.scene, &self.tracer, &self.direct, &self.area);
         let solve = (frame, materials, power, params);
         Self::solve_state_from(tally, state, None, solve, start, true)
     }
@@ -745,7 +745,7 @@ impl Bake {
         start: Option<(usize, &FrameSolution)>,
     ) -> FrameSolution {
         let tally = self.frame_tally(solve.0);
-        let state = (&self.scene, &self.direct, &self.area);
+        let state = (&self.scene, &self.tracer, &self.direct, &self.area);
         Self::solve_state_from(&tally, state, None, solve, start, false)
     }
 
@@ -754,7 +754,7 @@ impl Bake {
     /// starting from `start` (the answer for the bake's patches at a nearby frame).
     fn solve_state_from(
         tally: &FrameTally,
-        (scene, direct, area): (&Scene, &DirectLight, &AreaLights),
+        (scene, tracer, direct, area): (&Scene, &SceneTracer, &DirectLight, &AreaLights),
         groups: Option<&Groups>,
         (frame, materials, power, params): (usize, &[Material], &[[f64; 3]], &SolveParams),
         start: Option<(usize, &FrameSolution)>,
@@ -762,12 +762,27 @@ impl Bake {
     ) -> FrameSolution {
         let patch_materials: Vec<u32> = scene.patches.iter().map(|p| p.material).collect();
         let light = |frame| direct_light(direct, area, frame, materials, power);
-        let (irradiance, variance) = light(frame);
+        let (mut irradiance, mut variance) = light(frame);
+        // The direct light of what can be seen of each patch, as the tallies count only the
+        // crossings of its visible part: sampled over the whole patch, it is the visible
+        // part's times the share of it that no surface touches (a box on the floor blocks
+        // every shadow ray from under it).
+        let touched: Vec<bool> = tally.hidden.iter().map(|&h| h > 0).collect();
+        let visible = (!irradiance.is_empty() && touched.contains(&true))
+            .then(|| crate::direct::visible_shares(scene, tracer, frame, &touched));
+        for (i, &v) in visible.iter().flatten().enumerate() {
+            if v < 1.0 {
+                let scale = if v > 0.0 { 1.0 / v } else { 0.0 };
+                irradiance[i] = irradiance[i].map(|e| e * scale);
+                variance[i] = variance[i].map(|e| e * scale * scale);
+            }
+        }
         let sampled: Vec<bool> = patch_materials.iter().map(|&m| area.samples(m)).collect();
         let lit = (!irradiance.is_empty()).then_some(Direct {
             irradiance: &irradiance,
             variance: &variance,
             sampled: &sampled,
+            visible: visible.as_deref(),
         });
         // The start's radiance (each piece its patch's), with this frame's direct light in
         // place of its own.

@@ -390,6 +390,86 @@ impl Frame<'_> {
                     || ((h.t - start).abs() <= COINCIDENT && surfaces.touching(own, back, h)))
         })
     }
+
+    /// Whether a surface touches face `back` (or the front) of triangle `own`, of unit normal
+    /// `n` on that side, at `x` (a box standing on a floor covers the floor under it): the
+    /// touching surface [`Frame::blocked`] finds at the start of every shadow ray from there,
+    /// looked for along the normal.
+    fn covered(&self, x: DVec3, n: DVec3, (own, back): (u32, bool), hits: &mut Vec<Hit>) -> bool {
+        let behind = f64::from(4.0 * COINCIDENT);
+        let line = Line {
+            origin: (x - n * behind).as_vec3(),
+            direction: n.as_vec3(),
+        };
+        self.trace(&line, hits);
+        let start = behind as f32;
+        let surfaces = self.tracer.surfaces();
+        hits.iter().any(|&h| {
+            h.surface() != own
+                && (h.t - start).abs() <= COINCIDENT
+                && surfaces.touching(own, back, h)
+        })
+    }
+}
+
+/// Subdivision level of [`visible_shares`]' points: 64 per face (one per stratum).
+const VISIBLE_LEVEL: u32 = 3;
+
+/// Per patch of `scene` at `frame`, the share of its area that no surface touches (a floor
+/// patch partly under a box: what can be seen of it, and what light reaches), for the patches
+/// `which` marks (those whose crossings met a contact); 1 for the others. Each face is tested
+/// at 64 stratified points (deterministic), a merged patch's faces weighed by their areas.
+/// The direct light sampled over a patch is its visible part's times this share (a covered
+/// point's shadow rays are blocked where they start), so dividing by it gives the visible
+/// part's, as the lines' tallies do ([`crate::solve::tally::HIDDEN`]).
+#[must_use]
+pub fn visible_shares(
+    scene: &Scene,
+    tracer: &SceneTracer,
+    frame: usize,
+    which: &[bool],
+) -> Vec<f64> {
+    let patches = scene.patches.len();
+    if !which.iter().any(|&w| w) {
+        return vec![1.0; patches];
+    }
+    let posed = Posed::at(scene, tracer, frame);
+    let at = posed.frame(scene, tracer, Occluders::All);
+    // Per face of a marked patch: (patch, area, share of its points covered by nothing).
+    let faces: Vec<(u32, f64, f64)> = (at.triangles.par_iter().enumerate())
+        .flat_map_iter(|(t, (corners, faces))| {
+            let corners = corners.map(Vec3::as_dvec3);
+            let (normal, area) = normal_and_area(corners);
+            let at = &at;
+            [(Some(faces.front), false), (faces.back, true)]
+                .into_iter()
+                .filter_map(move |(patch, back)| {
+                    let p = patch?;
+                    if !which[p as usize] || area <= 0.0 {
+                        return None;
+                    }
+                    let n = if back { -normal } else { normal };
+                    let mut rng =
+                        Xoshiro256PlusPlus::seed_from_u64(mix(2 * t as u64 + u64::from(back)));
+                    let mut points = Vec::new();
+                    sample_points(inset(&corners), VISIBLE_LEVEL, &mut rng, &mut points);
+                    let mut hits = Vec::new();
+                    let open = (points.iter())
+                        .filter(|&&x| !at.covered(x, n, (t as u32, back), &mut hits))
+                        .count();
+                    Some((p, area, open as f64 / points.len() as f64))
+                })
+        })
+        .collect();
+    let mut sums = vec![(0.0, 0.0); patches];
+    for (p, area, share) in faces {
+        let s = &mut sums[p as usize];
+        s.0 += area * share;
+        s.1 += area;
+    }
+    sums.into_iter()
+        .map(|(open, area)| if area > 0.0 { open / area } else { 1.0 })
+        .collect()
 }
 
 /// The points a patch is sampled at: one uniformly random point in each of the 4^level

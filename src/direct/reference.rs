@@ -48,6 +48,9 @@ pub struct Estimate {
     /// may come out below zero when the patch is nearly uniform): what one radiance per patch
     /// cannot show, however exact.
     pub spread: [f64; 3],
+    /// The share of the patch's area that no surface touches (its points not under a box on
+    /// the floor): the estimate is the mean over that part, what can be seen of the patch.
+    pub visible: f64,
 }
 
 /// One emitting face, for next-event estimation.
@@ -230,6 +233,10 @@ enum Met {
     Patch(usize, usize, f64),
 }
 
+/// How many times its pairs a patch's points are drawn at most, covered points drawn again
+/// ([`Tracer::patch`]): a patch three quarters under a box still gets all its paths.
+const COVERED_DRAWS: usize = 4;
+
 /// Bounces after which Russian roulette starts.
 const ROULETTE: usize = 2;
 /// Bounces after which a path stops whatever: at reflectance 0.999 the light left after them
@@ -260,6 +267,7 @@ impl Tracer<'_> {
                 radiance: material.emission,
                 stderr: [0.0; 3],
                 spread: [0.0; 3],
+                visible: 1.0,
             };
         }
         let faces: Vec<(&Place, [DVec3; 3])> = members
@@ -272,7 +280,12 @@ impl Tracer<'_> {
         // tells the spread of the true radiance over the patch from the noise.
         let pairs = (paths / 2).max(2);
         let (mut sum, mut sum_sq, mut apart) = ([0.0; 3], [0.0; 3], [0.0; 3]);
-        for _ in 0..pairs {
+        // Points where a surface touches the patch (under a box on the floor) are nobody's to
+        // see: drawn again, up to COVERED_DRAWS times the pairs, so that the estimate is the
+        // mean over the patch's visible part, what the bake answers.
+        let (mut n, mut draws) = (0usize, 0usize);
+        while n < pairs && draws < COVERED_DRAWS * pairs {
+            draws += 1;
             // A face picked by area (no draw for a patch of one face), a point on it.
             let k = if faces.len() == 1 {
                 0
@@ -282,6 +295,11 @@ impl Tracer<'_> {
             };
             let (place, corners) = faces[k];
             let x = triangle_point(&corners, rng.random(), rng.random());
+            let face = (place.triangle, place.back);
+            if self.view.covered(x, place.normal, face, &mut hits) {
+                continue;
+            }
+            n += 1;
             let e = [0, 1].map(|_| self.irradiance(x, place, rng, &mut hits));
             for c in 0..3 {
                 let l = e.map(|e| material.reflectance[c] * e[c] * std::f64::consts::FRAC_1_PI);
@@ -291,7 +309,17 @@ impl Tracer<'_> {
                 apart[c] += (l[0] - l[1]) * (l[0] - l[1]);
             }
         }
-        let n = pairs as f64;
+        let visible = n as f64 / draws as f64;
+        if n < 2 {
+            // Covered all over (or nearly): black, as the bake answers a patch a box hides.
+            return Estimate {
+                radiance: material.emission,
+                stderr: [0.0; 3],
+                spread: [0.0; 3],
+                visible,
+            };
+        }
+        let n = n as f64;
         // Variance of a pair's mean over points and paths (unbiased).
         let variance: [f64; 3] = std::array::from_fn(|c| {
             let mean = sum[c] / n;
@@ -303,6 +331,7 @@ impl Tracer<'_> {
             // Var(pair mean) = W + σ²/2 and E[(l₀ − l₁)²] = 2σ², σ² the paths' noise at a
             // point: W = Var(pair mean) − E[(l₀ − l₁)²] / 4.
             spread: std::array::from_fn(|c| variance[c] - apart[c] / n / 4.0),
+            visible,
         }
     }
 

@@ -57,7 +57,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::scene::Material;
-use tally::{ABSORBED, FrameTally, SKY};
+use tally::{ABSORBED, FrameTally, HIDDEN, MAX_PATCHES, SKY};
 
 /// How to solve.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -100,7 +100,8 @@ pub struct FrameSolution {
     /// is then only its emission). A split bake's ([`crate::bake::Bake::split`]) also takes in
     /// the error of the pieces' shape ([`crate::bake::SHAPE_ERROR`]).
     pub stderr: Vec<Option<[f64; 3]>>,
-    /// Crossings of each patch by the lines (0: unsampled).
+    /// Crossings of each patch by the lines, where a surface touches it included (0:
+    /// unsampled).
     pub samples: Vec<u64>,
     /// Conjugate-gradient iterations, most over the channels.
     pub iterations: usize,
@@ -186,6 +187,10 @@ pub struct Direct<'a> {
     /// Per patch: whether its emission reaches the others through `irradiance` (a sampled
     /// emitter) rather than through the lines, which then carry only the light it reflects.
     pub sampled: &'a [bool],
+    /// Per patch, the share of its area that no surface touches at the frame (a floor patch
+    /// partly under a box), if any is less than whole: `irradiance` is that of the visible
+    /// part, and pieces answered together ([`Groups`]) weigh by their visible area.
+    pub visible: Option<&'a [f64]>,
 }
 
 /// [`solve`] with `direct` light: each patch's ρ_i·E_i/π is added to its emission as the light
@@ -304,14 +309,15 @@ impl Groups {
     }
 
     /// Each group's radiance from its pieces' `values`: what the lines do not carry (`source`:
-    /// emission and direct light) averaged over the pieces' area, and what they gather
-    /// (`values − source`) over their `crossings`, as one patch of them all would gather it.
-    /// A piece no line crossed then weighs nothing in the gathered light, rather than
-    /// counting as dark.
+    /// emission and direct light) averaged over the pieces' visible area (`visible`: the share
+    /// of each piece no surface touches, all of it if `None`), and what they gather
+    /// (`values − source`) over their `crossings` (of their visible parts), as one patch of
+    /// them all would gather it. A piece no line crossed then weighs nothing in the gathered
+    /// light, rather than counting as dark, and a piece a box covers nothing at all.
     fn mean<T: Copy + Into<f64>>(
         &self,
         values: &[[T; 3]],
-        source: &[[f64; 3]],
+        (source, visible): (&[[f64; 3]], Option<&[f64]>),
         crossings: &[u64],
     ) -> Vec<[f64; 3]> {
         (0..self.len())
@@ -320,7 +326,8 @@ impl Groups {
                 let (mut sourced, mut gathered) = ([0.0; 3], [0.0; 3]);
                 for &k in self.members(g) {
                     let k = k as usize;
-                    let (a, n) = (self.area[k], crossings[k] as f64);
+                    let share = visible.map_or(1.0, |v| v[k]);
+                    let (a, n) = (self.area[k] * share, crossings[k] as f64);
                     area += a;
                     lines += n;
                     for c in 0..3 {
@@ -341,21 +348,18 @@ impl Groups {
     }
 
     /// Each group's variance of the direct light's sampling (`variance` per piece, of its
-    /// reflected radiance), as the area mean weighs it.
-    fn direct_variance(&self, variance: &[[f64; 3]]) -> Vec<[f64; 3]> {
+    /// reflected radiance), as [`Groups::mean`] weighs it (by visible area).
+    fn direct_variance(&self, variance: &[[f64; 3]], visible: Option<&[f64]>) -> Vec<[f64; 3]> {
+        let area = |k: u32| self.area[k as usize] * visible.map_or(1.0, |v| v[k as usize]);
         (0..self.len())
             .map(|g| {
                 let members = self.members(g);
-                let area: f64 = members.iter().map(|&k| self.area[k as usize]).sum();
+                let total: f64 = members.iter().map(|&k| area(k)).sum();
                 std::array::from_fn(|c| {
                     members
                         .iter()
                         .map(|&k| {
-                            let w = if area > 0.0 {
-                                self.area[k as usize] / area
-                            } else {
-                                0.0
-                            };
+                            let w = if total > 0.0 { area(k) / total } else { 0.0 };
                             w * w * variance[k as usize][c]
                         })
                         .sum()
@@ -455,6 +459,7 @@ fn solve_with(
             seen: &seen,
             pooled: &light.values,
             groups,
+            visible: direct.and_then(|d| d.visible),
         };
         replica_errors(tally, &replicas, params)
     } else {
@@ -471,23 +476,39 @@ fn solve_with(
             })
         })
         .collect();
-    let (radiance, sampled, crossings, unknown) = match groups {
+    // A patch's samples: the crossings of its visible part and of its hidden one. It has an
+    // answer if the lines crossed its visible part, or if a surface covers it whole (a box's
+    // bottom on the floor: known black); a part left to see that no line crossed is
+    // unsampled, though crossings of its hidden part were counted.
+    let visible = direct.and_then(|d| d.visible);
+    let samples = |k: usize| tally.crossings[k] + tally.hidden[k];
+    let answer = |members: &mut dyn Iterator<Item = usize>| {
+        let (mut seen, mut hidden, mut open) = (0, 0, 0.0);
+        for k in members {
+            seen += tally.crossings[k];
+            hidden += tally.hidden[k];
+            open += visible.map_or(0.0, |v| v[k]);
+        }
+        seen > 0 || (hidden > 0 && open == 0.0)
+    };
+    let (radiance, sampled, crossings, unknown, answered_by) = match groups {
         None => {
             let unknown: Vec<[bool; 3]> = (0..patches)
                 .map(|i| std::array::from_fn(|c| system.unknown(i, c)))
                 .collect();
-            (light.values, sampled, tally.crossings.clone(), unknown)
+            let answered_by: Vec<bool> = (0..patches)
+                .map(|i| answer(&mut std::iter::once(i)))
+                .collect();
+            let crossings = (0..patches).map(samples).collect();
+            (light.values, sampled, crossings, unknown, answered_by)
         }
         Some(g) => {
-            let radiance = g.mean(&light.values, &emission, &tally.crossings);
-            let crossings = (0..g.len())
-                .map(|h| {
-                    g.members(h)
-                        .iter()
-                        .map(|&k| tally.crossings[k as usize])
-                        .sum()
-                })
+            let radiance = g.mean(&light.values, (&emission, visible), &tally.crossings);
+            let members = |h: usize| g.members(h).iter().map(|&k| k as usize);
+            let crossings: Vec<u64> = (0..g.len())
+                .map(|h| members(h).map(samples).sum())
                 .collect();
+            let answered_by: Vec<bool> = (0..g.len()).map(|h| answer(&mut members(h))).collect();
             let unknown = (0..g.len())
                 .map(|h| {
                     std::array::from_fn(|c| {
@@ -495,12 +516,13 @@ fn solve_with(
                     })
                 })
                 .collect();
-            (radiance, g.direct_variance(&sampled), crossings, unknown)
+            let sampled = g.direct_variance(&sampled, visible);
+            (radiance, sampled, crossings, unknown, answered_by)
         }
     };
     let stderr = (0..answered)
         .map(|i| {
-            (crossings[i] > 0).then(|| {
+            answered_by[i].then(|| {
                 std::array::from_fn(|c| {
                     if !unknown[i][c] {
                         return 0.0;
@@ -545,6 +567,7 @@ fn replica_errors(
         seen,
         pooled,
         groups,
+        visible,
     } = *replicas;
     let patches = rho.len();
     let stop = Stop {
@@ -570,7 +593,7 @@ fn replica_errors(
             match groups {
                 None => (unknown, solved.values, solved.converged),
                 Some(g) => {
-                    let values = g.mean(&solved.values, emission, &tally.crossings);
+                    let values = g.mean(&solved.values, (emission, visible), &tally.crossings);
                     let unknown = (0..g.len())
                         .map(|h| {
                             std::array::from_fn(|c| {
@@ -622,6 +645,7 @@ struct Replicas<'a> {
     seen: &'a [[f64; 3]],
     pooled: &'a [[f64; 3]],
     groups: Option<&'a Groups>,
+    visible: Option<&'a [f64]>,
 }
 
 /// When conjugate gradients stop (see the module docs).
@@ -731,7 +755,7 @@ impl<'a> System<'a> {
             let mut sum = [0.0; 3];
             if diagonal_ref[i] != [0.0; 3] {
                 for (j, s) in Self::row_of(tally, i) {
-                    if j < ABSORBED {
+                    if (j as usize) < MAX_PATCHES {
                         let d = diagonal_ref[j as usize];
                         (0..3).for_each(|c| {
                             if d[c] > 0.0 {
@@ -820,7 +844,7 @@ impl<'a> System<'a> {
         let xi = x[i];
         let mut sum = [d[0] * xi[0].get(), d[1] * xi[1].get(), d[2] * xi[2].get()];
         for (j, s) in Self::row_of(self.tally, i) {
-            if j < ABSORBED {
+            if (j as usize) < MAX_PATCHES {
                 let xj = x[j as usize];
                 sum[0] -= s * xj[0].get();
                 sum[1] -= s * xj[1].get();
@@ -873,7 +897,7 @@ impl<'a> System<'a> {
                 for c in 0..3 {
                     bi[c] += s * match j {
                         SKY => sky_s[c],
-                        ABSORBED => 0.0,
+                        ABSORBED | HIDDEN => 0.0,
                         j if !self.unknown(j as usize, c) => {
                             le_s[j as usize][c] - seen_s[j as usize][c]
                         }
@@ -1099,7 +1123,7 @@ impl<'a> System<'a> {
                 for &(j, g, count) in &self.tally.group_entries[range] {
                     let v = match j {
                         SKY => sky,
-                        ABSORBED => [0.0; 3],
+                        ABSORBED | HIDDEN => [0.0; 3],
                         j => std::array::from_fn(|c| l[j as usize][c] - seen[j as usize][c]),
                     };
                     let w = f64::from(count);

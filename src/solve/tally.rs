@@ -4,7 +4,10 @@
 //! Every segment between two consecutive crossings is used in both directions, and the segments
 //! before the first and after the last crossing of a line see the sky. A segment that arrives at
 //! the back of a one-sided triangle is absorbed there. `N_i` is the row sum of `S` (sky and
-//! absorbed columns included), so the two can never disagree.
+//! absorbed columns included), so the two can never disagree, except for the crossings where a
+//! surface touches the patch (a box standing on a floor, [`HIDDEN`]): they are counted apart,
+//! and `N_i` counts the crossings of the patch's visible part only, so that a patch partly
+//! under a box answers the radiance of what can be seen of it, and sends that on.
 //!
 //! The static segments are tallied once. A frame stores only what its moving objects change:
 //! for each line that crosses a moving object at frame f, its static segments are removed and
@@ -22,9 +25,13 @@ use crate::trace::{Hit, Surfaces};
 
 /// Column of the segments that leave the scene.
 pub const SKY: u32 = (1 << 27) - 1;
-/// Column of the segments that carry no light: absorbed by the back of a one-sided triangle,
-/// or across a contact (two faces touching, [`crate::trace::coincident`]).
+/// Column of the segments that carry no light: absorbed by the back of a one-sided triangle.
 pub const ABSORBED: u32 = (1 << 27) - 2;
+/// Column of the zero-length segments across a contact (two faces touching,
+/// [`crate::trace::coincident`]): the crossing lies on a part of the patch that a surface
+/// covers, which no light reaches and no one sees. Not counted in `N_i`
+/// ([`FrameTally::crossings`]) but in [`FrameTally::hidden`].
+pub const HIDDEN: u32 = (1 << 27) - 3;
 
 /// The luminance a segment brings from its far end, in fixed point: a whole number of 2^-31 of
 /// the brightest (the sky included), so that sums of them do not depend on the order threads
@@ -55,14 +62,14 @@ impl<F: Fn(u32) -> f64> FixedLight<F> {
     pub fn value(&self, to: u32) -> u64 {
         let g = match to {
             SKY => self.sky,
-            ABSORBED => 0.0,
+            ABSORBED | HIDDEN => 0.0,
             j => (self.patch)(j),
         };
         (g / self.unit).round().max(0.0) as u64
     }
 }
 /// Patches are numbered below this (the columns have 27 bits in a key).
-pub const MAX_PATCHES: usize = ABSORBED as usize;
+pub const MAX_PATCHES: usize = HIDDEN as usize;
 /// Lines fall into this many groups, the independent replicas of the line set
 /// ([`crate::lines::REPLICAS`]): the spread of the estimates between them measures the error
 /// honestly, stratification included (METHOD.md §6).
@@ -83,8 +90,8 @@ pub fn unkey(k: u64) -> (u32, u32, u8) {
 }
 
 /// Calls `visit(from, to)` for every segment of a line in both directions, `from` being a patch
-/// and `to` a patch, [`SKY`] or [`ABSORBED`]. Coincident crossings are resolved first
-/// ([`resolve`]); the segment across a contact is dark both ways.
+/// and `to` a patch, [`SKY`], [`ABSORBED`] or [`HIDDEN`]. Coincident crossings are resolved
+/// first ([`resolve`]); the segment across a contact is [`HIDDEN`] both ways.
 fn walk(hits: &[Hit], surfaces: &Surfaces<'_>, mut visit: impl FnMut(u32, u32)) {
     walk_from(hits, surfaces, |from, to, _, _| visit(from, to));
 }
@@ -113,10 +120,10 @@ pub fn walk_from(hits: &[Hit], surfaces: &Surfaces<'_>, mut visit: impl FnMut(u3
         let (a, b) = (exit(&w[0]), entry(&w[1]));
         if is_contact(&w[0], &w[1]) {
             if let Some(a) = a {
-                visit(a, ABSORBED, w[0], 0.0);
+                visit(a, HIDDEN, w[0], 0.0);
             }
             if let Some(b) = b {
-                visit(b, ABSORBED, w[1], 0.0);
+                visit(b, HIDDEN, w[1], 0.0);
             }
             continue;
         }
@@ -220,11 +227,14 @@ pub struct Tallies {
 /// One frame's tallies, assembled.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct FrameTally {
-    /// Crossings of each patch (the row sums of `S`).
+    /// Crossings of each patch's visible part (the row sums of `S` without [`HIDDEN`]): its
+    /// `N_i`.
     pub crossings: Vec<u64>,
+    /// Crossings of each patch where a surface touches it (the [`HIDDEN`] column).
+    pub hidden: Vec<u64>,
     /// Row starts of `S` in `columns` / `counts` (length patches + 1).
     pub offsets: Vec<usize>,
-    /// Column of each entry: a patch, [`SKY`] or [`ABSORBED`].
+    /// Column of each entry: a patch, [`SKY`], [`ABSORBED`] or [`HIDDEN`].
     pub columns: Vec<u32>,
     /// Segment count of each entry (> 0; fewer than 2^32, as are the crossings of a list).
     pub counts: Vec<u32>,
@@ -358,6 +368,7 @@ impl Tallies {
 fn assemble(entries: Entries, patches: usize) -> FrameTally {
     let mut t = FrameTally {
         crossings: vec![0; patches],
+        hidden: vec![0; patches],
         offsets: Vec::with_capacity(patches + 1),
         columns: Vec::with_capacity(entries.len()),
         counts: Vec::with_capacity(entries.len()),
@@ -395,7 +406,16 @@ impl FrameTally {
             self.counts.push(count);
         }
         self.group_entries.push((column, group, count));
-        self.crossings[row] += u64::from(count);
+        self.count(row, column, count);
+    }
+
+    /// Counts `count` crossings of `row` whose segment goes to `column`: [`HIDDEN`] apart.
+    fn count(&mut self, row: usize, column: u32, count: u32) {
+        if column == HIDDEN {
+            self.hidden[row] += u64::from(count);
+        } else {
+            self.crossings[row] += u64::from(count);
+        }
     }
 
     /// The sorted entries these tallies were assembled from.
@@ -413,7 +433,7 @@ impl FrameTally {
     /// Bytes held.
     #[must_use]
     pub fn bytes(&self) -> usize {
-        self.crossings.len() * size_of::<u64>()
+        (self.crossings.len() + self.hidden.len()) * size_of::<u64>()
             + (self.offsets.len() + self.group_offsets.len()) * size_of::<usize>()
             + self.columns.len() * size_of::<u32>()
             + self.counts.len() * size_of::<u32>()
@@ -426,6 +446,7 @@ impl FrameTally {
         let patches = self.crossings.len();
         let mut t = Self {
             crossings: self.crossings.clone(),
+            hidden: self.hidden.clone(),
             offsets: Vec::with_capacity(patches + 1),
             columns: Vec::with_capacity(self.columns.len() + changes.len()),
             counts: Vec::with_capacity(self.columns.len() + changes.len()),
@@ -463,6 +484,7 @@ impl FrameTally {
             t.offsets.push(t.columns.len());
             t.group_offsets.push(t.group_entries.len());
             t.crossings[row] = 0;
+            t.hidden[row] = 0;
             let old = &self.group_entries[self.group_offsets[row]..self.group_offsets[row + 1]];
             let new = changes[next..end].iter().map(|&(k, c)| {
                 let (_, column, group) = unkey(k);
@@ -535,6 +557,7 @@ impl FrameTally {
                 offsets.push(0);
                 Self {
                     crossings: vec![0; patches],
+                    hidden: vec![0; patches],
                     offsets,
                     columns: Vec::with_capacity(size),
                     counts: Vec::with_capacity(size),
@@ -550,7 +573,7 @@ impl FrameTally {
                 let t = &mut replicas[g as usize];
                 t.columns.push(column);
                 t.counts.push(count);
-                t.crossings[i] += u64::from(count);
+                t.count(i, column, count);
             }
             for t in &mut replicas {
                 t.offsets.push(t.columns.len());
@@ -572,7 +595,7 @@ impl FrameTally {
         };
         (0..self.crossings.len()).all(|i| {
             (self.offsets[i]..self.offsets[i + 1])
-                .filter(|&k| self.columns[k] < ABSORBED)
+                .filter(|&k| (self.columns[k] as usize) < MAX_PATCHES)
                 .all(|k| count(self.columns[k] as usize, i as u32) == Some(self.counts[k]))
         })
     }
@@ -635,6 +658,41 @@ mod tests {
         // Patch 0 sees the sky behind it; the segment between leaves 0's back (absorbed: it is
         // one-sided) and enters 1's back (patch 2); patch 1 (front) sees the sky beyond.
         assert_eq!(seen, vec![(0, SKY), (1, SKY), (2, ABSORBED)]);
+    }
+
+    #[test]
+    fn a_contact_is_hidden_and_counted_apart_from_the_visible_crossings() {
+        // A floor (triangle 0, facing up: patch 0) and a box's bottom resting on it (triangle
+        // 1, facing down: patch 1), one-sided, crossed at one place by a line going up.
+        let faces = [
+            Faces {
+                front: 0,
+                back: None,
+            },
+            Faces {
+                front: 1,
+                back: None,
+            },
+        ];
+        let surfaces = Surfaces {
+            faces: &faces,
+            spaces: &[0, 0],
+            normals: &[glam::Vec3::Z, glam::Vec3::NEG_Z],
+            corners: &[[0, 1, 2], [3, 4, 5]],
+            direction: None,
+        };
+        let hits = [Hit::new(1.0, 0, false), Hit::new(1.0, 1, true)];
+        let mut seen = Vec::new();
+        walk(&hits, &surfaces, |a, b| seen.push((a, b)));
+        seen.sort_unstable();
+        assert_eq!(seen, vec![(0, HIDDEN), (1, HIDDEN)]);
+        // Tallied with a visible crossing of the floor: N_0 counts that one alone.
+        let mut raw: Vec<(u64, i64)> = seen.iter().map(|&(a, b)| (key(a, b, 0), 1)).collect();
+        raw.push((key(0, SKY, 1), 1));
+        let t = assemble(aggregate(raw), 2);
+        assert_eq!((t.crossings, t.hidden), (vec![1, 0], vec![1, 1]));
+        let replicas = assemble(aggregate(vec![(key(0, HIDDEN, 3), 2)]), 2).replicas();
+        assert_eq!((replicas[3].crossings[0], replicas[3].hidden[0]), (0, 2));
     }
 
     #[test]
