@@ -1,7 +1,9 @@
 //! A path-traced reference to judge the solver against physics rather than against itself
 //! (METHOD.md §10; issue 13): per patch, the area average of the true outgoing radiance,
 //! `L̄_i = Le_i + (ρ_i/π) Ē_i`, with `Ē_i` the mean irradiance over the patch estimated from
-//! uniformly random points on it.
+//! uniformly random points on it. Points where a surface touches the patch (under a box on the
+//! floor) are drawn again: the mean is over what can be seen of the patch, as the bake answers,
+//! and [`Estimate::visible`] says how much that is.
 //!
 //! At each point the irradiance is estimated from two samples, combined by multiple importance
 //! sampling (the balance heuristic): next-event estimation alone has infinite variance where an

@@ -33,13 +33,13 @@ pub struct LineParams {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Preset {
     /// 100,000 lines: previews (the sample level's 25 frames in about 4 s; against the path
-    /// tracer, 7.5% at points; the README's preset table).
+    /// tracer, 9.0% at points; the README's preset table).
     Draft,
-    /// 1,000,000 lines: everyday bakes (about 20 s for the level's 25 frames at 4.4% per patch,
-    /// below the 5.5% the reference resolves at points; 6.6% at points on the moving Cornell box).
+    /// 1,000,000 lines: everyday bakes (about 22 s for the level's 25 frames at 4.2% per patch,
+    /// 5.7% at points; the moving Cornell box at 1.0% per patch, 5.0% at points).
     Default,
-    /// 10,000,000 lines: final bakes (about 3.5 minutes for 25 frames; the moving Cornell box
-    /// at 4.4% at points).
+    /// 10,000,000 lines: final bakes (about 3.5 to 4 minutes for 25 frames; the moving Cornell
+    /// box at 0.8% per patch, 4.4% at points).
     Final,
 }
 

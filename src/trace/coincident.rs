@@ -16,9 +16,10 @@
 //!   front of the other, back to back. Physically no light passes between the touching faces,
 //!   in either direction; each of the other two faces sees what lies on its own side. The pair
 //!   is ordered back before front (the line leaves one region before it enters the next), and
-//!   the zero-length segment between them is dark ([`is_contact`]): it still counts in the
-//!   touching patches' crossings `N_i`, so a face wholly in contact has radiance 0 and a patch
-//!   partly in contact gets the area average of its lit and dark parts.
+//!   the zero-length segment between them is dark ([`is_contact`]): the crossing lies on a part
+//!   of each touching patch that no one sees, counted apart from its `N_i`
+//!   ([`crate::solve::tally::HIDDEN`]), so a face wholly in contact is black and a patch partly
+//!   in contact answers for its uncovered part.
 //! - **A graze**: a line touching the fold between two faces of one surface in passing (in and
 //!   out at one point): they share an edge, at an angle. The line does not really pass, so both
 //!   crossings are dropped (in the wrong order the touched faces would see the sky through a
