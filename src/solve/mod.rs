@@ -545,6 +545,10 @@ fn solve_with(
     }
 }
 
+/// The fewest replicas (line groups) whose crossings of a patch tell its error: with fewer,
+/// the replicas give none, and the first bounce's error is the light gathered itself.
+const MIN_GROUPS: usize = 4;
+
 /// The replicas stop at this relative residual (module docs): they measure a spread, not an
 /// answer.
 const REPLICA_TOLERANCE: f64 = 1e-5;
@@ -553,7 +557,7 @@ const REPLICA_TOLERANCE: f64 = 1e-5;
 /// tallies alone give a full solution (warm-started from the `pooled` one, stopped at the
 /// relative residual [`REPLICA_TOLERANCE`]), and the spread of those solutions, divided by √K,
 /// is the error of their pooled mean. It carries every bounce and every correlation between
-/// patches. `None` for a patch fewer than 4 replicas crossed. A replica channel that stops at
+/// patches. `None` for a patch fewer than [`MIN_GROUPS`] replicas crossed. A replica channel that stops at
 /// the iteration cap is left out (its values, still near the pooled ones it started from,
 /// would narrow the spread): the others' spread over √(their number) is wider in expectation.
 fn replica_errors(
@@ -626,7 +630,7 @@ fn replica_errors(
         .map(|i| {
             std::array::from_fn(|c| {
                 let k = count[i][c] as f64;
-                (count[i][c] >= 4).then(|| {
+                (count[i][c] >= MIN_GROUPS).then(|| {
                     let mean = sum[i][c] / k;
                     let variance = ((sum_sq[i][c] - k * mean * mean) / (k - 1.0)).max(0.0);
                     (variance / k).sqrt()
@@ -1123,7 +1127,9 @@ impl<'a> System<'a> {
                 for &(j, g, count) in &self.tally.group_entries[range] {
                     let v = match j {
                         SKY => sky,
-                        ABSORBED | HIDDEN => [0.0; 3],
+                        ABSORBED => [0.0; 3],
+                        // Not a crossing of what can be seen of the patch (its `N_i`).
+                        HIDDEN => continue,
                         j => std::array::from_fn(|c| l[j as usize][c] - seen[j as usize][c]),
                     };
                     let w = f64::from(count);
@@ -1136,11 +1142,18 @@ impl<'a> System<'a> {
                 return [0.0; 3];
             }
             let k = K as f64;
+            // Crossings in fewer groups than the replicas need (a patch almost wholly under a
+            // box, with one or two crossings left to see) tell no spread: the light they
+            // gather is known to about itself.
+            let few = x.iter().filter(|&&xg| xg > 0.0).count() < MIN_GROUPS;
             std::array::from_fn(|c| {
                 if !solved[c] {
                     return 0.0;
                 }
                 let mean = y.iter().map(|yg| yg[c]).sum::<f64>() / n;
+                if few {
+                    return rho[c] * mean.abs();
+                }
                 let spread: f64 = y
                     .iter()
                     .zip(&x)
