@@ -464,10 +464,9 @@ pub fn bake_one(
     let split_seconds = started.elapsed().as_secs_f64();
     let round_seconds: Vec<f64> = rounds.iter().map(|r| r.seconds).collect();
     control.start_stage(0);
-    log(&format!(
-        "{name}: solving {} frames",
-        bake.scene.frames.count
-    ));
+    let count = bake.scene.frames.count;
+    let plural = if count == 1 { "" } else { "s" };
+    log(&format!("{name}: solving {count} frame{plural}"));
     let started = Instant::now();
     let (mut frames, mut failed) = (Vec::with_capacity(bake.scene.frames.count), None);
     let power = bake.light_power();
