@@ -373,21 +373,11 @@ impl Frame<'_> {
     fn blocked(&self, from: DVec3, to: DVec3, own: u32, back: bool, hits: &mut Vec<Hit>) -> bool {
         let d = to - from;
         let length = d.length();
-        let direction = d / length;
-        // Start a little behind the point, so that a touching surface is crossed whichever side
-        // of the point rounding puts it.
-        let behind = f64::from(4.0 * COINCIDENT);
-        let line = Line {
-            origin: (from - direction * behind).as_vec3(),
-            direction: direction.as_vec3(),
-        };
-        self.trace(&line, hits);
+        let behind = self.trace_from_behind(from, d / length, hits);
         let (start, end) = (behind as f32, (behind + length) as f32 - SHADOW_EPSILON);
-        let surfaces = self.tracer.surfaces();
         hits.iter().any(|&h| {
-            h.surface() != own
-                && ((h.t > start + COINCIDENT && h.t < end)
-                    || ((h.t - start).abs() <= COINCIDENT && surfaces.touching(own, back, h)))
+            (h.surface() != own && h.t > start + COINCIDENT && h.t < end)
+                || self.touching_at(h, start, (own, back))
         })
     }
 
@@ -395,20 +385,30 @@ impl Frame<'_> {
     /// `n` on that side, at `x` (a box standing on a floor covers the floor under it): the
     /// touching surface [`Frame::blocked`] finds at the start of every shadow ray from there,
     /// looked for along the normal.
-    fn covered(&self, x: DVec3, n: DVec3, (own, back): (u32, bool), hits: &mut Vec<Hit>) -> bool {
+    fn covered(&self, x: DVec3, n: DVec3, face: (u32, bool), hits: &mut Vec<Hit>) -> bool {
+        let start = self.trace_from_behind(x, n, hits) as f32;
+        hits.iter().any(|&h| self.touching_at(h, start, face))
+    }
+
+    /// Traces the line through `x` along unit `direction` from a little behind `x`, so that a
+    /// surface touching the face `x` lies on is crossed whichever side of `x` rounding puts
+    /// it; `x`'s distance along the line.
+    fn trace_from_behind(&self, x: DVec3, direction: DVec3, hits: &mut Vec<Hit>) -> f64 {
         let behind = f64::from(4.0 * COINCIDENT);
         let line = Line {
-            origin: (x - n * behind).as_vec3(),
-            direction: n.as_vec3(),
+            origin: (x - direction * behind).as_vec3(),
+            direction: direction.as_vec3(),
         };
         self.trace(&line, hits);
-        let start = behind as f32;
-        let surfaces = self.tracer.surfaces();
-        hits.iter().any(|&h| {
-            h.surface() != own
-                && (h.t - start).abs() <= COINCIDENT
-                && surfaces.touching(own, back, h)
-        })
+        behind
+    }
+
+    /// Whether crossing `h` of a line traced by [`Frame::trace_from_behind`], whose start is at
+    /// `start`, is a surface touching face `back` (or the front) of triangle `own` there.
+    fn touching_at(&self, h: Hit, start: f32, (own, back): (u32, bool)) -> bool {
+        h.surface() != own
+            && (h.t - start).abs() <= COINCIDENT
+            && self.tracer.surfaces().touching(own, back, h)
     }
 }
 

@@ -630,31 +630,34 @@ mod tests {
     use super::*;
     use crate::scene::Faces;
 
-    #[test]
-    fn segments_are_used_both_ways_and_the_ends_see_the_sky() {
-        // Triangle 0 one-sided (patch 0), triangle 1 double-sided (patches 1, 2).
-        let faces = [
-            Faces {
-                front: 0,
-                back: None,
-            },
-            Faces {
-                front: 1,
-                back: Some(2),
-            },
-        ];
-        // The line arrives at triangle 0's front, then at triangle 1's back.
-        let hits = [Hit::new(1.0, 0, true), Hit::new(2.0, 1, false)];
-        let mut seen = Vec::new();
+    /// The (from, to) pairs [`walk`] visits along `hits`, sorted, over two triangles with these
+    /// (front, back) patches, spaces and normals.
+    fn walked(
+        hits: &[Hit],
+        faces: [(u32, Option<u32>); 2],
+        spaces: [u32; 2],
+        normals: [glam::Vec3; 2],
+    ) -> Vec<(u32, u32)> {
+        let faces = faces.map(|(front, back)| Faces { front, back });
         let surfaces = Surfaces {
             faces: &faces,
-            spaces: &[0, 0],
-            normals: &[glam::Vec3::Z; 2],
+            spaces: &spaces,
+            normals: &normals,
             corners: &[[0, 1, 2], [3, 4, 5]],
             direction: None,
         };
-        walk(&hits, &surfaces, |a, b| seen.push((a, b)));
+        let mut seen = Vec::new();
+        walk(hits, &surfaces, |a, b| seen.push((a, b)));
         seen.sort_unstable();
+        seen
+    }
+
+    #[test]
+    fn segments_are_used_both_ways_and_the_ends_see_the_sky() {
+        // Triangle 0 one-sided (patch 0), triangle 1 double-sided (patches 1, 2). The line
+        // arrives at triangle 0's front, then at triangle 1's back.
+        let hits = [Hit::new(1.0, 0, true), Hit::new(2.0, 1, false)];
+        let seen = walked(&hits, [(0, None), (1, Some(2))], [0, 0], [glam::Vec3::Z; 2]);
         // Patch 0 sees the sky behind it; the segment between leaves 0's back (absorbed: it is
         // one-sided) and enters 1's back (patch 2); patch 1 (front) sees the sky beyond.
         assert_eq!(seen, vec![(0, SKY), (1, SKY), (2, ABSORBED)]);
@@ -664,27 +667,9 @@ mod tests {
     fn a_contact_is_hidden_and_counted_apart_from_the_visible_crossings() {
         // A floor (triangle 0, facing up: patch 0) and a box's bottom resting on it (triangle
         // 1, facing down: patch 1), one-sided, crossed at one place by a line going up.
-        let faces = [
-            Faces {
-                front: 0,
-                back: None,
-            },
-            Faces {
-                front: 1,
-                back: None,
-            },
-        ];
-        let surfaces = Surfaces {
-            faces: &faces,
-            spaces: &[0, 0],
-            normals: &[glam::Vec3::Z, glam::Vec3::NEG_Z],
-            corners: &[[0, 1, 2], [3, 4, 5]],
-            direction: None,
-        };
         let hits = [Hit::new(1.0, 0, false), Hit::new(1.0, 1, true)];
-        let mut seen = Vec::new();
-        walk(&hits, &surfaces, |a, b| seen.push((a, b)));
-        seen.sort_unstable();
+        let normals = [glam::Vec3::Z, glam::Vec3::NEG_Z];
+        let seen = walked(&hits, [(0, None), (1, None)], [0, 0], normals);
         assert_eq!(seen, vec![(0, HIDDEN), (1, HIDDEN)]);
         // Tallied with a visible crossing of the floor: N_0 counts that one alone.
         let mut raw: Vec<(u64, i64)> = seen.iter().map(|&(a, b)| (key(a, b, 0), 1)).collect();
@@ -697,27 +682,10 @@ mod tests {
 
     #[test]
     fn crossings_are_the_row_sums() {
-        let faces = [
-            Faces {
-                front: 0,
-                back: Some(1),
-            },
-            Faces {
-                front: 2,
-                back: Some(3),
-            },
-        ];
         let hits = [Hit::new(1.0, 0, true), Hit::new(2.0, 1, true)];
-        let mut raw = Vec::new();
-        let surfaces = Surfaces {
-            faces: &faces,
-            spaces: &[0, 1],
-            normals: &[glam::Vec3::Z; 2],
-            corners: &[[0, 1, 2], [3, 4, 5]],
-            direction: None,
-        };
-        walk(&hits, &surfaces, |a, b| raw.push((key(a, b, 0), 1)));
-        let entries = aggregate(raw);
+        let faces = [(0, Some(1)), (2, Some(3))];
+        let seen = walked(&hits, faces, [0, 1], [glam::Vec3::Z; 2]);
+        let entries = aggregate(seen.iter().map(|&(a, b)| (key(a, b, 0), 1)).collect());
         // 0 sees the sky, 1 sees 2 and 2 sees 1, 3 sees the sky: each face crossed once.
         let expected = [(0, SKY), (1, 2), (2, 1), (3, SKY)].map(|(a, b)| (key(a, b, 0), 1));
         assert_eq!(entries, expected.to_vec());
