@@ -473,6 +473,56 @@ fn a_floor_patch_partly_under_the_box_answers_for_what_can_be_seen_of_it() {
 }
 
 #[test]
+fn the_share_of_a_floor_patch_the_box_leaves_open_is_known_within_its_error_bar() {
+    let room = Room::default();
+    let bake = Bake::trace(
+        room.scene(),
+        &LineParams {
+            lines: 1000,
+            seed: 1,
+        },
+    )
+    .unwrap();
+    let scene = &bake.scene;
+    let floor: Vec<(u32, [glam::DVec3; 3])> = (patch_corners(scene, 0).into_iter())
+        .filter(|&(p, _)| {
+            let patch = &scene.patches[p as usize];
+            patch.source.node == node("floor") && patch.side == Side::Front
+        })
+        .collect();
+    let mut which = vec![false; scene.patches.len()];
+    for &(p, _) in &floor {
+        which[p as usize] = true;
+    }
+    let shares = radiosity::direct::visible_shares(scene, bake.tracer(), 0, &which);
+    // Against the share of each floor triangle outside the box's outline: exact where the
+    // outline does not cross it, within the estimate's own error bar where it does.
+    let mut z = Vec::new();
+    for (p, c) in floor {
+        let (share, variance) = shares[p as usize];
+        let exact = open_share(&c, f64::from(BOX));
+        if exact == 0.0 || exact == 1.0 {
+            assert!(
+                share == exact && variance == 0.0,
+                "{p}: {share} {variance} against {exact}"
+            );
+        } else {
+            z.push((share - exact) / variance.sqrt());
+        }
+    }
+    assert!(z.len() >= 24, "{} triangles under the outline", z.len());
+    // Collapsed strata are conservative: the mean z² is at most about 1 (it reads 0.24 here:
+    // the error bars twice the errors), and no triangle is far out. With no error bar for the
+    // share (its variance 0, as before), no z is finite.
+    let mean_square = z.iter().map(|z| z * z).sum::<f64>() / z.len() as f64;
+    let worst = z.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    assert!(
+        mean_square < 2.0 && worst < 4.0,
+        "mean z² {mean_square:.2}: {z:.2?}"
+    );
+}
+
+#[test]
 fn a_slit_under_the_box_lets_light_through_at_any_scale() {
     for scale in [1e-4, 1.0, 1e5] {
         let touching = Room {

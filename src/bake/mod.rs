@@ -768,13 +768,21 @@ impl Bake {
         // part's times the share of it that no surface touches (a box on the floor blocks
         // every shadow ray from under it).
         let touched: Vec<bool> = tally.hidden.iter().map(|&h| h > 0).collect();
-        let visible = (!irradiance.is_empty() && touched.contains(&true))
+        // The share is estimated too: its variance adds (E / v)² · var(v) / v² to the
+        // quotient's (to first order).
+        let shares = (!irradiance.is_empty() && touched.contains(&true))
             .then(|| crate::direct::visible_shares(scene, tracer, frame, &touched));
-        for (i, &v) in visible.iter().flatten().enumerate() {
+        let visible: Option<Vec<f64>> = (shares.as_ref()).map(|s| s.iter().map(|s| s.0).collect());
+        let mut scales = vec![1.0; irradiance.len()];
+        for (i, &(v, share_variance)) in shares.iter().flatten().enumerate() {
             if v < 1.0 {
                 let scale = if v > 0.0 { 1.0 / v } else { 0.0 };
+                scales[i] = scale;
+                let relative = share_variance * scale * scale;
                 irradiance[i] = irradiance[i].map(|e| e * scale);
-                variance[i] = variance[i].map(|e| e * scale * scale);
+                variance[i] = std::array::from_fn(|c| {
+                    variance[i][c] * scale * scale + irradiance[i][c].powi(2) * relative
+                });
             }
         }
         let sampled: Vec<bool> = patch_materials.iter().map(|&m| area.samples(m)).collect();
@@ -785,7 +793,7 @@ impl Bake {
             visible: visible.as_deref(),
         });
         // The start's radiance (each piece its patch's), with this frame's direct light in
-        // place of its own.
+        // place of its own (both of the visible part, by this frame's shares).
         let start = start.map(|(from, solution)| {
             let mut radiance: Vec<[f64; 3]> = match groups {
                 Some(g) => (g.of().iter())
@@ -799,7 +807,7 @@ impl Bake {
                 for (i, l) in radiance.iter_mut().enumerate() {
                     let rho = materials[patch_materials[i] as usize].reflectance;
                     for c in 0..3 {
-                        let old = before.get(i).map_or(0.0, |e| e[c]);
+                        let old = before.get(i).map_or(0.0, |e| e[c] * scales[i]);
                         l[c] += rho[c] * (irradiance[i][c] - old) * std::f64::consts::FRAC_1_PI;
                     }
                 }

@@ -421,22 +421,25 @@ const VISIBLE_LEVEL: u32 = 3;
 /// at 64 stratified points (deterministic), a merged patch's faces weighed by their areas.
 /// The direct light sampled over a patch is its visible part's times this share (a covered
 /// point's shadow rays are blocked where they start), so dividing by it gives the visible
-/// part's, as the lines' tallies do ([`crate::solve::tally::HIDDEN`]).
+/// part's, as the lines' tallies do ([`crate::solve::tally::HIDDEN`]). Each share comes with
+/// the variance of its estimate (by collapsed strata, as the direct light's: only strata an
+/// outline crosses add to it), 0 for the unmarked patches.
 #[must_use]
 pub fn visible_shares(
     scene: &Scene,
     tracer: &SceneTracer,
     frame: usize,
     which: &[bool],
-) -> Vec<f64> {
+) -> Vec<(f64, f64)> {
     let patches = scene.patches.len();
     if !which.iter().any(|&w| w) {
-        return vec![1.0; patches];
+        return vec![(1.0, 0.0); patches];
     }
     let posed = Posed::at(scene, tracer, frame);
     let at = posed.frame(scene, tracer, Occluders::All);
-    // Per face of a marked patch: (patch, area, share of its points covered by nothing).
-    let faces: Vec<(u32, f64, f64)> = (at.triangles.par_iter().enumerate())
+    // Per face of a marked patch: (patch, area, share of its points covered by nothing and
+    // the variance of that share).
+    let faces: Vec<(u32, f64, (f64, f64))> = (at.triangles.par_iter().enumerate())
         .flat_map_iter(|(t, (corners, faces))| {
             let corners = corners.map(Vec3::as_dvec3);
             let (normal, area) = normal_and_area(corners);
@@ -454,21 +457,30 @@ pub fn visible_shares(
                     let mut points = Vec::new();
                     sample_points(inset(&corners), VISIBLE_LEVEL, &mut rng, &mut points);
                     let mut hits = Vec::new();
-                    let open = (points.iter())
-                        .filter(|&&x| !at.covered(x, n, (t as u32, back), &mut hits))
-                        .count();
-                    Some((p, area, open as f64 / points.len() as f64))
+                    let open: Vec<f64> = (points.iter())
+                        .map(|&x| {
+                            f64::from(u8::from(!at.covered(x, n, (t as u32, back), &mut hits)))
+                        })
+                        .collect();
+                    Some((p, area, collapsed_variance(&open)))
                 })
         })
         .collect();
-    let mut sums = vec![(0.0, 0.0); patches];
-    for (p, area, share) in faces {
+    let mut sums = vec![[0.0; 3]; patches];
+    for (p, area, (share, variance)) in faces {
         let s = &mut sums[p as usize];
-        s.0 += area * share;
-        s.1 += area;
+        s[0] += area * share;
+        s[1] += area * area * variance;
+        s[2] += area;
     }
     sums.into_iter()
-        .map(|(open, area)| if area > 0.0 { open / area } else { 1.0 })
+        .map(|[open, variance, area]| {
+            if area > 0.0 {
+                (open / area, variance / (area * area))
+            } else {
+                (1.0, 0.0)
+            }
+        })
         .collect()
 }
 
