@@ -3,7 +3,7 @@
 use std::collections::HashMap;
 use std::ops::ControlFlow;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
-use std::sync::{Arc, Mutex, RwLock};
+use std::sync::{Arc, Mutex, PoisonError, RwLock};
 use std::time::Instant;
 
 use serde::Serialize;
@@ -122,18 +122,18 @@ pub struct Job {
     pub frames_solved: AtomicUsize,
     /// Solved frames with the version they were solved for (a frame keeps its older version
     /// until the new one is solved).
-    pub results: RwLock<Vec<Option<Versioned>>>,
+    results: RwLock<Vec<Option<Versioned>>>,
     /// Version of the result: 1, then one more for every refinement or relighting.
-    pub version: AtomicU64,
+    version: AtomicU64,
     /// The traced scene, kept for refinement, relighting and statistics; taken by the work in
     /// progress.
-    pub bake: Mutex<Option<Bake>>,
+    bake: Mutex<Option<Bake>>,
     /// The materials the frames are solved with (the scene's, until relit).
-    pub materials: Mutex<Vec<Material>>,
+    materials: Mutex<Vec<Material>>,
     /// The punctual lights' names and power (the scene's, until relit).
-    pub lights: Mutex<Vec<LightSetting>>,
+    lights: Mutex<Vec<LightSetting>>,
     /// Signals each newly solved frame (its count) and the end of the job.
-    pub solved: watch::Sender<usize>,
+    solved: watch::Sender<usize>,
     /// Where finished results are kept, if anywhere.
     store: Option<Store>,
 }
@@ -383,6 +383,54 @@ impl Job {
     #[must_use]
     pub fn frame(&self, frame: usize) -> Option<Versioned> {
         self.results.read().ok()?.get(frame)?.clone()
+    }
+
+    /// Every frame's solution so far with its version (a frame keeps its older version until
+    /// the new one is solved).
+    #[must_use]
+    pub fn frames(&self) -> Vec<Option<Versioned>> {
+        self.results.read().map(|r| r.clone()).unwrap_or_default()
+    }
+
+    /// The version being solved or served: 1, then one more per refinement or relighting.
+    #[must_use]
+    pub fn version(&self) -> u64 {
+        self.version.load(Ordering::Acquire)
+    }
+
+    /// A receiver woken at every newly solved frame and at the job's end.
+    #[must_use]
+    pub fn watch_solved(&self) -> watch::Receiver<usize> {
+        self.solved.subscribe()
+    }
+
+    /// `read` applied to the traced scene, if it is kept and not taken by work in progress.
+    pub fn with_bake<R>(&self, read: impl FnOnce(&Bake) -> R) -> Option<R> {
+        self.bake.lock().ok()?.as_ref().map(read)
+    }
+
+    /// Whether a finished job can run again: its traced scene is kept (not once restored from
+    /// disk, where only the frames are).
+    #[must_use]
+    pub fn can_rerun(&self) -> bool {
+        self.status() != Status::Done || self.bake.lock().is_ok_and(|b| b.is_some())
+    }
+
+    /// Applies `change` to copies of the materials and lights the frames are solved with, and
+    /// keeps them if it succeeds: a change that fails leaves both as they were. Meant as the
+    /// change of [`Jobs::rerun`], which runs it under the job's state lock.
+    pub fn change_lighting<E>(
+        &self,
+        change: impl FnOnce(&mut Vec<Material>, &mut Vec<LightSetting>) -> Result<(), E>,
+    ) -> Result<(), E> {
+        // A panic while they were held left them whole (they are only ever replaced).
+        let mut materials = (self.materials.lock()).unwrap_or_else(PoisonError::into_inner);
+        let mut lights = (self.lights.lock()).unwrap_or_else(PoisonError::into_inner);
+        let (mut new_materials, mut new_lights) = (materials.clone(), lights.clone());
+        change(&mut new_materials, &mut new_lights)?;
+        *materials = new_materials;
+        *lights = new_lights;
+        Ok(())
     }
 
     /// The loader's warnings, then what the last run found.

@@ -7,15 +7,17 @@
 //! take.
 
 mod error;
+mod frames;
 mod jobs;
 mod query;
+mod relight;
 mod store;
 
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::Instant;
 
-use axum::body::{Body, Bytes};
+use axum::body::Bytes;
 use axum::extract::rejection::BytesRejection;
 use axum::extract::{DefaultBodyLimit, Path, State};
 use axum::http::{HeaderMap, StatusCode, header};
@@ -26,7 +28,7 @@ use serde_json::json;
 
 pub use error::ApiError;
 use jobs::{Job, Jobs, Status, Work};
-use query::{CreateQuery, NoParameters, PreviewQuery, RefineQuery, StatsQuery, StrictQuery};
+use query::{CreateQuery, NoParameters, RefineQuery, StatsQuery, StrictQuery};
 
 use crate::adaptive::Adaptive;
 use crate::loader;
@@ -119,22 +121,25 @@ pub fn app(state: AppState) -> Router {
             get(timeline_status).delete(delete_timeline),
         )
         .route("/v1/timelines/{id}/patches", get(timeline_patches))
-        .route("/v1/timelines/{id}/frames", get(timeline_frames))
+        .route("/v1/timelines/{id}/frames", get(frames::timeline_frames))
         .route(
             "/v1/timelines/{id}/lines",
             axum::routing::post(refine_timeline),
         )
         .route(
             "/v1/timelines/{id}/materials",
-            axum::routing::post(relight_timeline),
+            axum::routing::post(relight::relight_timeline),
         )
         .route("/v1/timelines/{id}/stats", get(timeline_stats))
         .route("/v1/timelines/{id}/events", get(timeline_events))
         .route("/openapi.json", get(openapi))
-        .route("/v1/timelines/{id}/frames/{frame}", get(timeline_frame))
+        .route(
+            "/v1/timelines/{id}/frames/{frame}",
+            get(frames::timeline_frame),
+        )
         .route(
             "/v1/timelines/{id}/frames/{frame}/preview.png",
-            get(frame_preview),
+            get(frames::frame_preview),
         )
         .fallback(|| async { ApiError::NotFound("no such path".into()) })
         .layer(DefaultBodyLimit::max(limit))
@@ -372,20 +377,14 @@ fn status_json(job: &Job) -> serde_json::Value {
         _ => None,
     };
     // The solves' iterations per frame, for the frames solved for the current version.
-    let version = job.version.load(Ordering::Acquire);
-    let iterations: Vec<Option<usize>> = job.results.read().map_or_else(
-        |_| vec![None; frames],
-        |results| {
-            results
-                .iter()
-                .map(|r| {
-                    r.as_ref()
-                        .filter(|(v, _)| *v == version)
-                        .map(|(_, s)| s.iterations)
-                })
-                .collect()
-        },
-    );
+    let version = job.version();
+    let iterations: Vec<Option<usize>> = (job.frames().iter())
+        .map(|r| {
+            r.as_ref()
+                .filter(|(v, _)| *v == version)
+                .map(|(_, s)| s.iterations)
+        })
+        .collect();
     let mut doc = json!({
         "id": job.id,
         "status": status,
@@ -451,198 +450,6 @@ async fn timeline_patches(
     Ok(Json(job(&state, &id)?.table().as_ref().clone()))
 }
 
-/// Binary layout of a frame (`Accept: application/octet-stream`), little-endian: u32 frame,
-/// u32 patch count P, f64 time, then P×3 f32 radiance, P×3 f32 standard error (−1 where the
-/// patch was not sampled), P u32 sample counts.
-fn frame_binary(frame: usize, time: f64, s: &crate::solve::FrameSolution) -> Vec<u8> {
-    let p = s.radiance.len();
-    let mut out = Vec::with_capacity(16 + p * 28);
-    out.extend_from_slice(&(frame as u32).to_le_bytes());
-    out.extend_from_slice(&(p as u32).to_le_bytes());
-    out.extend_from_slice(&time.to_le_bytes());
-    s.write_f32(&mut out);
-    out
-}
-
-/// The frame named by the path segment `frame`: its number, result version and solution; 404
-/// if there is no such frame, 409 if it is not solved yet.
-fn solved_frame(
-    job: &Job,
-    frame: &str,
-) -> Result<(usize, u64, Arc<crate::solve::FrameSolution>), ApiError> {
-    let frames = job.frame_times.len();
-    let f = frame
-        .parse::<usize>()
-        .ok()
-        .filter(|&f| f < frames)
-        .ok_or_else(|| {
-            ApiError::NotFound(format!(
-                "no frame {frame:?}: the timeline has frames 0..{frames}"
-            ))
-        })?;
-    let (version, solution) = job.frame(f).ok_or_else(|| {
-        ApiError::NotReady(format!(
-            "frame {f} is not solved yet (status {})",
-            job.status()
-        ))
-    })?;
-    Ok((f, version, solution))
-}
-
-async fn timeline_frame(
-    State(state): State<AppState>,
-    Path((id, frame)): Path<(String, String)>,
-    _: StrictQuery<NoParameters>,
-    headers: HeaderMap,
-) -> Result<Response, ApiError> {
-    let job = job(&state, &id)?;
-    let (f, version, solution) = solved_frame(&job, &frame)?;
-    let time = job.frame_times[f];
-    let accept = headers
-        .get(header::ACCEPT)
-        .and_then(|v| v.to_str().ok())
-        .unwrap_or("");
-    if accept.contains("application/octet-stream") {
-        let bytes = frame_binary(f, time, &solution);
-        return Ok((
-            [
-                (header::CONTENT_TYPE, "application/octet-stream".to_string()),
-                (
-                    header::HeaderName::from_static("x-result-version"),
-                    version.to_string(),
-                ),
-            ],
-            Body::from(bytes),
-        )
-            .into_response());
-    }
-    Ok(Json(frame_json(f, time, version, &solution)).into_response())
-}
-
-/// `GET /v1/timelines/{id}/frames/{f}/preview.png?width=&height=&exposure=`: the frame
-/// rendered from the scene's camera (or an automatic one), each patch flat-shaded with its
-/// tone-mapped radiance; the same image as `radiosity bake`'s previews.
-async fn frame_preview(
-    State(state): State<AppState>,
-    Path((id, frame)): Path<(String, String)>,
-    StrictQuery(query): StrictQuery<PreviewQuery>,
-) -> Result<Response, ApiError> {
-    let job = job(&state, &id)?;
-    let (width, height, exposure) = query.validate()?;
-    let (f, version, solution) = solved_frame(&job, &frame)?;
-    let rendered = tokio::task::spawn_blocking(move || {
-        let bake = job.bake.lock().ok()?;
-        let bake = bake.as_ref()?;
-        let tone = match exposure {
-            Some(exposure) => crate::output::ToneMap { exposure },
-            None => {
-                // The timeline's exposure, from every frame solved so far.
-                let solved: Vec<Arc<crate::solve::FrameSolution>> = job
-                    .results
-                    .read()
-                    .ok()?
-                    .iter()
-                    .flatten()
-                    .map(|(_, s)| s.clone())
-                    .collect();
-                crate::output::ToneMap::for_timeline(bake.shown(), &solved)
-            }
-        };
-        let image =
-            crate::output::preview_image(bake.shown(), f, &solution.radiance, &tone, width, height);
-        Some((crate::output::preview::encode_png(&image), tone.exposure))
-    })
-    .await
-    .map_err(|e| ApiError::Internal(format!("preview task: {e}")))?;
-    let Some((png, exposure)) = rendered else {
-        return Err(ApiError::NotReady(
-            "the timeline's geometry is not available: it is still being baked, refined or relit \
-             (try again when it is done), or it was restored from disk after a restart (previews need a \
-             timeline baked since the service started)"
-                .into(),
-        ));
-    };
-    let png = png.map_err(|e| ApiError::Internal(format!("encoding a preview: {e}")))?;
-    Ok((
-        [
-            (header::CONTENT_TYPE, "image/png".to_string()),
-            (
-                header::HeaderName::from_static("x-result-version"),
-                version.to_string(),
-            ),
-            (
-                header::HeaderName::from_static("x-exposure"),
-                exposure.to_string(),
-            ),
-        ],
-        Body::from(png),
-    )
-        .into_response())
-}
-
-/// A frame as JSON.
-fn frame_json(
-    frame: usize,
-    time: f64,
-    version: u64,
-    s: &crate::solve::FrameSolution,
-) -> serde_json::Value {
-    json!({
-        "frame": frame,
-        "time": time,
-        "version": version,
-        "radiance": s.radiance,
-        "stderr": s.stderr,
-        "samples": s.samples,
-        "converged": s.converged,
-    })
-}
-
-/// `GET /v1/timelines/{id}/frames` as NDJSON: one line per frame, in order, each sent as soon
-/// as it is solved; the stream ends with the last frame (or when the job stops).
-async fn timeline_frames(
-    State(state): State<AppState>,
-    Path(id): Path<String>,
-    _: StrictQuery<NoParameters>,
-) -> Result<Response, ApiError> {
-    let job = job(&state, &id)?;
-    let solved = job.solved.subscribe();
-    let stream = futures_util::stream::unfold(
-        (job, solved, 0usize),
-        |(job, mut solved, next)| async move {
-            loop {
-                // The status before the frames: a job seen ended has stored all it will.
-                let ended = job.status().is_final();
-                let version = job.version.load(Ordering::Acquire);
-                let available = job.frames_solved.load(Ordering::Acquire);
-                if next < available
-                    && let Some((v, s)) = job.frame(next).filter(|(v, _)| *v == version)
-                {
-                    let mut line =
-                        serde_json::to_vec(&frame_json(next, job.frame_times[next], v, &s))
-                            .unwrap_or_default();
-                    line.push(b'\n');
-                    return Some((
-                        Ok::<_, std::convert::Infallible>(line),
-                        (job, solved, next + 1),
-                    ));
-                }
-                if next >= job.frame_times.len() || (ended && next >= available) {
-                    return None;
-                }
-                if solved.changed().await.is_err() {
-                    return None;
-                }
-            }
-        },
-    );
-    Ok((
-        [(header::CONTENT_TYPE, "application/x-ndjson")],
-        Body::from_stream(stream),
-    )
-        .into_response())
-}
-
 /// The answer to a refinement or relighting: the job runs again for a new version.
 fn rerun(
     state: &AppState,
@@ -650,7 +457,7 @@ fn rerun(
     work: Work,
     change: impl FnOnce() -> Result<(), ApiError>,
 ) -> Result<Response, ApiError> {
-    if job.status() == Status::Done && !job.bake.lock().is_ok_and(|b| b.is_some()) {
+    if !job.can_rerun() {
         return Err(ApiError::NotReady(format!(
             "timeline {} was restored from disk: its lines are not kept there, so it cannot be \
              refined or relit; post the scene again",
@@ -664,7 +471,7 @@ fn rerun(
             job.status()
         )));
     }
-    let body = json!({"id": job.id, "status": job.status(), "version": job.version.load(Ordering::Acquire)});
+    let body = json!({"id": job.id, "status": job.status(), "version": job.version()});
     Ok((StatusCode::ACCEPTED, Json(body)).into_response())
 }
 
@@ -679,177 +486,6 @@ async fn refine_timeline(
     rerun(&state, job, Work::Refine(add), || Ok(()))
 }
 
-/// One material change of `POST /v1/timelines/{id}/materials`.
-#[derive(serde::Deserialize)]
-#[serde(deny_unknown_fields)]
-struct MaterialChange {
-    /// The material, by name or index.
-    material: serde_json::Value,
-    /// New emission, RGB, in the scene's emission units.
-    emission: Option<[f64; 3]>,
-    /// New diffuse reflectance, RGB in [0, 1], at most the timeline's `max_reflectance`.
-    reflectance: Option<[f64; 3]>,
-}
-
-/// One light's change in `POST /v1/timelines/{id}/materials`.
-#[derive(serde::Deserialize)]
-#[serde(deny_unknown_fields)]
-struct LightChange {
-    /// The light, by name or index (in the file's `KHR_lights_punctual` order of use).
-    light: serde_json::Value,
-    /// New intensity: candela for point and spot lights, lux for directional ones.
-    intensity: Option<f64>,
-    /// New linear RGB colour.
-    color: Option<[f64; 3]>,
-}
-
-/// The body of `POST /v1/timelines/{id}/materials`.
-#[derive(serde::Deserialize)]
-#[serde(deny_unknown_fields)]
-struct Relight {
-    #[serde(default)]
-    materials: Vec<MaterialChange>,
-    #[serde(default)]
-    lights: Vec<LightChange>,
-}
-
-/// `rgb` if its three values are finite and ≥ 0; otherwise a 400 naming the field.
-fn non_negative_rgb(field: &str, rgb: [f64; 3]) -> Result<[f64; 3], ApiError> {
-    if rgb.iter().all(|v| v.is_finite() && *v >= 0.0) {
-        Ok(rgb)
-    } else {
-        Err(ApiError::Parameter(format!(
-            "{field} must be three finite numbers ≥ 0, not {rgb:?}"
-        )))
-    }
-}
-
-/// The index in `names` of `wanted` (a number or a name); `what` names the kind in the error.
-fn find_by_name_or_index(
-    wanted: &serde_json::Value,
-    names: &[Option<String>],
-    what: &str,
-) -> Result<usize, ApiError> {
-    match wanted {
-        serde_json::Value::Number(n) => n.as_u64().map(|i| i as usize).filter(|&i| i < names.len()),
-        serde_json::Value::String(name) => names
-            .iter()
-            .position(|m| m.as_deref() == Some(name.as_str())),
-        _ => None,
-    }
-    .ok_or_else(|| {
-        let listed: Vec<String> = names
-            .iter()
-            .enumerate()
-            .map(|(i, m)| format!("{i} ({})", m.as_deref().unwrap_or("unnamed")))
-            .collect();
-        ApiError::Parameter(format!(
-            "no {what} {wanted}; the scene has {}",
-            if listed.is_empty() {
-                "none".to_string()
-            } else {
-                listed.join(", ")
-            }
-        ))
-    })
-}
-
-/// `POST /v1/timelines/{id}/materials`: new emission or reflectance per material, re-solved
-/// from the kept tallies without tracing.
-async fn relight_timeline(
-    State(state): State<AppState>,
-    Path(id): Path<String>,
-    _: StrictQuery<NoParameters>,
-    body: Bytes,
-) -> Result<Response, ApiError> {
-    let job = job(&state, &id)?;
-    let relight: Relight = serde_json::from_slice(&body).map_err(|e| {
-        ApiError::Parameter(format!(
-            "the body must be {{\"materials\": [{{\"material\", \"emission\", \"reflectance\"}}], \
-             \"lights\": [{{\"light\", \"intensity\", \"color\"}}]}}: {e}"
-        ))
-    })?;
-    let target = job.clone();
-    let change = move || -> Result<(), ApiError> {
-        let job = target;
-        let mut materials = job
-            .materials
-            .lock()
-            .map(|m| m.clone())
-            .map_err(|_| ApiError::Internal("materials lock".into()))?;
-        let names: Vec<Option<String>> = materials.iter().map(|m| m.name.clone()).collect();
-        for change in relight.materials {
-            let index = find_by_name_or_index(&change.material, &names, "material")?;
-            if let Some(e) = change.emission {
-                materials[index].emission = non_negative_rgb("emission", e)?;
-            }
-            if let Some(r) = change.reflectance {
-                if r.iter().any(|v| !(0.0..=1.0).contains(v)) {
-                    return Err(ApiError::Parameter(format!(
-                        "reflectance must be three numbers in [0, 1], not {r:?}"
-                    )));
-                }
-                materials[index].reflectance = r;
-                // Refused, not lowered as a file's would be: a request is done as sent or not.
-                if materials[index].reflects_above(job.max_reflectance) {
-                    return Err(ApiError::Parameter(format!(
-                        "material {} ({}): reflectance {r:?} is above the timeline's \
-                         max_reflectance {}; a closed scene that reflects everything has no \
-                         steady state (post the scene with a higher max_reflectance, at most 1, \
-                         to allow it)",
-                        index,
-                        names[index].as_deref().unwrap_or("unnamed"),
-                        job.max_reflectance
-                    )));
-                }
-            }
-        }
-        let mut lights = job
-            .lights
-            .lock()
-            .map(|l| l.clone())
-            .map_err(|_| ApiError::Internal("lights lock".into()))?;
-        let names: Vec<Option<String>> = lights.iter().map(|l| l.name.clone()).collect();
-        for change in relight.lights {
-            let first = find_by_name_or_index(&change.light, &names, "light")?;
-            // A light used by several nodes is several lights of one name: a name changes them all.
-            let indices: Vec<usize> = match &change.light {
-                serde_json::Value::String(_) => (0..names.len())
-                    .filter(|&i| names[i] == names[first])
-                    .collect(),
-                _ => vec![first],
-            };
-            for index in indices {
-                if let Some(i) = change.intensity {
-                    if !i.is_finite() || i < 0.0 {
-                        return Err(ApiError::Parameter(format!(
-                            "intensity must be a finite number ≥ 0, not {i}"
-                        )));
-                    }
-                    lights[index].intensity = i;
-                }
-                if let Some(c) = change.color {
-                    lights[index].colour = non_negative_rgb("color", c)?;
-                }
-                if lights[index].power().iter().any(|p| !p.is_finite()) {
-                    return Err(ApiError::Parameter(format!(
-                        "light {}: color × intensity overflows",
-                        change.light
-                    )));
-                }
-            }
-        }
-        if let Ok(mut m) = job.materials.lock() {
-            *m = materials;
-        }
-        if let Ok(mut l) = job.lights.lock() {
-            *l = lights;
-        }
-        Ok(())
-    };
-    rerun(&state, job, Work::Relight, change)
-}
-
 /// `GET /v1/timelines/{id}/stats?frame=f`: the scene statistics measured by the lines.
 async fn timeline_stats(
     State(state): State<AppState>,
@@ -859,13 +495,15 @@ async fn timeline_stats(
     let job = job(&state, &id)?;
     let (frame, patches) = query.validate(job.frame_times.len())?;
     let stats = tokio::task::spawn_blocking(move || {
-        let bake = job.bake.lock().ok()?;
-        let bake = bake.as_ref()?;
-        let stats = crate::timeline::stats::SceneStats::measure(&bake.scene, bake.list(), frame);
-        let mut stats = serde_json::to_value(stats).ok()?;
-        stats["information"] =
-            serde_json::to_value(bake.information(frame).report(patches)).ok()?;
-        Some(stats)
+        job.with_bake(|bake| {
+            let stats =
+                crate::timeline::stats::SceneStats::measure(&bake.scene, bake.list(), frame);
+            let mut stats = serde_json::to_value(stats).ok()?;
+            stats["information"] =
+                serde_json::to_value(bake.information(frame).report(patches)).ok()?;
+            Some(stats)
+        })
+        .flatten()
     })
     .await
     .map_err(|e| ApiError::Internal(format!("stats task: {e}")))?
@@ -887,7 +525,7 @@ async fn timeline_events(
 ) -> Result<Response, ApiError> {
     use axum::response::sse::{Event, KeepAlive, Sse};
     let job = job(&state, &id)?;
-    let solved = job.solved.subscribe();
+    let solved = job.watch_solved();
     let stream = futures_util::stream::unfold(
         (job, solved, false),
         |(job, mut solved, ended)| async move {

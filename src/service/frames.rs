@@ -1,0 +1,196 @@
+//! A timeline's frames: one as JSON or binary, all as NDJSON while they are solved, and a
+//! frame's preview image.
+
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+
+use axum::Json;
+use axum::body::Body;
+use axum::extract::{Path, State};
+use axum::http::{HeaderMap, header};
+use axum::response::{IntoResponse, Response};
+use serde_json::json;
+
+use super::jobs::Job;
+use super::query::{NoParameters, PreviewQuery, StrictQuery};
+use super::{ApiError, AppState, job};
+use crate::solve::FrameSolution;
+
+/// Binary layout of a frame (`Accept: application/octet-stream`), little-endian: u32 frame,
+/// u32 patch count P, f64 time, then P×3 f32 radiance, P×3 f32 standard error (−1 where the
+/// patch was not sampled), P u32 sample counts.
+fn frame_binary(frame: usize, time: f64, s: &FrameSolution) -> Vec<u8> {
+    let p = s.radiance.len();
+    let mut out = Vec::with_capacity(16 + p * 28);
+    out.extend_from_slice(&(frame as u32).to_le_bytes());
+    out.extend_from_slice(&(p as u32).to_le_bytes());
+    out.extend_from_slice(&time.to_le_bytes());
+    s.write_f32(&mut out);
+    out
+}
+
+/// The frame named by the path segment `frame`: its number, result version and solution; 404
+/// if there is no such frame, 409 if it is not solved yet.
+fn solved_frame(job: &Job, frame: &str) -> Result<(usize, u64, Arc<FrameSolution>), ApiError> {
+    let frames = job.frame_times.len();
+    let f = frame
+        .parse::<usize>()
+        .ok()
+        .filter(|&f| f < frames)
+        .ok_or_else(|| {
+            ApiError::NotFound(format!(
+                "no frame {frame:?}: the timeline has frames 0..{frames}"
+            ))
+        })?;
+    let (version, solution) = job.frame(f).ok_or_else(|| {
+        ApiError::NotReady(format!(
+            "frame {f} is not solved yet (status {})",
+            job.status()
+        ))
+    })?;
+    Ok((f, version, solution))
+}
+
+pub(super) async fn timeline_frame(
+    State(state): State<AppState>,
+    Path((id, frame)): Path<(String, String)>,
+    _: StrictQuery<NoParameters>,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
+    let job = job(&state, &id)?;
+    let (f, version, solution) = solved_frame(&job, &frame)?;
+    let time = job.frame_times[f];
+    let accept = headers
+        .get(header::ACCEPT)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("");
+    if accept.contains("application/octet-stream") {
+        let bytes = frame_binary(f, time, &solution);
+        return Ok((
+            [
+                (header::CONTENT_TYPE, "application/octet-stream".to_string()),
+                (
+                    header::HeaderName::from_static("x-result-version"),
+                    version.to_string(),
+                ),
+            ],
+            Body::from(bytes),
+        )
+            .into_response());
+    }
+    Ok(Json(frame_json(f, time, version, &solution)).into_response())
+}
+
+/// `GET /v1/timelines/{id}/frames/{f}/preview.png?width=&height=&exposure=`: the frame
+/// rendered from the scene's camera (or an automatic one), each patch flat-shaded with its
+/// tone-mapped radiance; the same image as `radiosity bake`'s previews.
+pub(super) async fn frame_preview(
+    State(state): State<AppState>,
+    Path((id, frame)): Path<(String, String)>,
+    StrictQuery(query): StrictQuery<PreviewQuery>,
+) -> Result<Response, ApiError> {
+    let job = job(&state, &id)?;
+    let (width, height, exposure) = query.validate()?;
+    let (f, version, solution) = solved_frame(&job, &frame)?;
+    let rendered = tokio::task::spawn_blocking(move || {
+        job.with_bake(|bake| {
+            let tone = match exposure {
+                Some(exposure) => crate::output::ToneMap { exposure },
+                None => {
+                    // The timeline's exposure, from every frame solved so far.
+                    let solved: Vec<Arc<FrameSolution>> =
+                        job.frames().into_iter().flatten().map(|(_, s)| s).collect();
+                    crate::output::ToneMap::for_timeline(bake.shown(), &solved)
+                }
+            };
+            let shown = bake.shown();
+            let image =
+                crate::output::preview_image(shown, f, &solution.radiance, &tone, width, height);
+            (crate::output::preview::encode_png(&image), tone.exposure)
+        })
+    })
+    .await
+    .map_err(|e| ApiError::Internal(format!("preview task: {e}")))?;
+    let Some((png, exposure)) = rendered else {
+        return Err(ApiError::NotReady(
+            "the timeline's geometry is not available: it is still being baked, refined or relit \
+             (try again when it is done), or it was restored from disk after a restart (previews need a \
+             timeline baked since the service started)"
+                .into(),
+        ));
+    };
+    let png = png.map_err(|e| ApiError::Internal(format!("encoding a preview: {e}")))?;
+    Ok((
+        [
+            (header::CONTENT_TYPE, "image/png".to_string()),
+            (
+                header::HeaderName::from_static("x-result-version"),
+                version.to_string(),
+            ),
+            (
+                header::HeaderName::from_static("x-exposure"),
+                exposure.to_string(),
+            ),
+        ],
+        Body::from(png),
+    )
+        .into_response())
+}
+
+/// A frame as JSON.
+fn frame_json(frame: usize, time: f64, version: u64, s: &FrameSolution) -> serde_json::Value {
+    json!({
+        "frame": frame,
+        "time": time,
+        "version": version,
+        "radiance": s.radiance,
+        "stderr": s.stderr,
+        "samples": s.samples,
+        "converged": s.converged,
+    })
+}
+
+/// `GET /v1/timelines/{id}/frames` as NDJSON: one line per frame, in order, each sent as soon
+/// as it is solved; the stream ends with the last frame (or when the job stops).
+pub(super) async fn timeline_frames(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    _: StrictQuery<NoParameters>,
+) -> Result<Response, ApiError> {
+    let job = job(&state, &id)?;
+    let solved = job.watch_solved();
+    let stream = futures_util::stream::unfold(
+        (job, solved, 0usize),
+        |(job, mut solved, next)| async move {
+            loop {
+                // The status before the frames: a job seen ended has stored all it will.
+                let ended = job.status().is_final();
+                let version = job.version();
+                let available = job.frames_solved.load(Ordering::Acquire);
+                if next < available
+                    && let Some((v, s)) = job.frame(next).filter(|(v, _)| *v == version)
+                {
+                    let mut line =
+                        serde_json::to_vec(&frame_json(next, job.frame_times[next], v, &s))
+                            .unwrap_or_default();
+                    line.push(b'\n');
+                    return Some((
+                        Ok::<_, std::convert::Infallible>(line),
+                        (job, solved, next + 1),
+                    ));
+                }
+                if next >= job.frame_times.len() || (ended && next >= available) {
+                    return None;
+                }
+                if solved.changed().await.is_err() {
+                    return None;
+                }
+            }
+        },
+    );
+    Ok((
+        [(header::CONTENT_TYPE, "application/x-ndjson")],
+        Body::from_stream(stream),
+    )
+        .into_response())
+}
