@@ -518,7 +518,22 @@ pub fn bake_one(
         }
     };
     let count = frames.len();
-    let found = bake.findings(&frames);
+    let mut found = bake.findings(&frames);
+    let asked = [
+        ("--glb-frames", &params.outputs.glb_frames),
+        ("--preview-frames", &params.outputs.preview_frames),
+    ];
+    for (option, spec) in asked {
+        if !spec.past_end(count).is_empty() {
+            let has = match count {
+                1 => "frame 0 only".to_string(),
+                _ => format!("frames 0 to {}", count - 1),
+            };
+            found.push(format!(
+                "{option} {spec}: the timeline has {has}; the frames asked past them are left out"
+            ));
+        }
+    }
     for w in &found {
         log(&format!("{name}: warning: {w}"));
     }

@@ -231,13 +231,56 @@ enum Command {
 }
 
 fn main() -> ExitCode {
-    match run(Cli::parse()) {
+    let cli = Cli::try_parse().unwrap_or_else(|e| with_suggestion(e).exit());
+    match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(message) => {
             eprintln!("error: {message}");
             ExitCode::FAILURE
         }
     }
+}
+
+/// `error` with the option most like an unknown one suggested where clap suggests none (where a
+/// subcommand's trailing inputs could take the unknown word, or a swap of two letters in a
+/// short one: `bake --fsp 5`).
+fn with_suggestion(mut error: clap::Error) -> clap::Error {
+    use clap::CommandFactory;
+    use clap::error::{ContextKind, ContextValue, ErrorKind};
+    if error.kind() != ErrorKind::UnknownArgument || error.get(ContextKind::SuggestedArg).is_some()
+    {
+        return error;
+    }
+    let Some(ContextValue::String(unknown)) = error.get(ContextKind::InvalidArg).cloned() else {
+        return error;
+    };
+    let Some(word) = unknown.strip_prefix("--") else {
+        return error;
+    };
+    let word = word.split('=').next().unwrap_or(word);
+    // The options of the subcommand named on the command line (the first argument that is one).
+    let cli = Cli::command();
+    let used = std::env::args()
+        .skip(1)
+        .find_map(|a| cli.find_subcommand(&a).cloned());
+    let Some(command) = used else {
+        return error;
+    };
+    // The fewest edits (a swap of neighbours counts one, which clap's Jaro measure misses in
+    // short words: `--fsp`), at most one per three letters.
+    let best = (command.get_arguments())
+        .filter_map(|a| a.get_long())
+        .map(|long| (strsim::osa_distance(word, long), long))
+        .min();
+    if let Some((edits, long)) = best
+        && edits <= (word.chars().count() / 3).max(1)
+    {
+        error.insert(
+            ContextKind::SuggestedArg,
+            ContextValue::String(format!("--{long}")),
+        );
+    }
+    error
 }
 
 fn run(cli: Cli) -> Result<(), String> {

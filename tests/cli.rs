@@ -567,3 +567,57 @@ fn overlapping_faces_are_named_in_the_summary() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn frames_asked_past_the_end_are_named_not_dropped_silently() {
+    let out = scratch("past_end");
+    let squares = sample("parallel_squares.gltf");
+    let output = radiosity()
+        .args([
+            "bake",
+            squares.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ])
+        .args([
+            "--lines",
+            "2000",
+            "--glb-frames",
+            "none",
+            "--preview-frames",
+            "0,99",
+        ])
+        .args(["--no-gif", "--force"])
+        .output()
+        .unwrap();
+    let log = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{log}");
+    let said = "--preview-frames 0,99: the timeline has frame 0 only";
+    assert!(log.contains(said), "{log}");
+    let summary: serde_json::Value = serde_json::from_slice(
+        &std::fs::read(out.join("parallel_squares").join("summary.json")).unwrap(),
+    )
+    .unwrap();
+    let warnings = summary["warnings"].as_array().unwrap();
+    assert!(
+        warnings
+            .iter()
+            .any(|w| w.as_str().unwrap().starts_with(said)),
+        "{summary}"
+    );
+}
+
+#[test]
+fn a_mistyped_option_gets_the_one_meant() {
+    let squares = sample("parallel_squares.gltf");
+    for (typed, meant) in [("--fsp", "--fps"), ("--linse", "--lines")] {
+        let output = radiosity()
+            .args(["bake", squares.to_str().unwrap(), typed, "5"])
+            .output()
+            .unwrap();
+        let message = String::from_utf8_lossy(&output.stderr);
+        assert_eq!(output.status.code(), Some(2), "{message}");
+        let tip = format!("a similar argument exists: '{meant}'");
+        assert!(message.contains(&tip), "{message}");
+    }
+}

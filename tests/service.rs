@@ -329,6 +329,24 @@ async fn a_long_job_is_cancelled_within_a_second() {
         wait(&client, &base, &queued, Duration::from_secs(20)).await["status"],
         "done"
     );
+    // Cancelled, not gone: the state can be seen until the timeline is deleted again.
+    let cancelled: Value = get_json(&client, format!("{base}/v1/timelines/{id}")).await;
+    assert_eq!(cancelled["status"], "cancelled", "{cancelled}");
+    // Statuses read in messages as in documents.
+    let refine = client
+        .post(format!("{base}/v1/timelines/{id}/lines?add=1000"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(refine.status(), 409);
+    let message = refine.text().await.unwrap();
+    assert!(message.contains("is cancelled:"), "{message}");
+    let response = client
+        .delete(format!("{base}/v1/timelines/{id}"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(response.status(), 204);
     assert_eq!(
         client
             .get(format!("{base}/v1/timelines/{id}"))
@@ -617,6 +635,14 @@ async fn finished_results_survive_a_restart_and_unfinished_jobs_report_interrupt
         .unwrap();
     assert_eq!(preview.status(), 409);
     assert!(preview.text().await.unwrap().contains("restored"));
+    // Nor its lines' statistics: a reason, not "try again".
+    let stats = client
+        .get(format!("{second}/v1/timelines/{done}/stats?frame=0"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(stats.status(), 409);
+    assert!(stats.text().await.unwrap().contains("restored"));
     assert_eq!(
         wait(&client, &second, &done, Duration::from_secs(5)).await["status"],
         "done"

@@ -117,6 +117,26 @@ impl FrameSpec {
     }
 }
 
+impl FrameSpec {
+    /// The frame numbers asked for by number that a timeline of `count` frames does not have
+    /// (a range's part past the end included), which [`FrameSpec::frames`] leaves out.
+    #[must_use]
+    pub fn past_end(&self, count: usize) -> Vec<usize> {
+        let Self::List(items) = self else {
+            return Vec::new();
+        };
+        let mut out: Vec<usize> = (items.iter())
+            .filter_map(|item| match *item {
+                FrameItem::Range(a, b) if b >= count => Some(a.max(count)),
+                _ => None,
+            })
+            .collect();
+        out.sort_unstable();
+        out.dedup();
+        out
+    }
+}
+
 impl FromStr for FrameSpec {
     type Err = String;
 
@@ -187,6 +207,19 @@ mod tests {
         let spec: FrameSpec = "3, 1-2,99,2".parse().unwrap();
         assert_eq!(spec.frames(10), vec![1, 2, 3]);
         assert_eq!(spec.to_string(), "3,1-2,99,2");
+        // What is left out is said.
+        assert_eq!(spec.past_end(10), vec![99]);
+        assert_eq!(spec.past_end(3), vec![3, 99]);
+        assert!(spec.past_end(100).is_empty());
+        let range: FrameSpec = "5-20".parse().unwrap();
+        assert_eq!(range.past_end(10), vec![10]);
+        assert!(
+            "first,last"
+                .parse::<FrameSpec>()
+                .unwrap()
+                .past_end(1)
+                .is_empty()
+        );
         assert_eq!("all".parse::<FrameSpec>().unwrap().frames(3), vec![0, 1, 2]);
         assert!("none".parse::<FrameSpec>().unwrap().frames(3).is_empty());
         assert!("5-2".parse::<FrameSpec>().is_err());

@@ -607,6 +607,25 @@ impl Scene {
     }
 }
 
+/// `x` to 6 significant digits without trailing zeros, and 0 when it is below 1e-9 of `scale`
+/// (a centre at −2.2e-16 is rounding, not a place).
+fn shown(x: f64, scale: f64) -> String {
+    if x.abs() <= 1e-9 * scale.abs() || x == 0.0 || !x.is_finite() {
+        return if x.is_finite() {
+            "0".into()
+        } else {
+            x.to_string()
+        };
+    }
+    let decimals = (5 - x.abs().log10().floor() as i32).max(0) as usize;
+    let text = format!("{x:.decimals$}");
+    if text.contains('.') {
+        text.trim_end_matches('0').trim_end_matches('.').to_string()
+    } else {
+        text
+    }
+}
+
 impl std::fmt::Display for Summary {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         writeln!(
@@ -632,12 +651,16 @@ impl std::fmt::Display for Summary {
             "lights          {} punctual ({} moving)",
             self.lights, self.moving_lights
         )?;
+        let length = |x: f64| shown(x, self.radius);
         writeln!(
             f,
             "bounds          centre [{}, {}, {}], radius {}",
-            self.center[0], self.center[1], self.center[2], self.radius
+            length(self.center[0]),
+            length(self.center[1]),
+            length(self.center[2]),
+            length(self.radius)
         )?;
-        writeln!(f, "area            {}", self.area)?;
+        writeln!(f, "area            {}", shown(self.area, self.area))?;
         if self.warnings.is_empty() {
             writeln!(f, "warnings        none")
         } else {
@@ -646,5 +669,22 @@ impl std::fmt::Display for Summary {
                 .iter()
                 .try_for_each(|w| writeln!(f, "  - {w}"))
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::shown;
+
+    #[test]
+    fn the_summary_shows_lengths_to_six_digits_and_rounding_as_zero() {
+        assert_eq!(shown(-2.220446049250313e-16, 1.0), "0");
+        assert_eq!(shown(0.8660254037844386, 0.87), "0.866025");
+        assert_eq!(shown(6.685057788447885, 6.7), "6.68506");
+        assert_eq!(shown(1.5, 6.7), "1.5");
+        assert_eq!(shown(242.67199400413085, 242.7), "242.672");
+        assert_eq!(shown(1234567.0, 1e6), "1234567");
+        assert_eq!(shown(-0.5, 1.0), "-0.5");
+        assert_eq!(shown(3e-12, 1e-11), "0.000000000003");
     }
 }

@@ -38,9 +38,14 @@ fn solved_frame(job: &Job, frame: &str) -> Result<(usize, u64, Arc<FrameSolution
         .ok()
         .filter(|&f| f < frames)
         .ok_or_else(|| {
-            ApiError::NotFound(format!(
-                "no frame {frame:?}: the timeline has frames 0..{frames}"
-            ))
+            ApiError::NotFound(match frames {
+                0 => format!("no frame {frame:?}: the timeline has no frames"),
+                1 => format!("no frame {frame:?}: the timeline has frame 0 only"),
+                _ => format!(
+                    "no frame {frame:?}: the timeline has frames 0 to {}",
+                    frames - 1
+                ),
+            })
         })?;
     let (version, solution) = job.frame(f).ok_or_else(|| {
         ApiError::NotReady(format!(

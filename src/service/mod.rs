@@ -431,14 +431,20 @@ async fn list_timelines(
     Json(json!({ "timelines": timelines }))
 }
 
+/// `DELETE /v1/timelines/{id}`: a queued or running timeline is cancelled (it stays, with
+/// status `cancelled` and the frames solved before, until deleted again); a finished one
+/// (done, failed or cancelled) is deleted with its saved results.
 async fn delete_timeline(
     State(state): State<AppState>,
     Path(id): Path<String>,
     _: StrictQuery<NoParameters>,
 ) -> Result<StatusCode, ApiError> {
     let job = job(&state, &id)?;
-    job.cancel();
-    state.0.jobs.remove(&id);
+    if job.status().is_final() {
+        state.0.jobs.remove(&id);
+    } else {
+        job.cancel();
+    }
     Ok(StatusCode::NO_CONTENT)
 }
 
@@ -466,7 +472,7 @@ fn rerun(
     }
     if !state.0.jobs.rerun(job.clone(), work, change)? {
         return Err(ApiError::NotReady(format!(
-            "timeline {} is {:?}: refine or relight it once it is done",
+            "timeline {} is {}: refine or relight it once it is done",
             job.id,
             job.status()
         )));
@@ -494,6 +500,12 @@ async fn timeline_stats(
 ) -> Result<Json<serde_json::Value>, ApiError> {
     let job = job(&state, &id)?;
     let (frame, patches) = query.validate(job.frame_times.len())?;
+    if !job.can_rerun() {
+        return Err(ApiError::NotReady(format!(
+            "timeline {id} was restored from disk: its lines are not kept there, so their \
+             statistics cannot be measured; post the scene again"
+        )));
+    }
     let stats = tokio::task::spawn_blocking(move || {
         job.with_bake(|bake| {
             let stats =
