@@ -13,6 +13,10 @@ use crate::solve::FrameSolution;
 /// "key": 0.18 is middle grey).
 pub const KEY: f64 = 0.18;
 
+/// Patches whose luminance is at most this share of the brightest are unlit for the exposure
+/// ([`ToneMap::for_timeline`]).
+pub const UNLIT: f64 = 1e-4;
+
 /// Rec. 709 luminance's weights of the linear RGB channels.
 pub const LUMINANCE: [f64; 3] = [0.2126, 0.7152, 0.0722];
 
@@ -33,11 +37,14 @@ pub struct ToneMap {
 impl ToneMap {
     /// The exposure that maps the log-average luminance of the lit, non-emitting patches (area
     /// weighted, over every frame) to [`KEY`]. A scene with no such light gets exposure 1.
+    ///
+    /// Unlit patches do not count: below [`UNLIT`] of the brightest, a patch shows black
+    /// whatever the exposure, and it is most often a side no light reaches at all (the outward
+    /// side of a double-sided wall, as Blender exports every material; the floor under a box).
+    /// Counted at a floor, as they were, the outer sides of a Blender room took its exposure
+    /// from 0.52 to 8.07: the lit inside washed out.
     #[must_use]
     pub fn for_timeline(scene: &Scene, frames: &[std::sync::Arc<FrameSolution>]) -> Self {
-        // Luminances below this fraction of the brightest are treated as this (the "delta"
-        // of the log average), so unlit corners do not drag the exposure to infinity.
-        const FLOOR: f64 = 1e-4;
         // Frames with equal radiance count once, weighted by how many frames show it, in order
         // of first appearance: the sum is the same whether shared frames share an `Arc` (a
         // batch bake) or hold equal copies (the service solves frames in parallel chunks).
@@ -72,8 +79,8 @@ impl ToneMap {
                 if scene.materials[patch.material as usize].is_emitter() {
                     continue;
                 }
-                let y = luminance(l).max(FLOOR * brightest);
-                if y > 0.0 {
+                let y = luminance(l);
+                if y > UNLIT * brightest && y > 0.0 {
                     sum += times * patch.area * y.ln();
                     weight += times * patch.area;
                 }
@@ -133,5 +140,35 @@ mod tests {
         // Overflow shows white, never NaN (which would cast to black).
         let huge = ToneMap { exposure: 1e300 }.apply([1e300, 0.0, 0.0]);
         assert_eq!(huge, [1.0, 0.0, 0.0]);
+    }
+
+    #[test]
+    fn unlit_patches_leave_the_exposure_as_the_lit_ones_set_it() {
+        let sample = crate::samples::all().swap_remove(0);
+        let options = crate::loader::LoadOptions::default();
+        let scene = crate::loader::load(sample.gltf.as_bytes(), &options).unwrap();
+        let frame = |radiance: Vec<[f64; 3]>| {
+            let n = radiance.len();
+            std::sync::Arc::new(FrameSolution {
+                radiance,
+                stderr: vec![None; n],
+                samples: vec![0; n],
+                iterations: 0,
+                residual: 0.0,
+                converged: true,
+            })
+        };
+        let emits = |p: usize| scene.materials[scene.patches[p].material as usize].is_emitter();
+        // Every non-emitting patch lit at 0.5 (luminance): the key over 0.5.
+        let lit: Vec<[f64; 3]> = (0..scene.patches.len())
+            .map(|p| if emits(p) { [10.0; 3] } else { [0.5; 3] })
+            .collect();
+        let alone = ToneMap::for_timeline(&scene, &[frame(lit.clone())]);
+        assert!((alone.exposure - KEY / 0.5).abs() < 1e-9, "{alone:?}");
+        // Half of them black (the outer sides of a double-sided room): the same exposure.
+        let half: Vec<[f64; 3]> = (lit.iter().enumerate())
+            .map(|(p, &l)| if !emits(p) && p % 2 == 0 { [0.0; 3] } else { l })
+            .collect();
+        assert_eq!(ToneMap::for_timeline(&scene, &[frame(half)]), alone);
     }
 }
