@@ -156,3 +156,31 @@ fn a_preview_shows_the_scene_lit_from_its_automatic_camera() {
     let brightest = image.pixels().map(|p| p[1]).max().unwrap();
     assert!(brightest > 100);
 }
+
+#[test]
+fn a_closed_room_of_double_sided_walls_previews_its_lit_inside() {
+    let sample = (radiosity::samples::all().into_iter())
+        .find(|s| s.file_name == "panel_room.gltf")
+        .unwrap();
+    let scene = load(sample.gltf.as_bytes(), &LoadOptions::default()).unwrap();
+    let params = radiosity::timeline::LineParams {
+        lines: 20_000,
+        seed: 1,
+    };
+    let bake = radiosity::bake::Bake::trace(scene, &params).unwrap();
+    let solved = bake.solve_frame(0, &bake.scene.materials, &Default::default());
+    let scene = bake.shown();
+    let tone = ToneMap::for_timeline(scene, &[std::sync::Arc::new(solved.clone())]);
+    let image = preview_image(scene, 0, &solved.radiance, &tone, 160, 120);
+    let background = *image.get_pixel(0, 0);
+    let drawn: Vec<&image::Rgb<u8>> = image.pixels().filter(|p| **p != background).collect();
+    assert!(drawn.len() > 160 * 120 / 10, "{} pixels drawn", drawn.len());
+    // The walls' outer sides are black (no light reaches them): drawn, they hid the room (every
+    // pixel black). Cut away, the lit inside shows.
+    let black = drawn.iter().filter(|p| p.0.iter().all(|&c| c < 8)).count();
+    assert!(
+        black * 10 < drawn.len(),
+        "{black} of {} drawn pixels black",
+        drawn.len()
+    );
+}

@@ -17,6 +17,7 @@ pub use geometry::{NodeMesh, frame_geometry};
 pub use glb::frame_glb;
 pub use preview::Camera;
 pub use tonemap::ToneMap;
+use tonemap::luminance;
 
 use crate::scene::Scene;
 
@@ -46,7 +47,8 @@ pub fn camera(scene: &Scene, frame: usize, aspect: f64) -> Camera {
     }
 }
 
-/// A preview of one frame: each patch flat-shaded with its tone-mapped radiance.
+/// A preview of one frame: each patch flat-shaded with its tone-mapped radiance, the unlit
+/// sides of triangles lit on their other side cut away.
 #[must_use]
 pub fn preview_image(
     scene: &Scene,
@@ -56,9 +58,27 @@ pub fn preview_image(
     width: u32,
     height: u32,
 ) -> image::RgbImage {
+    // A cutaway: an unlit side of a triangle whose other side is lit is not drawn. A closed
+    // room of double-sided walls (as Blender exports every material) seen from outside shows
+    // its lit inside through the walls' dark outer sides, as a room of one-sided walls does
+    // with its back faces culled.
+    let brightest = radiance.iter().map(|&l| luminance(l)).fold(0.0, f64::max);
+    let lit = |p: u32| luminance(radiance[p as usize]) > tonemap::UNLIT * brightest;
+    let mut other_side = vec![None; scene.patches.len()];
+    let meshes = std::iter::once(&scene.statics).chain(scene.objects.iter().map(|o| &o.mesh));
+    for f in meshes.flat_map(|m| &m.faces) {
+        if let Some(back) = f.back {
+            other_side[f.front as usize] = Some(back);
+            other_side[back as usize] = Some(f.front);
+        }
+    }
+    let hidden = |p: u32| !lit(p) && other_side[p as usize].is_some_and(lit);
     let mut triangles = Vec::new();
     for mesh in frame_geometry(scene, frame, radiance) {
         for (t, &patch) in mesh.triangles.iter().zip(&mesh.patches) {
+            if hidden(patch) {
+                continue;
+            }
             triangles.push(preview::Triangle {
                 corners: t.map(|i| mesh.positions[i as usize]),
                 colour: tone.apply(radiance[patch as usize]),
