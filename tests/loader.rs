@@ -665,3 +665,46 @@ fn a_mirrored_node_keeps_its_faces_facing_the_same_way() {
         assert!(normal.z > 0.0, "a mirrored quad faces {normal}");
     }
 }
+
+#[test]
+fn the_summary_names_what_can_be_relit_and_played() {
+    let sample = (radiosity::samples::all().into_iter())
+        .find(|s| s.file_name == "level_lamps.gltf")
+        .unwrap();
+    let names = |named: &[radiosity::scene::Named]| -> Vec<String> {
+        named.iter().map(ToString::to_string).collect()
+    };
+    let scene = load(sample.gltf.as_bytes(), &opts()).unwrap();
+    let summary = scene.summary();
+    let materials = names(&summary.materials);
+    assert_eq!(materials.len(), scene.materials.len());
+    assert_eq!(materials[4], "4 \"lamp_housing\"");
+    assert_eq!(
+        names(&summary.light_names),
+        [
+            "0 \"warm_lamp\" (point)",
+            "1 \"spot\" (spot)",
+            "2 \"swinging_lamp\" (point, moving)"
+        ]
+    );
+    assert_eq!(
+        names(&summary.animations),
+        ["0 \"door_swing\" (played)", "1 \"lamp_swing\" (played)"]
+    );
+    assert_eq!(summary.camera, None);
+    // One animation chosen, by index: the other is listed, not played.
+    let one = LoadOptions {
+        animation: Some("1".into()),
+        ..opts()
+    };
+    let summary = load(sample.gltf.as_bytes(), &one).unwrap().summary();
+    assert_eq!(
+        names(&summary.animations),
+        ["0 \"door_swing\"", "1 \"lamp_swing\" (played)"]
+    );
+    let text = summary.to_string();
+    assert!(
+        text.contains("materials       0 \"floor\", 1 \"wall\""),
+        "{text}"
+    );
+}

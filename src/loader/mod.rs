@@ -291,6 +291,16 @@ pub fn load(bytes: &[u8], options: &LoadOptions) -> Result<Scene, LoadError> {
         .nodes()
         .map(|n| n.name().map(str::to_owned))
         .collect();
+    // Every animation plays unless one is chosen (the timeline has checked that it exists).
+    let chosen =
+        (options.animation.as_deref()).and_then(|w| nodes::find_animation(&document, w).ok());
+    scene.animations = document
+        .animations()
+        .map(|a| {
+            let played = chosen.as_ref().is_none_or(|c| c.index() == a.index());
+            (a.name().map(str::to_owned), played)
+        })
+        .collect();
     let to_norm = scene.normalisation.to_normalised();
     for &(n, index) in &light_nodes {
         let mut light = read_light(&document, n, index, &poses)?;
@@ -954,5 +964,6 @@ fn build(
         node_names: Vec::new(),
         camera: None,
         lights: Vec::new(),
+        animations: Vec::new(),
     })
 }

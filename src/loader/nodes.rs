@@ -250,7 +250,7 @@ pub fn timeline(
     Ok(Timeline { tracks, frames })
 }
 
-fn find_animation<'a>(
+pub(super) fn find_animation<'a>(
     document: &'a Document,
     wanted: &str,
 ) -> Result<gltf::Animation<'a>, LoadError> {

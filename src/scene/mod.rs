@@ -503,6 +503,34 @@ pub struct Scene {
     pub camera: Option<SceneCamera>,
     /// Punctual lights: the direct light they give starts the interreflection solve.
     pub lights: Vec<Light>,
+    /// The source file's animations, by index: each one's name, and whether it is played.
+    pub animations: Vec<(Option<String>, bool)>,
+}
+
+/// One named thing of a scene as [`Summary`] lists it: its index in the source file (or in the
+/// scene's list), its name, and what more there is to say of it.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct Named {
+    /// Index (materials and animations: the file's; lights: the scene's, in the order
+    /// relighting numbers them).
+    pub index: usize,
+    /// Name in the source file, if any.
+    pub name: Option<String>,
+    /// What kind it is or what it does (`emits`, `double-sided`, `point`, `played`...).
+    pub notes: Vec<&'static str>,
+}
+
+impl std::fmt::Display for Named {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}", self.index)?;
+        if let Some(name) = &self.name {
+            write!(f, " {name:?}")?;
+        }
+        if !self.notes.is_empty() {
+            write!(f, " ({})", self.notes.join(", "))?;
+        }
+        Ok(())
+    }
 }
 
 /// What the `scene` command and the service report about a loaded scene.
@@ -542,6 +570,14 @@ pub struct Summary {
     pub radius: f64,
     /// Total area of the patches at frame 0, scene units squared.
     pub area: f64,
+    /// The materials, by the names relighting takes.
+    pub materials: Vec<Named>,
+    /// The punctual lights, by the names relighting takes.
+    pub light_names: Vec<Named>,
+    /// The file's animations (`--animation` / `animation=` take a name or index).
+    pub animations: Vec<Named>,
+    /// The camera node the previews are seen from, if the scene has one.
+    pub camera: Option<String>,
     /// Loader warnings.
     pub warnings: Vec<String>,
 }
@@ -583,6 +619,44 @@ impl Scene {
             center: self.normalisation.center.to_array(),
             radius: self.normalisation.radius,
             area: self.patches.iter().map(|p| p.area).sum(),
+            materials: (self.materials.iter().enumerate())
+                .map(|(index, m)| Named {
+                    index,
+                    name: m.name.clone(),
+                    notes: [(m.is_emitter(), "emits"), (m.double_sided, "double-sided")]
+                        .into_iter()
+                        .filter_map(|(is, note)| is.then_some(note))
+                        .collect(),
+                })
+                .collect(),
+            light_names: (self.lights.iter().enumerate())
+                .map(|(index, l)| Named {
+                    index,
+                    name: l.name.clone(),
+                    notes: [
+                        Some(match l.kind {
+                            LightKind::Point => "point",
+                            LightKind::Spot { .. } => "spot",
+                            LightKind::Directional => "directional",
+                        }),
+                        l.moves().then_some("moving"),
+                    ]
+                    .into_iter()
+                    .flatten()
+                    .collect(),
+                })
+                .collect(),
+            animations: (self.animations.iter().enumerate())
+                .map(|(index, (name, played))| Named {
+                    index,
+                    name: name.clone(),
+                    notes: if *played { vec!["played"] } else { Vec::new() },
+                })
+                .collect(),
+            camera: self
+                .camera
+                .as_ref()
+                .map(|c| c.name.clone().unwrap_or_else(|| "unnamed".into())),
             warnings: self.warnings.clone(),
         }
     }
@@ -661,6 +735,24 @@ impl std::fmt::Display for Summary {
             length(self.radius)
         )?;
         writeln!(f, "area            {}", shown(self.area, self.area))?;
+        let list = |named: &[Named]| {
+            let items: Vec<String> = named.iter().map(Named::to_string).collect();
+            if items.is_empty() {
+                "none".to_string()
+            } else {
+                items.join(", ")
+            }
+        };
+        writeln!(f, "materials       {}", list(&self.materials))?;
+        writeln!(f, "light names     {}", list(&self.light_names))?;
+        writeln!(f, "animations      {}", list(&self.animations))?;
+        match &self.camera {
+            Some(name) => writeln!(f, "camera          {name:?} (the previews' viewpoint)")?,
+            None => writeln!(
+                f,
+                "camera          none (the previews use an automatic one)"
+            )?,
+        }
         if self.warnings.is_empty() {
             writeln!(f, "warnings        none")
         } else {
