@@ -3,6 +3,8 @@
 //! Each scene bakes into `OUT/<scene name>/`:
 //! - `radiance.bin`: every frame's radiance per patch (layout in the README and beside
 //!   `write_radiance`);
+//! - `patches.json`: the patch table ([`crate::output::patch_table`]), each patch's source and
+//!   material;
 //! - `summary.json`: frames, patches, parameters, error figures, warnings and the content hash
 //!   that makes re-runs incremental;
 //! - `baked/frame_NNNN.glb`: the baked glTF of the chosen frames (see [`crate::output::glb`]);
@@ -504,6 +506,8 @@ pub fn bake_one(
         }
         std::fs::create_dir_all(&staging).map_err(io)?;
         write_radiance(&staging.join("radiance.bin"), &times, &frames).map_err(io)?;
+        let table = serde_json::to_vec(&output::patch_table(scene)).map_err(|e| e.to_string())?;
+        std::fs::write(staging.join("patches.json"), table).map_err(io)?;
         write_outputs(&staging, scene, &frames, &params.outputs, &tone, control)
     })();
     let gif = match written {

@@ -125,6 +125,16 @@ fn baked_outputs_are_usable(dir: &Path) {
     let frames = summary["frames"].as_u64().unwrap() as usize;
     assert!(frames > 1);
     assert_eq!(summary["glb_frames"].as_array().unwrap().len(), frames);
+    // The patch table: one entry per patch of radiance.bin, each with its named material.
+    let table: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("patches.json")).unwrap()).unwrap();
+    let patches = table["patches"].as_array().unwrap();
+    assert_eq!(patches.len() as u64, summary["patches"].as_u64().unwrap());
+    let materials = table["materials"].as_array().unwrap();
+    for patch in patches {
+        let m = &materials[patch["material"].as_u64().unwrap() as usize];
+        assert!(m["name"].is_string(), "{m}");
+    }
     for f in 0..frames {
         let bytes = std::fs::read(dir.join("baked").join(format!("frame_{f:04}.glb"))).unwrap();
         let gltf = gltf::Gltf::from_slice(&bytes).unwrap();

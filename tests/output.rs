@@ -109,14 +109,21 @@ fn back_faces_get_their_own_triangles_and_vertices() {
 
 #[test]
 fn the_baked_glb_loads_back_with_colours_per_vertex() {
-    let scene = corner(true);
+    let mut scene = corner(true);
     let radiance = radiance(&scene);
     let meshes = frame_geometry(&scene, 0, &radiance);
     let tone = ToneMap { exposure: 0.01 };
+    let unnamed = frame_glb(&scene, 0, &meshes, &tone).unwrap();
+    let unnamed = gltf::Gltf::from_slice(&unnamed).unwrap();
+    assert_eq!(unnamed.nodes().next().unwrap().name(), Some("node 0"));
+    // Baked nodes keep their source names.
+    scene.node_names[0] = Some("Corner".into());
     let bytes = frame_glb(&scene, 0, &meshes, &tone).unwrap();
     let gltf = gltf::Gltf::from_slice(&bytes).unwrap();
     let blob = gltf.blob.as_deref().unwrap();
     let node = gltf.nodes().next().unwrap();
+    assert_eq!(node.name(), Some("Corner"));
+    assert_eq!(node.mesh().unwrap().name(), Some("Corner baked"));
     // The scene sits 1e6 from the origin: the node carries the offset, the vertices are small.
     let (translation, _, _) = node.transform().decomposed();
     assert!((f64::from(translation[0]) - 1e6).abs() < 1.0);

@@ -137,6 +137,12 @@ async fn every_sample_scene_bakes_and_serves_every_frame() {
         assert!(iterations.iter().all(Value::is_u64), "{name}: {status}");
         let table: Value = get_json(&client, format!("{base}/v1/timelines/{id}/patches")).await;
         assert_eq!(table["patches"].as_array().unwrap().len(), patches);
+        // Each patch names its material, and the materials their names.
+        let materials = table["materials"].as_array().unwrap();
+        for patch in table["patches"].as_array().unwrap() {
+            let m = patch["material"].as_u64().unwrap() as usize;
+            assert_eq!(materials[m]["index"], m, "{name}");
+        }
         for f in 0..frames {
             let frame: Value =
                 get_json(&client, format!("{base}/v1/timelines/{id}/frames/{f}")).await;

@@ -133,8 +133,12 @@ pub fn frame_glb(
         let colour = buffers.vec3(&colours, false);
         let hdr = buffers.vec3(&radiance, false);
         let indices = buffers.indices(&mesh.triangles);
+        // The source node's name, or its index.
+        let name = (scene.node_names.get(mesh.node as usize))
+            .and_then(Option::as_deref)
+            .map_or_else(|| format!("node {}", mesh.node), str::to_owned);
         gltf_meshes.push(json!({
-            "name": format!("node {} baked", mesh.node),
+            "name": format!("{name} baked"),
             "primitives": [{
                 "attributes": {
                     "POSITION": position,
@@ -147,7 +151,7 @@ pub fn frame_glb(
             }],
         }));
         nodes.push(json!({
-            "name": format!("node {}", mesh.node),
+            "name": name,
             "mesh": gltf_meshes.len() - 1,
             "translation": centre.to_array(),
             "extras": { "source_node": mesh.node },

@@ -19,6 +19,8 @@ pub use preview::Camera;
 pub use tonemap::ToneMap;
 use tonemap::luminance;
 
+use serde_json::json;
+
 use crate::scene::Scene;
 
 /// Why an output could not be made.
@@ -87,6 +89,31 @@ pub fn preview_image(
     }
     let aspect = f64::from(width.max(1)) / f64::from(height.max(1));
     preview::render(&triangles, &camera(scene, frame, aspect), width, height)
+}
+
+/// The patch table (the service's `GET /v1/timelines/{id}/patches`, the bake's
+/// `patches.json`): each patch's source, side, area and material, and the materials' names
+/// (what relighting takes).
+#[must_use]
+pub fn patch_table(scene: &Scene) -> serde_json::Value {
+    let patches: Vec<serde_json::Value> = scene
+        .patches
+        .iter()
+        .enumerate()
+        .map(|(id, p)| {
+            let mut entry = json!({"id": id, "node": p.source.node, "mesh": p.source.mesh, "primitive": p.source.primitive,
+                   "triangle": p.source.triangle, "side": p.side, "area": p.area, "moving": p.object.is_some(),
+                   "material": p.material});
+            if !p.merged.is_empty() {
+                entry["merged"] = json!(p.merged);
+            }
+            entry
+        })
+        .collect();
+    let materials: Vec<serde_json::Value> = (scene.materials.iter().enumerate())
+        .map(|(index, m)| json!({"index": index, "name": m.name}))
+        .collect();
+    json!({ "patches": patches, "materials": materials })
 }
 
 /// A choice of frames on the command line: `all`, `none`, or a comma-separated list of frame

@@ -461,7 +461,7 @@ impl Job {
                 if let Some(auto) = &self.auto {
                     match adaptive::adapt(&mut bake, auto, &self.solve, &self.control) {
                         Ok(_) => {
-                            let table = super::patch_table(&bake.scene);
+                            let table = crate::output::patch_table(&bake.scene);
                             if let Ok(mut t) = self.patch_table.write() {
                                 *t = Arc::new(table);
                             }

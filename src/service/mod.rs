@@ -219,24 +219,6 @@ fn estimate_bytes(scene: &Scene, lines: u64) -> u64 {
     bytes as u64
 }
 
-/// The patch table served by `GET /v1/timelines/{id}/patches`.
-pub(crate) fn patch_table(scene: &Scene) -> serde_json::Value {
-    let patches: Vec<serde_json::Value> = scene
-        .patches
-        .iter()
-        .enumerate()
-        .map(|(id, p)| {
-            let mut entry = json!({"id": id, "node": p.source.node, "mesh": p.source.mesh, "primitive": p.source.primitive,
-                   "triangle": p.source.triangle, "side": p.side, "area": p.area, "moving": p.object.is_some()});
-            if !p.merged.is_empty() {
-                entry["merged"] = json!(p.merged);
-            }
-            entry
-        })
-        .collect();
-    json!({ "patches": patches })
-}
-
 fn new_id() -> String {
     use rand::RngExt;
     let mut rng = rand::rng();
@@ -295,7 +277,7 @@ async fn create_timeline(
         )));
     }
     let id = new_id();
-    let table = patch_table(&scene);
+    let table = crate::output::patch_table(&scene);
     let solve = SolveParams {
         sky,
         max_iterations: config.max_iterations,
