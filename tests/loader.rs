@@ -708,3 +708,68 @@ fn the_summary_names_what_can_be_relit_and_played() {
         "{text}"
     );
 }
+
+#[test]
+fn quantized_positions_load_as_their_floats_do() {
+    // The unit quad as gltfpack writes it (KHR_mesh_quantization): u16 positions, not
+    // normalised, 6-byte elements padded to a stride of 8, the node's scale and translation
+    // taking them back to metres.
+    let (scale, offset) = (1.0 / 1000.0, [-0.5f32, 0.0, -0.5]);
+    let quantized: Vec<[u16; 3]> = (QUAD.iter())
+        .map(|p| std::array::from_fn(|k| ((p[k] - offset[k]) / scale).round() as u16))
+        .collect();
+    let mut d = Doc::new();
+    while d.bin.len() % 4 != 0 {
+        d.bin.push(0);
+    }
+    let start = d.bin.len();
+    for q in &quantized {
+        q.iter()
+            .for_each(|c| d.bin.extend_from_slice(&c.to_le_bytes()));
+        d.bin.extend_from_slice(&[0, 0]);
+    }
+    let view = d.push(
+        "bufferViews",
+        json!({"buffer": 0, "byteOffset": start, "byteLength": d.bin.len() - start, "byteStride": 8}),
+    );
+    let (min, max) = (
+        (0..3)
+            .map(|k| quantized.iter().map(|q| q[k]).min().unwrap())
+            .collect::<Vec<_>>(),
+        (0..3)
+            .map(|k| quantized.iter().map(|q| q[k]).max().unwrap())
+            .collect::<Vec<_>>(),
+    );
+    let position = d.push(
+        "accessors",
+        json!({"bufferView": view, "componentType": 5123, "count": 4, "type": "VEC3",
+               "min": min, "max": max}),
+    );
+    let indices = d.indices(&QUAD_INDICES, 5123);
+    let mesh = d.push(
+        "meshes",
+        json!({"primitives": [{"attributes": {"POSITION": position}, "indices": indices}]}),
+    );
+    let node = d.node(json!({"mesh": mesh, "scale": [scale, scale, scale], "translation": offset}));
+    d.scene(&[node]);
+    d.json["extensionsUsed"] = json!(["KHR_mesh_quantization"]);
+    d.json["extensionsRequired"] = json!(["KHR_mesh_quantization"]);
+    let scene = load_ok(&d);
+    // Against the float quad.
+    let mut f = Doc::new();
+    let mesh = f.mesh(&QUAD, Some(&QUAD_INDICES), None);
+    let node = f.node(json!({"mesh": mesh}));
+    f.scene(&[node]);
+    let floats = load_ok(&f);
+    assert_eq!(scene.patches.len(), floats.patches.len());
+    for (q, p) in scene.patches.iter().zip(&floats.patches) {
+        assert!(
+            (q.area - p.area).abs() < 1e-6 * p.area,
+            "{} {}",
+            q.area,
+            p.area
+        );
+    }
+    let centre = |s: &Scene| s.normalisation.center;
+    assert!((centre(&scene) - centre(&floats)).length() < 1e-6);
+}

@@ -81,8 +81,14 @@ pub fn parse(bytes: &[u8]) -> Result<Container, LoadError> {
         )));
     }
     let (json, warnings) = without_untargeted_channels(json)?;
-    let root = gltf::json::Root::from_slice(&json)
+    let mut root = gltf::json::Root::from_slice(&json)
         .map_err(|e| LoadError::Container(format!("invalid JSON: {e}")))?;
+    // What KHR_mesh_quantization allows (positions, normals and morph deltas as 8- and 16-bit
+    // integers, normalised or not, elements padded to 4 bytes) the accessors are read as
+    // anyway (`accessor::read`: every component type, any stride); the `gltf` crate refuses
+    // the extension as required only because it does not know it.
+    root.extensions_required
+        .retain(|e| e != "KHR_mesh_quantization");
     precheck(&root)?;
     let document = Document::from_json(root).map_err(describe_gltf_error)?;
     let mut buffers = Vec::with_capacity(document.buffers().len());
