@@ -719,7 +719,7 @@ fn quantized_positions_load_as_their_floats_do() {
         .map(|p| std::array::from_fn(|k| ((p[k] - offset[k]) / scale).round() as u16))
         .collect();
     let mut d = Doc::new();
-    while d.bin.len() % 4 != 0 {
+    while !d.bin.len().is_multiple_of(4) {
         d.bin.push(0);
     }
     let start = d.bin.len();
