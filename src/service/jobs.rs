@@ -81,6 +81,8 @@ pub struct JobState {
     pub memory: Option<(usize, usize)>,
     /// When the current stage started, for the ETA.
     pub stage_started: Instant,
+    /// Seconds into the solving stage when its last frame was served, for the ETA.
+    pub last_frame: Option<f64>,
     /// What the bake found that the user should know (coplanar overlaps, patches no line
     /// crossed), after the loader's warnings; renewed by every run.
     pub found: Vec<String>,
@@ -205,6 +207,7 @@ impl Job {
                 timings: Timings::default(),
                 memory: None,
                 stage_started: Instant::now(),
+                last_frame: None,
                 found: Vec::new(),
             }),
             control: Control::default(),
@@ -268,6 +271,7 @@ impl Job {
                 },
                 memory: record.memory,
                 stage_started: Instant::now(),
+                last_frame: None,
                 found: Vec::new(),
             }),
             control: Control::default(),
@@ -341,6 +345,7 @@ impl Job {
         {
             s.status = status;
             s.stage_started = Instant::now();
+            s.last_frame = None;
         }
     }
 
@@ -560,6 +565,9 @@ impl Job {
             if let Ok(mut results) = self.results.write() {
                 results[f] = Some((version, solution.clone()));
             }
+            if let Ok(mut s) = self.state.lock() {
+                s.last_frame = Some(s.stage_started.elapsed().as_secs_f64());
+            }
             self.frames_solved.store(f + 1, Ordering::Release);
             self.solved.send_replace(f + 1);
             ControlFlow::Continue(())
@@ -586,6 +594,7 @@ impl Job {
         change()?;
         s.status = Status::Queued;
         s.stage_started = Instant::now();
+        s.last_frame = None;
         self.version.fetch_add(1, Ordering::AcqRel);
         self.frames_solved.store(0, Ordering::Release);
         Ok(true)

@@ -323,22 +323,32 @@ fn job(state: &AppState, id: &str) -> Result<Arc<Job>, ApiError> {
         .ok_or_else(|| ApiError::NotFound(format!("no timeline {id:?}")))
 }
 
+/// The seconds left of a stage that has done `done` of `total` like steps, the last ending
+/// `at` seconds into it, now `now` seconds in: the steps left at the rate so far, counted down
+/// while the next step takes longer than that, never below what the steps after it need. It
+/// never climbs while a step stalls (the rate over the elapsed time did, at every poll).
+fn seconds_left((done, total): (usize, usize), at: f64, now: f64) -> f64 {
+    let rate = at / done.max(1) as f64;
+    let left = total.saturating_sub(done) as f64;
+    (at + left * rate - now).max((left - 1.0).max(0.0) * rate)
+}
+
 /// The status document of a job.
 fn status_json(job: &Job) -> serde_json::Value {
-    let (status, error, timings, memory, stage_seconds) = match job.state.lock() {
+    let (status, error, timings, memory, (stage_seconds, last_frame)) = match job.state.lock() {
         Ok(s) => (
             s.status,
             s.error.clone(),
             s.timings,
             s.memory,
-            s.stage_started.elapsed().as_secs_f64(),
+            (s.stage_started.elapsed().as_secs_f64(), s.last_frame),
         ),
         Err(_) => (
             Status::Failed,
             Some("state unavailable".into()),
             Default::default(),
             None,
-            0.0,
+            (0.0, None),
         ),
     };
     let frames = job.frame_times.len();
@@ -354,7 +364,7 @@ fn status_json(job: &Job) -> serde_json::Value {
     let eta = match status {
         Status::Tracing if fraction > 0.0 => Some(stage_seconds * (1.0 - fraction) / fraction),
         Status::Solving if solved > 0 => {
-            Some(stage_seconds * (frames - solved) as f64 / solved as f64)
+            last_frame.map(|at| seconds_left((solved, frames), at, stage_seconds))
         }
         _ => None,
     };
@@ -555,4 +565,25 @@ pub const OPENAPI: &str = include_str!("../../api/openapi.json");
 
 async fn openapi(_: StrictQuery<NoParameters>) -> Response {
     ([(header::CONTENT_TYPE, "application/json")], OPENAPI).into_response()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::seconds_left;
+
+    #[test]
+    fn the_eta_counts_down_and_holds_while_a_frame_stalls() {
+        // 5 of 10 frames in 10 s, the last at 10 s: 2 s a frame, 10 s left.
+        assert_eq!(seconds_left((5, 10), 10.0, 10.0), 10.0);
+        assert_eq!(seconds_left((5, 10), 10.0, 11.0), 9.0);
+        // Stalled on the sixth frame: it holds at what the four after it need, never climbs.
+        let polls: Vec<f64> = (10..60)
+            .map(|now| seconds_left((5, 10), 10.0, f64::from(now)))
+            .collect();
+        assert!(polls.windows(2).all(|w| w[1] <= w[0]), "{polls:?}");
+        assert_eq!(polls.last(), Some(&8.0));
+        // The last frame: down to 0, not below.
+        assert_eq!(seconds_left((9, 10), 18.0, 100.0), 0.0);
+        assert_eq!(seconds_left((10, 10), 20.0, 21.0), 0.0);
+    }
 }
