@@ -84,6 +84,9 @@ pub struct Outputs {
     pub preview_size: (u32, u32),
     /// Whether to write `preview.gif` (for timelines of more than one frame).
     pub gif: bool,
+    /// The tone map's exposure for the previews and the baked glTF's `COLOR_0`; `None` takes
+    /// it from the lit surfaces ([`ToneMap::for_timeline`]).
+    pub exposure: Option<f64>,
 }
 
 impl Default for Outputs {
@@ -98,6 +101,7 @@ impl Default for Outputs {
             ]),
             preview_size: (640, 480),
             gif: true,
+            exposure: None,
         }
     }
 }
@@ -229,6 +233,7 @@ fn content_hash(bytes: &[u8], params: &BatchParams) -> String {
             "preview_frames": outputs.preview_frames.to_string(),
             "preview_size": [outputs.preview_size.0, outputs.preview_size.1],
             "gif": outputs.gif,
+            "exposure": outputs.exposure,
         },
     });
     let mut h = Sha256::new();
@@ -498,7 +503,10 @@ pub fn bake_one(
     log(&format!("{name}: writing outputs"));
     let started = Instant::now();
     let staging = hidden(&dir, "partial");
-    let tone = ToneMap::for_timeline(scene, &frames);
+    let tone = match params.outputs.exposure {
+        Some(exposure) => ToneMap { exposure },
+        None => ToneMap::for_timeline(scene, &frames),
+    };
     let written = (|| -> Result<Vec<usize>, String> {
         let io = |e: std::io::Error| format!("writing {}: {e}", staging.display());
         if staging.exists() {
@@ -667,6 +675,7 @@ mod tests {
             |p| p.outputs.preview_frames = FrameSpec::All,
             |p| p.outputs.preview_size = (640, 481),
             |p| p.outputs.gif = false,
+            |p| p.outputs.exposure = Some(2.0),
         ];
         let mut seen = std::collections::HashSet::from([base.clone()]);
         for (k, change) in changed.iter().enumerate() {

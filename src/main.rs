@@ -103,6 +103,11 @@ enum Command {
         /// Do not write preview.gif.
         #[arg(long)]
         no_gif: bool,
+        /// Exposure of the previews and of the baked glTF's vertex colours (radiance is
+        /// multiplied by it before the tone curve); by default the one that maps the lit
+        /// surfaces' log-average to middle grey (summary.json records it).
+        #[arg(long, value_parser = parse_exposure, allow_negative_numbers = true)]
+        exposure: Option<f64>,
     },
     /// Run the HTTP service (see api/ and the README).
     Serve {
@@ -298,6 +303,7 @@ fn run(cli: Cli) -> Result<(), String> {
             preview_frames,
             preview_size,
             no_gif,
+            exposure,
         } => {
             let lines = lines.unwrap_or_else(|| {
                 preset
@@ -320,6 +326,7 @@ fn run(cli: Cli) -> Result<(), String> {
                     preview_frames,
                     preview_size,
                     gif: !no_gif,
+                    exposure,
                 },
                 force,
                 max_iterations: radiosity::solve::SolveParams::default().max_iterations,
@@ -644,6 +651,13 @@ async fn shutdown_signal() {
 }
 
 /// `WIDTHxHEIGHT`, each side from 1 to [`radiosity::output::preview::MAX_PREVIEW_SIDE`].
+/// An exposure: a finite number above 0.
+fn parse_exposure(s: &str) -> Result<f64, String> {
+    (s.trim().parse::<f64>().ok())
+        .filter(|e| e.is_finite() && *e > 0.0)
+        .ok_or_else(|| format!("{s:?} is not an exposure (a finite number above 0)"))
+}
+
 fn parse_size(s: &str) -> Result<(u32, u32), String> {
     let max = radiosity::output::preview::MAX_PREVIEW_SIDE;
     let side = |t: &str| {

@@ -252,6 +252,10 @@ fn bad_output_options_are_refused_before_baking() {
         ("--preview-size", "99999x10"),
         ("--glb-frames", "5-2"),
         ("--preview-frames", "sometimes"),
+        ("--exposure", "0"),
+        ("--exposure", "-1"),
+        ("--exposure", "inf"),
+        ("--exposure", "bright"),
     ] {
         let output = radiosity()
             .args(["bake", "scenes", "--out", "/nonexistent", flag, value])
@@ -630,4 +634,47 @@ fn a_mistyped_option_gets_the_one_meant() {
         let tip = format!("a similar argument exists: '{meant}'");
         assert!(message.contains(&tip), "{message}");
     }
+}
+
+#[test]
+fn an_exposure_given_is_the_one_used() {
+    let out = scratch("exposure");
+    let squares = sample("parallel_squares.gltf");
+    let bake = |exposure: &[&str]| {
+        let output = radiosity()
+            .args([
+                "bake",
+                squares.to_str().unwrap(),
+                "--out",
+                out.to_str().unwrap(),
+            ])
+            .args([
+                "--lines",
+                "2000",
+                "--glb-frames",
+                "first",
+                "--preview-frames",
+                "none",
+            ])
+            .args(["--no-gif", "--force"])
+            .args(exposure)
+            .output()
+            .unwrap();
+        assert!(
+            output.status.success(),
+            "{}",
+            String::from_utf8_lossy(&output.stderr)
+        );
+        let dir = out.join("parallel_squares");
+        let summary: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(dir.join("summary.json")).unwrap()).unwrap();
+        let glb = std::fs::read(dir.join("baked").join("frame_0000.glb")).unwrap();
+        (summary["exposure"].as_f64().unwrap(), glb)
+    };
+    let (automatic, auto_glb) = bake(&[]);
+    let (given, given_glb) = bake(&["--exposure", "3"]);
+    assert_eq!(given, 3.0);
+    assert_ne!(automatic, 3.0);
+    // The vertex colours follow it.
+    assert_ne!(auto_glb, given_glb);
 }

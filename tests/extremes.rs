@@ -116,6 +116,7 @@ fn batch(load: LoadOptions, n: u64) -> BatchParams {
             preview_frames: FrameSpec::List(vec![FrameItem::First]),
             preview_size: (32, 24),
             gif: false,
+            exposure: None,
         },
         force: true,
         max_iterations: SolveParams::default().max_iterations,
