@@ -87,6 +87,8 @@ pub struct Outputs {
     /// The tone map's exposure for the previews and the baked glTF's `COLOR_0`; `None` takes
     /// it from the lit surfaces ([`ToneMap::for_timeline`]).
     pub exposure: Option<f64>,
+    /// How the previews shade the patches.
+    pub shading: output::Shading,
 }
 
 impl Default for Outputs {
@@ -102,6 +104,7 @@ impl Default for Outputs {
             preview_size: (640, 480),
             gif: true,
             exposure: None,
+            shading: output::Shading::Smooth,
         }
     }
 }
@@ -234,6 +237,7 @@ fn content_hash(bytes: &[u8], params: &BatchParams) -> String {
             "preview_size": [outputs.preview_size.0, outputs.preview_size.1],
             "gif": outputs.gif,
             "exposure": outputs.exposure,
+            "shading": outputs.shading,
         },
     });
     let mut h = Sha256::new();
@@ -332,7 +336,8 @@ fn write_outputs(
             if control.is_cancelled() {
                 return Err("cancelled".to_string());
             }
-            let image = output::preview_image(scene, f, &frames[f].radiance, tone, width, height);
+            let look = (tone, outputs.shading);
+            let image = output::preview_image(scene, f, &frames[f].radiance, look, width, height);
             let bytes = output::preview::encode_png(&image).map_err(|e| e.to_string())?;
             std::fs::write(dir.join("preview").join(frame_name(f, count, "png")), bytes)
                 .map_err(io)?;
@@ -345,7 +350,8 @@ fn write_outputs(
             .par_iter()
             .with_min_len(gif.len().div_ceil(at_once(w, h)))
             .map(|&f| {
-                let image = output::preview_image(scene, f, &frames[f].radiance, tone, w, h);
+                let look = (tone, outputs.shading);
+                let image = output::preview_image(scene, f, &frames[f].radiance, look, w, h);
                 control.advance(1);
                 image
             })
@@ -676,6 +682,7 @@ mod tests {
             |p| p.outputs.preview_size = (640, 481),
             |p| p.outputs.gif = false,
             |p| p.outputs.exposure = Some(2.0),
+            |p| p.outputs.shading = output::Shading::Flat,
         ];
         let mut seen = std::collections::HashSet::from([base.clone()]);
         for (k, change) in changed.iter().enumerate() {

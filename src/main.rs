@@ -108,6 +108,10 @@ enum Command {
         /// surfaces' log-average to middle grey (summary.json records it).
         #[arg(long, value_parser = parse_exposure, allow_negative_numbers = true)]
         exposure: Option<f64>,
+        /// How previews shade the patches: smooth (the baked glTF's per-vertex radiance, what
+        /// an engine shows) or flat (one colour per patch, to inspect them).
+        #[arg(long, default_value = "smooth")]
+        preview_shading: radiosity::output::Shading,
     },
     /// Run the HTTP service (see api/ and the README).
     Serve {
@@ -304,6 +308,7 @@ fn run(cli: Cli) -> Result<(), String> {
             preview_size,
             no_gif,
             exposure,
+            preview_shading,
         } => {
             let lines = lines.unwrap_or_else(|| {
                 preset
@@ -327,6 +332,7 @@ fn run(cli: Cli) -> Result<(), String> {
                     preview_size,
                     gif: !no_gif,
                     exposure,
+                    shading: preview_shading,
                 },
                 force,
                 max_iterations: radiosity::solve::SolveParams::default().max_iterations,

@@ -6,7 +6,7 @@ mod common;
 use common::Doc;
 use glam::DVec3;
 use radiosity::loader::{LoadOptions, load};
-use radiosity::output::{ToneMap, frame_geometry, frame_glb, preview_image};
+use radiosity::output::{Shading, ToneMap, frame_geometry, frame_glb, preview_image};
 use radiosity::scene::Scene;
 use serde_json::json;
 
@@ -154,7 +154,8 @@ fn the_baked_glb_loads_back_with_colours_per_vertex() {
 fn a_preview_shows_the_scene_lit_from_its_automatic_camera() {
     let scene = corner(false);
     let radiance = radiance(&scene);
-    let image = preview_image(&scene, 0, &radiance, &ToneMap { exposure: 0.05 }, 160, 120);
+    let tone = ToneMap { exposure: 0.05 };
+    let image = preview_image(&scene, 0, &radiance, (&tone, Shading::Flat), 160, 120);
     assert_eq!(image.dimensions(), (160, 120));
     let background = *image.get_pixel(0, 0);
     let lit = image.pixels().filter(|p| **p != background).count();
@@ -178,7 +179,14 @@ fn a_closed_room_of_double_sided_walls_previews_its_lit_inside() {
     let solved = bake.solve_frame(0, &bake.scene.materials, &Default::default());
     let scene = bake.shown();
     let tone = ToneMap::for_timeline(scene, &[std::sync::Arc::new(solved.clone())]);
-    let image = preview_image(scene, 0, &solved.radiance, &tone, 160, 120);
+    let image = preview_image(
+        scene,
+        0,
+        &solved.radiance,
+        (&tone, Shading::Smooth),
+        160,
+        120,
+    );
     let background = *image.get_pixel(0, 0);
     let drawn: Vec<&image::Rgb<u8>> = image.pixels().filter(|p| **p != background).collect();
     assert!(drawn.len() > 160 * 120 / 10, "{} pixels drawn", drawn.len());

@@ -760,6 +760,14 @@ async fn a_frame_preview_is_the_png_the_command_line_writes() {
     .unwrap();
     assert!(written == served, "the service and the CLI previews differ");
     let _ = std::fs::remove_dir_all(&out);
+    // Flat shading, per patch: another image of the same frame, as the CLI's --preview-shading.
+    let flat = client
+        .get(format!("{url}?width=160&height=120&shading=flat"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(flat.status(), 200);
+    assert!(flat.bytes().await.unwrap().to_vec() != served);
 
     // Bad requests get their 4xx.
     for (query, status) in [
@@ -768,6 +776,7 @@ async fn a_frame_preview_is_the_png_the_command_line_writes() {
         ("?exposure=-1", 400),
         ("?exposure=nan", 400),
         ("?zoom=2", 400),
+        ("?shading=glossy", 400),
     ] {
         let response = client.get(format!("{url}{query}")).send().await.unwrap();
         assert_eq!(response.status(), status, "{query}");

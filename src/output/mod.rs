@@ -49,14 +49,47 @@ pub fn camera(scene: &Scene, frame: usize, aspect: f64) -> Camera {
     }
 }
 
-/// A preview of one frame: each patch flat-shaded with its tone-mapped radiance, the unlit
-/// sides of triangles lit on their other side cut away.
+/// How a preview shades the patches.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Shading {
+    /// The baked glTF's per-vertex radiance interpolated across each triangle: what an engine
+    /// shows.
+    #[default]
+    Smooth,
+    /// One colour per patch: to inspect the patches themselves.
+    Flat,
+}
+
+impl FromStr for Shading {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s.trim() {
+            "smooth" => Ok(Self::Smooth),
+            "flat" => Ok(Self::Flat),
+            _ => Err(format!("{s:?} is not a shading: smooth or flat")),
+        }
+    }
+}
+
+impl std::fmt::Display for Shading {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Smooth => "smooth",
+            Self::Flat => "flat",
+        })
+    }
+}
+
+/// A preview of one frame: the tone-mapped radiance, shaded per vertex as the baked glTF is or
+/// flat per patch (`shading`), the unlit sides of triangles lit on their other side cut away.
 #[must_use]
 pub fn preview_image(
     scene: &Scene,
     frame: usize,
     radiance: &[[f64; 3]],
-    tone: &ToneMap,
+    (tone, shading): (&ToneMap, Shading),
     width: u32,
     height: u32,
 ) -> image::RgbImage {
@@ -81,9 +114,15 @@ pub fn preview_image(
             if hidden(patch) {
                 continue;
             }
-            triangles.push(preview::Triangle {
-                corners: t.map(|i| mesh.positions[i as usize]),
-                colour: tone.apply(radiance[patch as usize]),
+            let corners = t.map(|i| mesh.positions[i as usize]);
+            triangles.push(match shading {
+                Shading::Smooth => preview::Triangle {
+                    corners,
+                    colours: t.map(|i| tone.apply(mesh.radiance[i as usize])),
+                },
+                Shading::Flat => {
+                    preview::Triangle::flat(corners, tone.apply(radiance[patch as usize]))
+                }
             });
         }
     }

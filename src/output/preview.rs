@@ -1,6 +1,7 @@
 //! A small deterministic rasteriser for previews, and the PNG and GIF encoders.
 //!
-//! Flat colour per triangle, a depth buffer, back faces culled (a closed room seen from outside
+//! A colour per triangle corner interpolated across it (perspective-correct; equal corners
+//! draw a flat triangle), a depth buffer, back faces culled (a closed room seen from outside
 //! shows its inside: a dollhouse view), 2×2 supersampling averaged in linear light, then sRGB.
 //! Shared edges are drawn exactly once (a tie rule on the edge functions), so a surface made of
 //! many patches shows no cracks. The same input gives the same pixels on any machine and at any
@@ -79,23 +80,41 @@ impl Camera {
 pub struct Triangle {
     /// World-space corners, counter-clockwise seen from the front face.
     pub corners: [DVec3; 3],
-    /// Display colour, linear, each channel in [0, 1].
-    pub colour: [f32; 3],
+    /// Display colour at each corner, linear, each channel in [0, 1].
+    pub colours: [[f32; 3]; 3],
 }
 
-/// A vertex on screen: position in samples and the depth key (larger is nearer).
+impl Triangle {
+    /// A triangle of one colour.
+    #[must_use]
+    pub fn flat(corners: [DVec3; 3], colour: [f32; 3]) -> Self {
+        Self {
+            corners,
+            colours: [colour; 3],
+        }
+    }
+}
+
+/// A vertex on screen: position in samples, the depth key (larger is nearer), the weight that
+/// makes the interpolation of its colour perspective-correct (1 / distance, or 1 for an
+/// orthographic camera) and its colour.
 #[derive(Clone, Copy)]
 struct Projected {
     p: DVec2,
     key: f64,
+    weight: f64,
+    colour: [f32; 3],
 }
 
-/// Memory a render of `width` × `height` holds while it runs, bytes: a depth and an owner per
-/// sample.
+/// Memory a render of `width` × `height` holds while it runs, bytes: a depth, an owner and a
+/// colour per sample.
 #[must_use]
 pub fn render_bytes(width: u32, height: u32) -> usize {
     let samples = (width.max(1) * SUPERSAMPLE) as usize * (height.max(1) * SUPERSAMPLE) as usize;
-    samples * (std::mem::size_of::<f32>() + std::mem::size_of::<u32>())
+    samples
+        * (std::mem::size_of::<f32>()
+            + std::mem::size_of::<u32>()
+            + std::mem::size_of::<[f32; 3]>())
 }
 
 /// Renders `triangles` seen by `camera` into a `width` × `height` sRGB image (sides of 0 are
@@ -111,19 +130,22 @@ pub fn render(triangles: &[Triangle], camera: &Camera, width: u32, height: u32) 
         Projection::Perspective { znear, zfar, .. } => (znear, zfar.unwrap_or(f64::INFINITY)),
         Projection::Orthographic { znear, zfar, .. } => (znear, zfar),
     };
-    let project = |c: DVec3| -> Projected {
+    let project = |(c, colour): (DVec3, [f32; 3])| -> Projected {
         let distance = -c.z;
-        let (ndc, key) = match camera.projection {
+        let (ndc, key, weight) = match camera.projection {
             Projection::Perspective { yfov, .. } => {
                 let t = (yfov / 2.0).tan();
                 (
                     DVec2::new(c.x / (distance * t * aspect), c.y / (distance * t)),
                     1.0 / distance,
+                    1.0 / distance,
                 )
             }
-            Projection::Orthographic { ymag, .. } => {
-                (DVec2::new(c.x / (ymag * aspect), c.y / ymag), -distance)
-            }
+            Projection::Orthographic { ymag, .. } => (
+                DVec2::new(c.x / (ymag * aspect), c.y / ymag),
+                -distance,
+                1.0,
+            ),
         };
         Projected {
             p: DVec2::new(
@@ -131,52 +153,73 @@ pub fn render(triangles: &[Triangle], camera: &Camera, width: u32, height: u32) 
                 (1.0 - ndc.y) * 0.5 * f64::from(sh),
             ),
             key,
+            weight,
+            colour,
         }
     };
-    let mut depth = vec![f32::NEG_INFINITY; (sw * sh) as usize];
-    let mut owner = vec![u32::MAX; (sw * sh) as usize];
+    let samples = (sw * sh) as usize;
+    let mut buffers = Buffers {
+        depth: vec![f32::NEG_INFINITY; samples],
+        owner: vec![u32::MAX; samples],
+        colour: vec![BACKGROUND; samples],
+    };
     for (index, triangle) in triangles.iter().enumerate() {
         let corners = triangle.corners.map(|c| view.transform_point3(c));
         if corners.iter().any(|c| !c.is_finite()) {
             continue;
         }
-        let polygon = clip(&corners, near, far);
+        let polygon = clip(&corners, &triangle.colours, near, far);
         if polygon.len() < 3 {
             continue;
         }
-        let screen: Vec<Projected> = polygon.iter().map(|&c| project(c)).collect();
+        let screen: Vec<Projected> = polygon.into_iter().map(project).collect();
         for k in 1..screen.len() - 1 {
             fill(
                 [screen[0], screen[k], screen[k + 1]],
                 index as u32,
                 (sw, sh),
-                &mut depth,
-                &mut owner,
+                &mut buffers,
             );
         }
     }
-    resolve(&owner, triangles, width, height)
+    resolve(&buffers.colour, width, height)
 }
 
-/// The part of a camera-space triangle between the distances `near` and `far` (Sutherland–
-/// Hodgman against the two planes): a convex polygon of up to 5 corners, possibly empty.
-fn clip(corners: &[DVec3; 3], near: f64, far: f64) -> Vec<DVec3> {
-    let mut polygon = corners.to_vec();
+/// What a render holds per sample: the nearest depth key so far, the triangle drawn there and
+/// its colour.
+struct Buffers {
+    depth: Vec<f32>,
+    owner: Vec<u32>,
+    colour: Vec<[f32; 3]>,
+}
+
+/// The part of a camera-space triangle (with its corners' colours) between the distances
+/// `near` and `far` (Sutherland–Hodgman against the two planes): a convex polygon of up to 5
+/// corners, possibly empty, the colours interpolated along the cut edges.
+fn clip(
+    corners: &[DVec3; 3],
+    colours: &[[f32; 3]; 3],
+    near: f64,
+    far: f64,
+) -> Vec<(DVec3, [f32; 3])> {
+    let mut polygon: Vec<(DVec3, [f32; 3])> = corners.iter().copied().zip(*colours).collect();
     // Signed distance inside each plane: distance − near ≥ 0 and far − distance ≥ 0.
     let planes: [&dyn Fn(DVec3) -> f64; 2] = [&|c| -c.z - near, &|c| far + c.z];
     for inside in planes {
-        if polygon.iter().all(|&c| inside(c) >= 0.0) {
+        if polygon.iter().all(|&(c, _)| inside(c) >= 0.0) {
             continue;
         }
         let mut out = Vec::with_capacity(polygon.len() + 1);
         for (k, &a) in polygon.iter().enumerate() {
             let b = polygon[(k + 1) % polygon.len()];
-            let (da, db) = (inside(a), inside(b));
+            let (da, db) = (inside(a.0), inside(b.0));
             if da >= 0.0 {
                 out.push(a);
             }
             if (da >= 0.0) != (db >= 0.0) {
-                out.push(a + (b - a) * (da / (da - db)));
+                let t = da / (da - db);
+                let colour = std::array::from_fn(|c| a.1[c] + (b.1[c] - a.1[c]) * t as f32);
+                out.push((a.0 + (b.0 - a.0) * t, colour));
             }
         }
         polygon = out;
@@ -194,15 +237,8 @@ fn owns_edge(d: DVec2) -> bool {
     d.y > 0.0 || (d.y == 0.0 && d.x < 0.0)
 }
 
-/// Draws one screen triangle of `index` into the depth and owner buffers, if it faces the
-/// camera.
-fn fill(
-    mut v: [Projected; 3],
-    index: u32,
-    (sw, sh): (u32, u32),
-    depth: &mut [f32],
-    owner: &mut [u32],
-) {
+/// Draws one screen triangle of `index` into the buffers, if it faces the camera.
+fn fill(mut v: [Projected; 3], index: u32, (sw, sh): (u32, u32), buffers: &mut Buffers) {
     let area = (v[1].p - v[0].p).perp_dot(v[2].p - v[0].p);
     // With y pointing down, a front face (counter-clockwise in view) has a negative area here.
     // (NaN, from a degenerate projection, is not drawn either.)
@@ -243,16 +279,22 @@ fn fill(
             let key =
                 (weights[0] * v[0].key + weights[1] * v[1].key + weights[2] * v[2].key) as f32;
             let s = (y * sw + x) as usize;
-            if key > depth[s] {
-                depth[s] = key;
-                owner[s] = index;
+            if key > buffers.depth[s] {
+                buffers.depth[s] = key;
+                buffers.owner[s] = index;
+                let w = weights.map(|w| w as f32);
+                let q: [f32; 3] = std::array::from_fn(|k| w[k] * v[k].weight as f32);
+                let total = q[0] + q[1] + q[2];
+                buffers.colour[s] = std::array::from_fn(|c| {
+                    (q[0] * v[0].colour[c] + q[1] * v[1].colour[c] + q[2] * v[2].colour[c]) / total
+                });
             }
         }
     }
 }
 
 /// Averages the samples of each pixel in linear light and encodes sRGB.
-fn resolve(owner: &[u32], triangles: &[Triangle], width: u32, height: u32) -> RgbImage {
+fn resolve(colours: &[[f32; 3]], width: u32, height: u32) -> RgbImage {
     let sw = width * SUPERSAMPLE;
     let n = (SUPERSAMPLE * SUPERSAMPLE) as f32;
     RgbImage::from_fn(width, height, |x, y| {
@@ -260,9 +302,7 @@ fn resolve(owner: &[u32], triangles: &[Triangle], width: u32, height: u32) -> Rg
         for sy in 0..SUPERSAMPLE {
             for sx in 0..SUPERSAMPLE {
                 let s = ((y * SUPERSAMPLE + sy) * sw + x * SUPERSAMPLE + sx) as usize;
-                let colour = triangles
-                    .get(owner[s] as usize)
-                    .map_or(BACKGROUND, |t| t.colour);
+                let colour = colours[s];
                 for c in 0..3 {
                     sum[c] += colour[c];
                 }
@@ -344,10 +384,7 @@ mod tests {
         ];
         let tris = [[c[0], c[1], c[2]], [c[0], c[2], c[3]]];
         tris.iter()
-            .map(|&[a, b, d]| Triangle {
-                corners: if facing { [a, b, d] } else { [a, d, b] },
-                colour,
-            })
+            .map(|&[a, b, d]| Triangle::flat(if facing { [a, b, d] } else { [a, d, b] }, colour))
             .collect()
     }
 
@@ -383,10 +420,10 @@ mod tests {
             let t0 = k as f64 / n as f64;
             let t1 = (k + 1) as f64 / n as f64;
             let edge = |t: f64| DVec3::new(-0.5 + t, 0.5, 0.0);
-            tris.push(Triangle {
-                corners: [DVec3::new(0.0, -0.5, 0.0), edge(t1), edge(t0)],
-                colour: RED,
-            });
+            tris.push(Triangle::flat(
+                [DVec3::new(0.0, -0.5, 0.0), edge(t1), edge(t0)],
+                RED,
+            ));
         }
         let image = render(&tris, &front_camera(), 101, 101);
         let (mut covered, mut total) = (0, 0);
@@ -417,6 +454,8 @@ mod tests {
         let at = |x: f64, y: f64| Projected {
             p: DVec2::new(x, y),
             key: 1.0,
+            weight: 1.0,
+            colour: RED,
         };
         let halves = [
             [at(2.5, 2.5), at(18.5, 18.5), at(18.5, 2.5)],
@@ -426,10 +465,13 @@ mod tests {
         let drawn: Vec<Vec<u32>> = halves
             .iter()
             .map(|&tri| {
-                let mut depth = vec![f32::NEG_INFINITY; 24 * 24];
-                let mut owner = vec![u32::MAX; 24 * 24];
-                fill(tri, 0, size, &mut depth, &mut owner);
-                owner
+                let mut buffers = Buffers {
+                    depth: vec![f32::NEG_INFINITY; 24 * 24],
+                    owner: vec![u32::MAX; 24 * 24],
+                    colour: vec![BACKGROUND; 24 * 24],
+                };
+                fill(tri, 0, size, &mut buffers);
+                buffers.owner
             })
             .collect();
         for y in 3..18 {
@@ -442,15 +484,62 @@ mod tests {
     }
 
     #[test]
+    fn colours_are_interpolated_in_perspective_across_a_triangle() {
+        // A floor strip receding from the camera, black at the near edge and white at the far
+        // one: on screen the far half is squeezed, so the middle of the strip in the world
+        // (grey 0.5) appears above the middle of the image's span of it. Linear interpolation
+        // on screen would put 0.5 at the screen middle.
+        let (near, far) = (1.0, 9.0);
+        let c = |x: f64, z: f64| DVec3::new(x, -0.5, 3.0 - z);
+        let (black, white) = ([0.0; 3], [1.0; 3]);
+        let strip = [
+            Triangle {
+                corners: [c(-0.2, near), c(0.2, near), c(0.2, far)],
+                colours: [black, black, white],
+            },
+            Triangle {
+                corners: [c(-0.2, near), c(0.2, far), c(-0.2, far)],
+                colours: [black, white, white],
+            },
+        ];
+        let image = render(&strip, &front_camera(), 64, 480);
+        let column: Vec<f32> = (0..480)
+            .map(|y| image.get_pixel(32, y).0[0])
+            .filter(|&v| v != BACKGROUND.map(srgb)[0])
+            .map(|v| {
+                // Back to linear.
+                let e = f32::from(v) / 255.0;
+                if e <= 0.04045 {
+                    e / 12.92
+                } else {
+                    ((e + 0.055) / 1.055).powf(2.4)
+                }
+            })
+            .collect();
+        assert!(column.len() > 20, "{}", column.len());
+        // Brightest at the far (upper) end, darkest at the near end, monotone between.
+        assert!(
+            column.first().unwrap() > &0.9 && column.last().unwrap() < &0.1,
+            "{column:?}"
+        );
+        assert!(column.windows(2).all(|w| w[1] <= w[0] + 1e-2), "{column:?}");
+        // The screen middle of the strip is nearer than its world middle, so darker than 0.5:
+        // at distance d from the camera the value is (d − 1) / 8; the middle row is where
+        // 1 / d is halfway between 1 and 1/9, d = 1.8, value 0.1.
+        let middle = column[column.len() / 2];
+        assert!((middle - 0.1).abs() < 0.05, "{middle}");
+    }
+
+    #[test]
     fn a_triangle_through_the_near_plane_is_clipped() {
-        let tri = Triangle {
-            corners: [
+        let tri = Triangle::flat(
+            [
                 DVec3::new(-1.0, -0.3, 0.0),
                 DVec3::new(1.0, -0.3, 0.0),
                 DVec3::new(0.0, -0.3, 10.0),
             ],
-            colour: RED,
-        };
+            RED,
+        );
         // The third corner is behind the camera (z = 3); the floor-like triangle faces +Y, and
         // the camera sits above it.
         let tri = Triangle {
@@ -477,14 +566,14 @@ mod tests {
                 let u = DVec3::AXES[(axis + 1) % 3];
                 let v = n.cross(u);
                 let c = |a: f64, b: f64| center + (n + u * a + v * b) * h;
-                tris.push(Triangle {
-                    corners: [c(-1.0, -1.0), c(1.0, -1.0), c(1.0, 1.0)],
-                    colour: RED,
-                });
-                tris.push(Triangle {
-                    corners: [c(-1.0, -1.0), c(1.0, 1.0), c(-1.0, 1.0)],
-                    colour: RED,
-                });
+                tris.push(Triangle::flat(
+                    [c(-1.0, -1.0), c(1.0, -1.0), c(1.0, 1.0)],
+                    RED,
+                ));
+                tris.push(Triangle::flat(
+                    [c(-1.0, -1.0), c(1.0, 1.0), c(-1.0, 1.0)],
+                    RED,
+                ));
             }
         }
         let (w, h_px) = (80, 60);

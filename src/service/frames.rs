@@ -95,7 +95,7 @@ pub(super) async fn frame_preview(
     StrictQuery(query): StrictQuery<PreviewQuery>,
 ) -> Result<Response, ApiError> {
     let job = job(&state, &id)?;
-    let (width, height, exposure) = query.validate()?;
+    let ((width, height), exposure, shading) = query.validate()?;
     let (f, version, solution) = solved_frame(&job, &frame)?;
     let rendered = tokio::task::spawn_blocking(move || {
         job.with_bake(|bake| {
@@ -109,8 +109,14 @@ pub(super) async fn frame_preview(
                 }
             };
             let shown = bake.shown();
-            let image =
-                crate::output::preview_image(shown, f, &solution.radiance, &tone, width, height);
+            let image = crate::output::preview_image(
+                shown,
+                f,
+                &solution.radiance,
+                (&tone, shading),
+                width,
+                height,
+            );
             (crate::output::preview::encode_png(&image), tone.exposure)
         })
     })

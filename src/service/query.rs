@@ -263,12 +263,17 @@ pub(super) struct PreviewQuery {
     /// The tone map's exposure; the timeline's by default.
     #[serde(default, deserialize_with = "number")]
     exposure: Option<f64>,
+    /// `smooth` (the default: per-vertex, as the baked glTF) or `flat` (per patch).
+    #[serde(default)]
+    shading: Option<crate::output::Shading>,
 }
 
 impl PreviewQuery {
-    /// Width, height (each from 1 to [`crate::output::preview::MAX_PREVIEW_SIDE`]) and the exposure (> 0)
-    /// if one is asked for.
-    pub(super) fn validate(self) -> Result<(u32, u32, Option<f64>), ApiError> {
+    /// Width, height (each from 1 to [`crate::output::preview::MAX_PREVIEW_SIDE`]), the
+    /// exposure (> 0) if one is asked for, and the shading.
+    pub(super) fn validate(
+        self,
+    ) -> Result<((u32, u32), Option<f64>, crate::output::Shading), ApiError> {
         let max = crate::output::preview::MAX_PREVIEW_SIDE;
         let side = |name: &str, value: Option<u32>, default: u32| match value {
             None => Ok(default),
@@ -285,7 +290,7 @@ impl PreviewQuery {
             Some(e) if e <= 0.0 => Err(ApiError::Parameter(format!(
                 "exposure must be a positive number, not {e}"
             ))),
-            exposure => Ok((width, height, exposure)),
+            exposure => Ok(((width, height), exposure, self.shading.unwrap_or_default())),
         }
     }
 }
