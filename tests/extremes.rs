@@ -117,6 +117,7 @@ fn batch(load: LoadOptions, n: u64) -> BatchParams {
             preview_size: (32, 24),
             gif: false,
             exposure: None,
+            shading: radiosity::output::Shading::Flat,
         },
         force: true,
         max_iterations: SolveParams::default().max_iterations,

@@ -95,7 +95,11 @@ pub(super) async fn frame_preview(
     StrictQuery(query): StrictQuery<PreviewQuery>,
 ) -> Result<Response, ApiError> {
     let job = job(&state, &id)?;
-    let ((width, height), exposure, shading) = query.validate()?;
+    let super::query::Preview {
+        size: (width, height),
+        exposure,
+        shading,
+    } = query.validate()?;
     let (f, version, solution) = solved_frame(&job, &frame)?;
     let rendered = tokio::task::spawn_blocking(move || {
         job.with_bake(|bake| {

@@ -268,12 +268,17 @@ pub(super) struct PreviewQuery {
     shading: Option<crate::output::Shading>,
 }
 
+/// A preview asked for: its size, the exposure if one is asked for, and the shading.
+pub(super) struct Preview {
+    pub size: (u32, u32),
+    pub exposure: Option<f64>,
+    pub shading: crate::output::Shading,
+}
+
 impl PreviewQuery {
     /// Width, height (each from 1 to [`crate::output::preview::MAX_PREVIEW_SIDE`]), the
     /// exposure (> 0) if one is asked for, and the shading.
-    pub(super) fn validate(
-        self,
-    ) -> Result<((u32, u32), Option<f64>, crate::output::Shading), ApiError> {
+    pub(super) fn validate(self) -> Result<Preview, ApiError> {
         let max = crate::output::preview::MAX_PREVIEW_SIDE;
         let side = |name: &str, value: Option<u32>, default: u32| match value {
             None => Ok(default),
@@ -290,7 +295,11 @@ impl PreviewQuery {
             Some(e) if e <= 0.0 => Err(ApiError::Parameter(format!(
                 "exposure must be a positive number, not {e}"
             ))),
-            exposure => Ok(((width, height), exposure, self.shading.unwrap_or_default())),
+            exposure => Ok(Preview {
+                size: (width, height),
+                exposure,
+                shading: self.shading.unwrap_or_default(),
+            }),
         }
     }
 }
