@@ -85,6 +85,14 @@ pub fn all() -> Vec<Sample> {
             gltf: panel_room(),
         },
         Sample {
+            file_name: "lamp_room.gltf",
+            description: "A lamp-lit room as Blender exports one: a closed 5 m x 2.7 m x 4 m room, \
+                          a pillar and a box, every material double-sided, a 100 W point lamp and \
+                          a 200 W spot in Blender's units (W / 4 pi x 683 cd), and the box sliding \
+                          1 m and back from Blender's frame 1 (t = 1/24 s) to 49 at 24 fps.",
+            gltf: lamp_room(),
+        },
+        Sample {
             file_name: "spheres.gltf",
             description: "Closed 6 m x 3 m x 6 m room lit by a 1 m square ceiling panel, with 12 \
                           icospheres (1,280 triangles each), 2 bobbing and 2 sliding over 1 s \
@@ -194,6 +202,64 @@ fn panel_room() -> String {
     let light = b.mesh("panel", &light);
     b.node("panel", light, Vec3::ZERO, Quat::IDENTITY);
     b.finish("panel_room")
+}
+
+/// Candela of a Blender point or spot lamp of `watts` as Blender's glTF exporter writes it
+/// (its standard lighting mode: W / 4π × 683 lm/W).
+fn blender_candela(watts: f32) -> f32 {
+    watts / (4.0 * std::f32::consts::PI) * 683.0
+}
+
+/// A lamp-lit room as a Blender 4 export has it (issue 15): large triangles, every material
+/// double-sided, `KHR_lights_punctual` lamps in Blender's units, and an animation that starts
+/// at Blender's frame 1 (t = 1/24 s), not 0. Seen from outside, every wall's outer side is
+/// unlit.
+fn lamp_room() -> String {
+    let mut b = Builder::default();
+    let floor = b.material(Material::diffuse("Floor", [0.45, 0.4, 0.35]).double_sided());
+    let wall = b.material(Material::diffuse("Wall", [0.75; 3]).double_sided());
+    let ceiling = b.material(Material::diffuse("Ceiling", [0.8; 3]).double_sided());
+    let wood = b.material(Material::diffuse("Wood", [0.55, 0.35, 0.2]).double_sided());
+    let height = 2.7;
+    let grid = Lattice::uniform(
+        Vec3::new(-2.5, 0.0, -2.0),
+        Vec3::new(2.5, height, 2.0),
+        [1; 3],
+    );
+    let room = shell(
+        &grid,
+        |_| true,
+        Facing::Inward,
+        |face| match face.normal {
+            [0, 1, 0] => floor,
+            [0, -1, 0] => ceiling,
+            _ => wall,
+        },
+    );
+    let room = b.mesh("Room", &room);
+    b.node("Room", room, Vec3::ZERO, Quat::IDENTITY);
+    // A pillar from floor to ceiling, and a box on the floor that slides.
+    let pillar = b.mesh("Pillar", &block(Vec3::new(0.3, height, 0.3), wall));
+    b.node("Pillar", pillar, Vec3::new(1.4, 0.0, -1.0), Quat::IDENTITY);
+    let crate_mesh = b.mesh("Box", &block(Vec3::splat(0.6), wood));
+    let start = Vec3::new(-1.2, 0.0, 0.6);
+    let node = b.node("Box", crate_mesh, start, turn_y(20.0));
+    let fps = 24.0;
+    let times = b.key_times(&[1.0 / fps, 25.0 / fps, 49.0 / fps]);
+    let slid = start + Vec3::X;
+    let path = b.vec3s(&[start, slid, start]);
+    b.animation("BoxAction", times, &[(node, "translation", path)]);
+    // A 100 W bulb under the ceiling and a 200 W spot on the box's path, as Blender writes them.
+    let bulb = b.light(json!({"name": "Bulb", "type": "point",
+        "color": [1.0, 0.9, 0.8], "intensity": num(blender_candela(100.0))}));
+    b.light_node("Bulb", bulb, Vec3::new(0.3, 2.3, 0.2), Quat::IDENTITY);
+    let spot = b.light(
+        json!({"name": "Spot", "type": "spot", "intensity": num(blender_candela(200.0)),
+        "spot": {"innerConeAngle": 0.3, "outerConeAngle": 0.6}}),
+    );
+    let down = Quat::from_rotation_x(-std::f32::consts::FRAC_PI_2);
+    b.light_node("Spot", spot, Vec3::new(-0.7, 2.5, 0.6), down);
+    b.finish("lamp_room")
 }
 
 /// The white furnace test.

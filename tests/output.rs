@@ -199,3 +199,47 @@ fn a_closed_room_of_double_sided_walls_previews_its_lit_inside() {
         drawn.len()
     );
 }
+
+#[test]
+fn a_blender_style_lamp_room_previews_lit_and_exposed() {
+    let sample = (radiosity::samples::all().into_iter())
+        .find(|s| s.file_name == "lamp_room.gltf")
+        .unwrap();
+    let scene = load(sample.gltf.as_bytes(), &LoadOptions::default()).unwrap();
+    // Blender's frame 1 at 24 fps.
+    assert!((scene.frames.start - 1.0 / 24.0).abs() < 1e-6);
+    let params = radiosity::timeline::LineParams {
+        lines: 20_000,
+        seed: 1,
+    };
+    let bake = radiosity::bake::Bake::trace(scene, &params).unwrap();
+    let solved =
+        std::sync::Arc::new(bake.solve_frame(0, &bake.scene.materials, &Default::default()));
+    let scene = bake.shown();
+    let tone = ToneMap::for_timeline(scene, std::slice::from_ref(&solved));
+    let image = preview_image(
+        scene,
+        0,
+        &solved.radiance,
+        (&tone, Shading::Smooth),
+        160,
+        120,
+    );
+    let background = *image.get_pixel(0, 0);
+    let drawn: Vec<[u8; 3]> = (image.pixels())
+        .filter(|p| **p != background)
+        .map(|p| p.0)
+        .collect();
+    assert!(drawn.len() > 160 * 120 / 10, "{} pixels drawn", drawn.len());
+    // Neither black (the walls' unlit outer sides drawn) nor washed out (an exposure taken
+    // from them: 15 times too bright): the drawn pixels' mean in the middle of the range.
+    let mean =
+        drawn.iter().flatten().map(|&c| f64::from(c)).sum::<f64>() / (3 * drawn.len()) as f64;
+    assert!((50.0..200.0).contains(&mean), "mean {mean:.0} of 255");
+    let white = drawn.iter().filter(|p| p.iter().all(|&c| c > 245)).count();
+    assert!(
+        white * 20 < drawn.len(),
+        "{white} of {} pixels white",
+        drawn.len()
+    );
+}

@@ -42,6 +42,7 @@ fn each_scene_loads_as_intended() {
         ("morph_box.gltf", 0, 1, 49),
         ("spheres.gltf", 4, 0, 25),
         ("panel_room.gltf", 0, 0, 1),
+        ("lamp_room.gltf", 1, 0, 49),
     ] {
         let s = load_sample(name, &options).summary();
         assert_eq!(
@@ -76,6 +77,7 @@ fn closed_scenes_are_watertight_at_every_frame() {
         ("cornell_moving.gltf", None),
         ("level.gltf", None),
         ("spheres.gltf", None),
+        ("lamp_room.gltf", None),
     ] {
         let options = LoadOptions {
             fps: 6.0,

@@ -717,7 +717,9 @@ impl std::fmt::Display for Summary {
         writeln!(
             f,
             "frames          {} at {} fps from t = {} s",
-            self.frames, self.fps, self.start
+            self.frames,
+            shown(self.fps, self.fps),
+            shown(self.start, 1.0)
         )?;
         writeln!(f, "emitters        {} patches", self.emitters)?;
         writeln!(
