@@ -217,6 +217,7 @@ fn content_hash(bytes: &[u8], params: &BatchParams) -> String {
         "load": {
             "fps": load.fps,
             "animation": load.animation,
+            "camera": load.camera,
             "start": load.start,
             "end": load.end,
             "patch_size": load.patch_size,
@@ -664,6 +665,7 @@ mod tests {
         let changed: Vec<fn(&mut BatchParams)> = vec![
             |p| p.load.fps += 1.0,
             |p| p.load.animation = Some("door".into()),
+            |p| p.load.camera = Some("auto".into()),
             |p| p.load.start = Some(0.5),
             |p| p.load.end = Some(1.5),
             |p| p.load.patch_size = Some(0.25),

@@ -22,6 +22,10 @@ struct SceneArgs {
     /// Play only this animation (name or index); all play together by default.
     #[arg(long)]
     animation: Option<String>,
+    /// The previews' camera: a camera node's name or index, or auto (the automatic view);
+    /// the scene's first camera by default.
+    #[arg(long)]
+    camera: Option<String>,
     /// Time of the first frame (seconds); defaults to the first keyframe.
     #[arg(long)]
     start: Option<f64>,
@@ -50,6 +54,7 @@ impl TryFrom<SceneArgs> for LoadOptions {
         let options = Self {
             fps: a.fps,
             animation: a.animation,
+            camera: a.camera,
             start: a.start,
             end: a.end,
             patch_size: a.patch_size.length(),

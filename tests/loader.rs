@@ -773,3 +773,42 @@ fn quantized_positions_load_as_their_floats_do() {
     let centre = |s: &Scene| s.normalisation.center;
     assert!((centre(&scene) - centre(&floats)).length() < 1e-6);
 }
+
+#[test]
+fn the_previews_camera_is_the_one_asked_for() {
+    let mut d = three_quads();
+    let perspective = json!({"type": "perspective", "perspective": {"yfov": 0.8, "znear": 0.1}});
+    let camera = d.push("cameras", perspective);
+    let front = d.node(json!({"name": "Front", "camera": camera, "translation": [0.0, 0.5, 5.0]}));
+    let side = d.node(json!({"name": "Side", "camera": camera, "translation": [5.0, 0.5, 0.0]}));
+    let roots: Vec<usize> = d.json["scenes"][0]["nodes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|n| n.as_u64().unwrap() as usize)
+        .chain([front, side])
+        .collect();
+    d.json["scenes"][0]["nodes"] = json!(roots);
+    let with = |camera: Option<&str>| LoadOptions {
+        camera: camera.map(str::to_owned),
+        ..opts()
+    };
+    let name = |options: LoadOptions| {
+        let scene = load(&d.gltf(), &options).unwrap();
+        scene.camera.map(|c| c.name.unwrap())
+    };
+    assert_eq!(
+        name(with(None)),
+        Some("Front".into()),
+        "the first by default"
+    );
+    assert_eq!(name(with(Some("Side"))), Some("Side".into()));
+    assert_eq!(name(with(Some(&side.to_string()))), Some("Side".into()));
+    assert_eq!(name(with(Some("auto"))), None);
+    let message = err(&d.gltf(), &with(Some("Top")));
+    assert!(
+        message.contains("no camera node named or numbered \"Top\"")
+            && message.contains(&format!("node {front} (\"Front\")")),
+        "{message}"
+    );
+}

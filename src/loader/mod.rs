@@ -35,6 +35,10 @@ pub struct LoadOptions {
     pub fps: f64,
     /// The animation to play, by name or index; `None` plays all of them together.
     pub animation: Option<String>,
+    /// The camera the previews are seen from: a camera node by name or node index, or `auto`
+    /// for the automatic view; `None` takes the scene's first camera (in hierarchy order), or
+    /// the automatic view without one.
+    pub camera: Option<String>,
     /// Time of the first frame, seconds; defaults to the first keyframe.
     pub start: Option<f64>,
     /// Time of the last frame, seconds; defaults to the last keyframe.
@@ -61,6 +65,7 @@ impl Default for LoadOptions {
         Self {
             fps: 24.0,
             animation: None,
+            camera: None,
             start: None,
             end: None,
             patch_size: None,
@@ -216,13 +221,16 @@ pub fn load(bytes: &[u8], options: &LoadOptions) -> Result<Scene, LoadError> {
             skin.joints().for_each(|j| wanted[j.index()] = true);
         }
     }
-    // The first camera node of the scene (in hierarchy order) is the preview's viewpoint.
-    let camera_node = hierarchy.order.iter().copied().find(|&n| {
-        document
-            .nodes()
-            .nth(n)
-            .is_some_and(|node| node.camera().is_some())
-    });
+    // The previews' viewpoint: the camera node asked for, or the scene's first (in hierarchy
+    // order).
+    let camera_nodes: Vec<usize> = (hierarchy.order.iter().copied())
+        .filter(|&n| (document.nodes().nth(n)).is_some_and(|node| node.camera().is_some()))
+        .collect();
+    let camera_node = match options.camera.as_deref() {
+        None => camera_nodes.first().copied(),
+        Some("auto") => None,
+        Some(wanted) => Some(find_camera(&document, &camera_nodes, wanted)?),
+    };
     if let Some(n) = camera_node {
         wanted[n] = true;
     }
@@ -373,6 +381,36 @@ fn read_light(
         range,
         poses: poses.placements(n),
     })
+}
+
+/// The camera node of `cameras` (the scene's, in hierarchy order) named `wanted`, or whose
+/// node index it is; an error listing them otherwise.
+fn find_camera(
+    document: &gltf::Document,
+    cameras: &[usize],
+    wanted: &str,
+) -> Result<usize, LoadError> {
+    let name = |n: usize| document.nodes().nth(n).and_then(|node| node.name());
+    if let Some(&n) = cameras.iter().find(|&&n| name(n) == Some(wanted)) {
+        return Ok(n);
+    }
+    if let Some(n) = wanted.parse::<usize>().ok().filter(|n| cameras.contains(n)) {
+        return Ok(n);
+    }
+    let listed: Vec<String> = (cameras.iter())
+        .map(|&n| match name(n) {
+            Some(name) => format!("node {n} ({name:?})"),
+            None => format!("node {n}"),
+        })
+        .collect();
+    Err(LoadError::Option(format!(
+        "no camera node named or numbered {wanted:?}; the scene's cameras: {} (or auto)",
+        if listed.is_empty() {
+            "none".to_string()
+        } else {
+            listed.join(", ")
+        }
+    )))
 }
 
 /// The camera of node `n`, placed in scene units; `None` (with a warning) if its projection is

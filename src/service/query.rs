@@ -123,6 +123,9 @@ pub(super) struct CreateQuery {
     patch_size: Option<PatchSize>,
     /// The animation to play, by name or index; all by default.
     animation: Option<String>,
+    /// The previews' camera: a camera node's name or index, or `auto`; the scene's first
+    /// camera by default.
+    camera: Option<String>,
     /// Radiance of the sky; black by default.
     #[serde(default, deserialize_with = "parsed")]
     sky: Option<Sky>,
@@ -184,6 +187,7 @@ impl CreateQuery {
         let options = LoadOptions {
             fps,
             animation: self.animation,
+            camera: self.camera,
             start: self.start,
             end: self.end,
             patch_size: patch_size.length(),
