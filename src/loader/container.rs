@@ -89,11 +89,17 @@ pub fn parse(bytes: &[u8]) -> Result<Container, LoadError> {
     // the extension as required only because it does not know it.
     root.extensions_required
         .retain(|e| e != "KHR_mesh_quantization");
+    let compressed = super::meshopt::Plan::read(&mut root)?;
     precheck(&root)?;
     let document = Document::from_json(root).map_err(describe_gltf_error)?;
     let mut buffers = Vec::with_capacity(document.buffers().len());
     for buffer in document.buffers() {
         let what = || format!("buffer {}", buffer.index());
+        // A fallback buffer holds only views decoded below.
+        if compressed.is_fallback(buffer.index()) {
+            buffers.push(vec![0; buffer.length()]);
+            continue;
+        }
         let mut data = match buffer.source() {
             gltf::buffer::Source::Bin => blob.map(<[u8]>::to_vec).ok_or_else(|| {
                 LoadError::malformed(
@@ -116,6 +122,7 @@ pub fn parse(bytes: &[u8]) -> Result<Container, LoadError> {
         data.truncate(length);
         buffers.push(data);
     }
+    compressed.decode(&mut buffers)?;
     Ok(Container {
         document,
         buffers,

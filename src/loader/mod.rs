@@ -10,6 +10,7 @@ mod animation;
 mod container;
 mod material;
 mod mesh;
+mod meshopt;
 mod nodes;
 
 use glam::{DAffine3, DMat4, DVec3, Vec3};
