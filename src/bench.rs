@@ -1117,3 +1117,125 @@ pub fn patch_point(
         worst,
     })
 }
+
+/// The scenes `bench-patches` measures, each with the ways of making patches it tries: the
+/// source's triangles, three uniform sizes a factor 2 apart, and `auto`.
+#[must_use]
+pub fn patch_scenes() -> Vec<(&'static str, Vec<crate::params::PatchSize>)> {
+    use crate::params::PatchSize::{Auto, Length, Source};
+    vec![
+        (
+            "cornell_box.gltf",
+            vec![Source, Length(0.2), Length(0.1), Length(0.05), Auto],
+        ),
+        (
+            "panel_room.gltf",
+            vec![Source, Length(1.0), Length(0.5), Length(0.25), Auto],
+        ),
+        (
+            "level.gltf",
+            vec![Source, Length(0.5), Length(0.25), Length(0.125), Auto],
+        ),
+        (
+            "level_lamps.gltf",
+            vec![Source, Length(0.5), Length(0.25), Length(0.125), Auto],
+        ),
+    ]
+}
+
+/// The scenes `bench-accuracy` measures.
+pub const ACCURACY_SCENES: [&str; 4] = [
+    "furnace.gltf",
+    "parallel_squares.gltf",
+    "cornell_moving.gltf",
+    "level.gltf",
+];
+
+/// A sample scene of the directory `scenes` loaded with `options`; the error names the file.
+///
+/// # Errors
+/// The file cannot be read or loaded.
+pub fn load_sample(
+    scenes: &std::path::Path,
+    name: &str,
+    options: &crate::loader::LoadOptions,
+) -> Result<Scene, String> {
+    crate::loader::load_file(&scenes.join(name), options)
+}
+
+/// What `bench-patches` measures and how.
+#[derive(Clone, Debug)]
+pub struct PatchBench {
+    /// Lines of every bake, and their seed.
+    pub lines: (u64, u64),
+    /// Paths of each bake's reference.
+    pub reference_paths: usize,
+    /// Only this scene (file name).
+    pub only: Option<String>,
+    /// Only these ways of making patches; each scene's own list ([`patch_scenes`]) if empty.
+    pub sizes: Vec<crate::params::PatchSize>,
+    /// With `auto`: the patch budget (one per 200 lines by default).
+    pub patch_budget: Option<usize>,
+    /// Solve the patches whole rather than on their pieces.
+    pub whole: bool,
+}
+
+/// Every [`PatchPoint`] of `bench` on the sample scenes of the directory `scenes`, each given
+/// to `measured` as soon as it is: each scene's ways of making patches, then (with no
+/// `sizes` chosen) the yardstick, `auto` with a budget of a third of the patches of
+/// the best uniform way (the source's triangles or a length) by per-patch error.
+///
+/// # Errors
+/// A scene cannot be read, loaded, traced or cut.
+pub fn patch_points(
+    scenes: &std::path::Path,
+    bench: &PatchBench,
+    mut measured: impl FnMut(&PatchPoint),
+) -> Result<Vec<PatchPoint>, String> {
+    use crate::params::PatchSize::Auto;
+    let mut points = Vec::new();
+    for (name, sizes) in patch_scenes() {
+        if bench.only.as_ref().is_some_and(|o| o != name) {
+            continue;
+        }
+        let sizes = if bench.sizes.is_empty() {
+            sizes
+        } else {
+            bench.sizes.clone()
+        };
+        let first = points.len();
+        let mut run = |size: crate::params::PatchSize, budget: Option<usize>| {
+            let options = crate::loader::LoadOptions {
+                patch_size: size.length(),
+                ..crate::loader::LoadOptions::default()
+            };
+            let scene = load_sample(scenes, name, &options)?;
+            let auto = crate::adaptive::Adaptive::for_lines(bench.lines.0, scene.patches.len())
+                .with_budget(budget);
+            let point = patch_point(
+                name,
+                scene,
+                size,
+                bench.lines,
+                bench.reference_paths,
+                Some(auto),
+                !bench.whole,
+            )?;
+            measured(&point);
+            Ok::<_, String>(point)
+        };
+        for size in sizes {
+            points.push(run(size, bench.patch_budget)?);
+        }
+        if bench.sizes.is_empty() {
+            let best = (points[first..].iter())
+                .filter(|p| p.patch_size != Auto)
+                .min_by(|a, b| a.patch_error.total_cmp(&b.patch_error))
+                .map(|p| p.patches);
+            if let Some(best) = best {
+                points.push(run(Auto, Some(best / 3))?);
+            }
+        }
+    }
+    Ok(points)
+}

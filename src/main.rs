@@ -361,11 +361,7 @@ fn run(cli: Cli) -> Result<(), String> {
             serve(&addr, config)
         }
         Command::Scene { file, args, json } => {
-            let options = args.try_into()?;
-            let bytes = std::fs::read(&file).map_err(|e| format!("{}: {e}", file.display()))?;
-            let scene =
-                loader::load(&bytes, &options).map_err(|e| format!("{}: {e}", file.display()))?;
-            let summary = scene.summary();
+            let summary = loader::load_file(&file, &args.try_into()?)?.summary();
             if json {
                 let text = serde_json::to_string_pretty(&summary).map_err(|e| e.to_string())?;
                 println!("{text}");
@@ -381,10 +377,7 @@ fn run(cli: Cli) -> Result<(), String> {
             seed,
             json,
         } => {
-            let options = args.try_into()?;
-            let bytes = std::fs::read(&file).map_err(|e| format!("{}: {e}", file.display()))?;
-            let scene =
-                loader::load(&bytes, &options).map_err(|e| format!("{}: {e}", file.display()))?;
+            let scene = loader::load_file(&file, &args.try_into()?)?;
             let report = radiosity::bench::trace(&scene, lines, seed).map_err(|e| e.to_string())?;
             if json {
                 let text = serde_json::to_string_pretty(&report).map_err(|e| e.to_string())?;
@@ -405,106 +398,47 @@ fn run(cli: Cli) -> Result<(), String> {
             seed,
             whole,
         } => {
-            use radiosity::params::PatchSize::{Auto, Length, Source};
-            let mut points = Vec::new();
             println!(
                 "scene\tpatch_size\tpatches\tseconds\tpatch error\tpatch L2\tpoint error\t\
                  resolved to\treference noise\tbias\testimated noise\tcoverage"
             );
-            for (name, sizes) in [
-                (
-                    "cornell_box.gltf",
-                    [Source, Length(0.2), Length(0.1), Length(0.05), Auto],
-                ),
-                (
-                    "panel_room.gltf",
-                    [Source, Length(1.0), Length(0.5), Length(0.25), Auto],
-                ),
-                (
-                    "level.gltf",
-                    [Source, Length(0.5), Length(0.25), Length(0.125), Auto],
-                ),
-                (
-                    "level_lamps.gltf",
-                    [Source, Length(0.5), Length(0.25), Length(0.125), Auto],
-                ),
-            ] {
-                if only.as_ref().is_some_and(|o| o != name) {
-                    continue;
-                }
-                let path = scenes.join(name);
-                let bytes = std::fs::read(&path).map_err(|e| format!("{}: {e}", path.display()))?;
-                let sizes = if chosen.is_empty() {
-                    sizes.to_vec()
-                } else {
-                    chosen.clone()
-                };
-                let first = points.len();
-                let run = |size: radiosity::params::PatchSize,
-                           budget: Option<usize>|
-                 -> Result<radiosity::bench::PatchPoint, String> {
-                    let options = LoadOptions {
-                        patch_size: size.length(),
-                        ..LoadOptions::default()
-                    };
-                    let scene = loader::load(&bytes, &options)
-                        .map_err(|e| format!("{}: {e}", path.display()))?;
-                    let auto = radiosity::adaptive::Adaptive::for_lines(lines, scene.patches.len())
-                        .with_budget(budget);
-                    let p = radiosity::bench::patch_point(
-                        name,
-                        scene,
-                        size,
-                        (lines, seed),
-                        reference_paths,
-                        Some(auto),
-                        !whole,
-                    )?;
+            let bench = radiosity::bench::PatchBench {
+                lines: (lines, seed),
+                reference_paths,
+                only,
+                sizes: chosen,
+                patch_budget,
+                whole,
+            };
+            let points = radiosity::bench::patch_points(&scenes, &bench, |p| {
+                println!(
+                    "{}\t{}\t{}\t{:.2}\t{:.4}\t{:.4}\t{:.4}\t{:.4}\t{:.4}\t{:+.4}\t{:.4}\t{:.3}",
+                    p.scene,
+                    p.patch_size,
+                    p.patches,
+                    p.seconds,
+                    p.patch_error,
+                    p.patch_l2_error,
+                    p.point_error,
+                    p.point_resolution,
+                    p.reference_noise,
+                    p.bias,
+                    p.estimated_noise,
+                    p.coverage
+                );
+                for w in &p.worst {
                     println!(
-                        "{}\t{}\t{}\t{:.2}\t{:.4}\t{:.4}\t{:.4}\t{:.4}\t{:.4}\t{:+.4}\t{:.4}\t{:.3}",
-                        p.scene,
-                        p.patch_size,
-                        p.patches,
-                        p.seconds,
-                        p.patch_error,
-                        p.patch_l2_error,
-                        p.point_error,
-                        p.point_resolution,
-                        p.reference_noise,
-                        p.bias,
-                        p.estimated_noise,
-                        p.coverage
+                        "  patch {} {} area {:.4}: {:.0}% of the error, {:.4} ± {:.4} against {:.4}",
+                        w.patch,
+                        w.material,
+                        w.area,
+                        100.0 * w.share,
+                        w.baked,
+                        w.sigma,
+                        w.reference
                     );
-                    for w in &p.worst {
-                        println!(
-                            "  patch {} {} area {:.4}: {:.0}% of the error, {:.4} ± {:.4} against {:.4}",
-                            w.patch,
-                            w.material,
-                            w.area,
-                            100.0 * w.share,
-                            w.baked,
-                            w.sigma,
-                            w.reference
-                        );
-                    }
-                    Ok(p)
-                };
-                for size in sizes {
-                    points.push(run(size, patch_budget)?);
                 }
-                // The issue's yardstick: auto with a third of the patches of the best uniform
-                // way (the source's triangles or a length).
-                if chosen.is_empty() {
-                    let best = points[first..]
-                        .iter()
-                        .filter(|p| p.patch_size != Auto)
-                        .min_by(|a, b| a.patch_error.total_cmp(&b.patch_error))
-                        .map(|p| p.patches);
-                    if let Some(best) = best {
-                        points.push(run(Auto, Some(best / 3))?);
-                    }
-                }
-            }
+            })?;
             let json = serde_json::to_string_pretty(&points).map_err(|e| e.to_string())?;
             std::fs::write(&out, json + "\n").map_err(|e| format!("{}: {e}", out.display()))?;
             Ok(())
@@ -520,21 +454,11 @@ fn run(cli: Cli) -> Result<(), String> {
             gain_lines,
             gain_scene,
         } => {
-            let load_scene = |name: &str,
-                              options: LoadOptions|
-             -> Result<radiosity::scene::Scene, String> {
-                let path = scenes.join(name);
-                let bytes = std::fs::read(&path).map_err(|e| format!("{}: {e}", path.display()))?;
-                loader::load(&bytes, &options).map_err(|e| format!("{}: {e}", path.display()))
+            let load_scene = |name: &str, options: LoadOptions| {
+                radiosity::bench::load_sample(&scenes, name, &options)
             };
             let mut set = Vec::new();
-            let names = [
-                "furnace.gltf",
-                "parallel_squares.gltf",
-                "cornell_moving.gltf",
-                "level.gltf",
-            ];
-            for name in names {
+            for name in radiosity::bench::ACCURACY_SCENES {
                 if only.as_ref().is_some_and(|o| o != name) {
                     continue;
                 }

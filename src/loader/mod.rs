@@ -175,6 +175,15 @@ impl LoadError {
     }
 }
 
+/// The scene of the file at `path` ([`load`]); the error, reading or loading, names the file.
+///
+/// # Errors
+/// The file cannot be read, or its scene loaded.
+pub fn load_file(path: &std::path::Path, options: &LoadOptions) -> Result<Scene, String> {
+    let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    load(&bytes, options).map_err(|e| format!("{}: {e}", path.display()))
+}
+
 /// Loads a `.glb` or `.gltf` (with embedded data) from memory.
 pub fn load(bytes: &[u8], options: &LoadOptions) -> Result<Scene, LoadError> {
     options.check()?;
