@@ -1389,6 +1389,7 @@ mod tests {
                 "level_lamps.gltf",
                 "morph_box.gltf",
                 "panel_room.gltf",
+                "lamp_room.gltf",
                 "spheres.gltf",
             ]
         );
@@ -1401,12 +1402,13 @@ mod tests {
 
     #[test]
     fn closed_scenes_are_watertight_and_wound_toward_the_inside() {
-        let inward = ["cornell_room", "furnace", "level_shell", "spheres_room"];
+        let inward = ["cornell_room", "furnace", "level_shell", "spheres_room", "Room"];
         let expected_volume = [
             ("cornell_room", 1.0),
             ("furnace", 1.0),
             ("level_shell", 3.0 * 48.0 + 2.0 * 0.2 * 2.0),
             ("spheres_room", 6.0 * 3.0 * 6.0),
+            ("Room", 5.0 * 2.7 * 4.0),
         ];
         for file in [
             "cornell_box.gltf",
@@ -1414,6 +1416,7 @@ mod tests {
             "furnace.gltf",
             "level.gltf",
             "spheres.gltf",
+            "lamp_room.gltf",
         ] {
             let doc = sample(file);
             for (name, mesh) in doc.meshes() {

@@ -403,33 +403,30 @@ fn start_after_end_is_refused_by_every_subcommand() {
     let _ = std::fs::remove_dir_all(&out);
 }
 
+/// `radiosity bake` of the two parallel squares (one frame) into `out` at 2,000 lines, without
+/// GIF, forced, with `outputs` (the glb and preview frames) and then `extra`.
+fn bake_squares(out: &Path, outputs: [&str; 2], extra: &[&str]) -> std::process::Output {
+    let squares = sample("parallel_squares.gltf");
+    radiosity()
+        .args([
+            "bake",
+            squares.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ])
+        .args(["--lines", "2000", "--no-gif", "--force"])
+        .args(["--glb-frames", outputs[0], "--preview-frames", outputs[1]])
+        .args(extra)
+        .output()
+        .unwrap()
+}
+
 /// Regression (issue 11): `--sky r,g,b` as the README documents (only `--sky 1 1 1` was read),
 /// with the service's rule: exactly three finite numbers ≥ 0.
 #[test]
 fn the_sky_is_r_g_b_as_in_the_service() {
     let out = scratch("sky");
-    let squares = sample("parallel_squares.gltf");
-    let bake = |sky: &[&str]| {
-        radiosity()
-            .args([
-                "bake",
-                squares.to_str().unwrap(),
-                "--out",
-                out.to_str().unwrap(),
-            ])
-            .args([
-                "--lines",
-                "2000",
-                "--glb-frames",
-                "none",
-                "--preview-frames",
-                "none",
-            ])
-            .args(["--no-gif", "--force", "--sky"])
-            .args(sky)
-            .output()
-            .unwrap()
-    };
+    let bake = |sky: &[&str]| bake_squares(&out, ["none", "none"], &[&["--sky"], sky].concat());
     let output = bake(&["1,0.5,0"]);
     assert!(
         output.status.success(),
@@ -585,25 +582,7 @@ fn overlapping_faces_are_named_in_the_summary() {
 #[test]
 fn frames_asked_past_the_end_are_named_not_dropped_silently() {
     let out = scratch("past_end");
-    let squares = sample("parallel_squares.gltf");
-    let output = radiosity()
-        .args([
-            "bake",
-            squares.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-        ])
-        .args([
-            "--lines",
-            "2000",
-            "--glb-frames",
-            "none",
-            "--preview-frames",
-            "0,99",
-        ])
-        .args(["--no-gif", "--force"])
-        .output()
-        .unwrap();
+    let output = bake_squares(&out, ["none", "0,99"], &[]);
     let log = String::from_utf8_lossy(&output.stderr);
     assert!(output.status.success(), "{log}");
     let said = "--preview-frames 0,99: the timeline has frame 0 only";
@@ -639,27 +618,8 @@ fn a_mistyped_option_gets_the_one_meant() {
 #[test]
 fn an_exposure_given_is_the_one_used() {
     let out = scratch("exposure");
-    let squares = sample("parallel_squares.gltf");
     let bake = |exposure: &[&str]| {
-        let output = radiosity()
-            .args([
-                "bake",
-                squares.to_str().unwrap(),
-                "--out",
-                out.to_str().unwrap(),
-            ])
-            .args([
-                "--lines",
-                "2000",
-                "--glb-frames",
-                "first",
-                "--preview-frames",
-                "none",
-            ])
-            .args(["--no-gif", "--force"])
-            .args(exposure)
-            .output()
-            .unwrap();
+        let output = bake_squares(&out, ["first", "none"], exposure);
         assert!(
             output.status.success(),
             "{}",

@@ -808,7 +808,7 @@ fn the_previews_camera_is_the_one_asked_for() {
     let message = err(&d.gltf(), &with(Some("Top")));
     assert!(
         message.contains("no camera node named or numbered \"Top\"")
-            && message.contains(&format!("node {front} (\"Front\")")),
+            && message.contains(&format!("cameras (or auto): {front} (\"Front\")")),
         "{message}"
     );
 }

@@ -165,49 +165,13 @@ fn a_preview_shows_the_scene_lit_from_its_automatic_camera() {
     assert!(brightest > 100);
 }
 
-#[test]
-fn a_closed_room_of_double_sided_walls_previews_its_lit_inside() {
+/// A sample scene baked at 20,000 lines, and its preview of frame 0 (160 × 120, smooth, the
+/// timeline's exposure) with the pixels that show the scene (not the background).
+fn sample_preview(name: &str) -> (Scene, Vec<[u8; 3]>) {
     let sample = (radiosity::samples::all().into_iter())
-        .find(|s| s.file_name == "panel_room.gltf")
+        .find(|s| s.file_name == name)
         .unwrap();
     let scene = load(sample.gltf.as_bytes(), &LoadOptions::default()).unwrap();
-    let params = radiosity::timeline::LineParams {
-        lines: 20_000,
-        seed: 1,
-    };
-    let bake = radiosity::bake::Bake::trace(scene, &params).unwrap();
-    let solved = bake.solve_frame(0, &bake.scene.materials, &Default::default());
-    let scene = bake.shown();
-    let tone = ToneMap::for_timeline(scene, &[std::sync::Arc::new(solved.clone())]);
-    let image = preview_image(
-        scene,
-        0,
-        &solved.radiance,
-        (&tone, Shading::Smooth),
-        160,
-        120,
-    );
-    let background = *image.get_pixel(0, 0);
-    let drawn: Vec<&image::Rgb<u8>> = image.pixels().filter(|p| **p != background).collect();
-    assert!(drawn.len() > 160 * 120 / 10, "{} pixels drawn", drawn.len());
-    // The walls' outer sides are black (no light reaches them): drawn, they hid the room (every
-    // pixel black). Cut away, the lit inside shows.
-    let black = drawn.iter().filter(|p| p.0.iter().all(|&c| c < 8)).count();
-    assert!(
-        black * 10 < drawn.len(),
-        "{black} of {} drawn pixels black",
-        drawn.len()
-    );
-}
-
-#[test]
-fn a_blender_style_lamp_room_previews_lit_and_exposed() {
-    let sample = (radiosity::samples::all().into_iter())
-        .find(|s| s.file_name == "lamp_room.gltf")
-        .unwrap();
-    let scene = load(sample.gltf.as_bytes(), &LoadOptions::default()).unwrap();
-    // Blender's frame 1 at 24 fps.
-    assert!((scene.frames.start - 1.0 / 24.0).abs() < 1e-6);
     let params = radiosity::timeline::LineParams {
         lines: 20_000,
         seed: 1,
@@ -217,20 +181,39 @@ fn a_blender_style_lamp_room_previews_lit_and_exposed() {
         std::sync::Arc::new(bake.solve_frame(0, &bake.scene.materials, &Default::default()));
     let scene = bake.shown();
     let tone = ToneMap::for_timeline(scene, std::slice::from_ref(&solved));
-    let image = preview_image(
-        scene,
-        0,
-        &solved.radiance,
-        (&tone, Shading::Smooth),
-        160,
-        120,
-    );
+    let look = (&tone, Shading::Smooth);
+    let image = preview_image(scene, 0, &solved.radiance, look, 160, 120);
     let background = *image.get_pixel(0, 0);
     let drawn: Vec<[u8; 3]> = (image.pixels())
         .filter(|p| **p != background)
         .map(|p| p.0)
         .collect();
-    assert!(drawn.len() > 160 * 120 / 10, "{} pixels drawn", drawn.len());
+    assert!(
+        drawn.len() > 160 * 120 / 10,
+        "{name}: {} pixels drawn",
+        drawn.len()
+    );
+    (scene.clone(), drawn)
+}
+
+#[test]
+fn a_closed_room_of_double_sided_walls_previews_its_lit_inside() {
+    let (_, drawn) = sample_preview("panel_room.gltf");
+    // The walls' outer sides are black (no light reaches them): drawn, they hid the room (every
+    // pixel black). Cut away, the lit inside shows.
+    let black = drawn.iter().filter(|p| p.iter().all(|&c| c < 8)).count();
+    assert!(
+        black * 10 < drawn.len(),
+        "{black} of {} drawn pixels black",
+        drawn.len()
+    );
+}
+
+#[test]
+fn a_blender_style_lamp_room_previews_lit_and_exposed() {
+    let (scene, drawn) = sample_preview("lamp_room.gltf");
+    // Blender's frame 1 at 24 fps.
+    assert!((scene.frames.start - 1.0 / 24.0).abs() < 1e-6);
     // Neither black (the walls' unlit outer sides drawn) nor washed out (an exposure taken
     // from them: 15 times too bright): the drawn pixels' mean in the middle of the range.
     let mean =

@@ -400,26 +400,43 @@ fn find_camera(
     cameras: &[usize],
     wanted: &str,
 ) -> Result<usize, LoadError> {
-    let name = |n: usize| document.nodes().nth(n).and_then(|node| node.name());
-    if let Some(&n) = cameras.iter().find(|&&n| name(n) == Some(wanted)) {
-        return Ok(n);
+    let nodes =
+        (cameras.iter()).map(|&n| (n, document.nodes().nth(n).and_then(|node| node.name())));
+    find_named(
+        nodes,
+        wanted,
+        ("camera node", "the scene's cameras (or auto)"),
+    )
+}
+
+/// The index of the item of `items` (index, name) named `wanted`, or whose index it is; else
+/// an error naming `what` is asked for and listing the items after `listing`.
+fn find_named<'a>(
+    items: impl Iterator<Item = (usize, Option<&'a str>)> + Clone,
+    wanted: &str,
+    (what, listing): (&str, &str),
+) -> Result<usize, LoadError> {
+    if let Some((i, _)) = items.clone().find(|&(_, name)| name == Some(wanted)) {
+        return Ok(i);
     }
-    if let Some(n) = wanted.parse::<usize>().ok().filter(|n| cameras.contains(n)) {
-        return Ok(n);
+    if let Some((i, _)) =
+        (wanted.parse::<usize>().ok()).and_then(|w| items.clone().find(|&(i, _)| i == w))
+    {
+        return Ok(i);
     }
-    let listed: Vec<String> = (cameras.iter())
-        .map(|&n| match name(n) {
-            Some(name) => format!("node {n} ({name:?})"),
-            None => format!("node {n}"),
+    let listed: Vec<String> = items
+        .map(|(i, name)| match name {
+            Some(name) => format!("{i} ({name:?})"),
+            None => i.to_string(),
         })
         .collect();
+    let listed = if listed.is_empty() {
+        "none".to_string()
+    } else {
+        listed.join(", ")
+    };
     Err(LoadError::Option(format!(
-        "no camera node named or numbered {wanted:?}; the scene's cameras: {} (or auto)",
-        if listed.is_empty() {
-            "none".to_string()
-        } else {
-            listed.join(", ")
-        }
+        "no {what} named or numbered {wanted:?}; {listing}: {listed}"
     )))
 }
 

@@ -254,31 +254,12 @@ pub(super) fn find_animation<'a>(
     document: &'a Document,
     wanted: &str,
 ) -> Result<gltf::Animation<'a>, LoadError> {
-    if let Some(a) = document.animations().find(|a| a.name() == Some(wanted)) {
-        return Ok(a);
-    }
-    if let Some(a) = wanted
-        .parse::<usize>()
-        .ok()
-        .and_then(|i| document.animations().nth(i))
-    {
-        return Ok(a);
-    }
-    let names: Vec<String> = document
+    let animations = document.animations().map(|a| (a.index(), a.name()));
+    let index = super::find_named(animations, wanted, ("animation", "the file has"))?;
+    document
         .animations()
-        .map(|a| match a.name() {
-            Some(name) => format!("{} ({name:?})", a.index()),
-            None => a.index().to_string(),
-        })
-        .collect();
-    Err(LoadError::Option(format!(
-        "no animation named or numbered {wanted:?}; the file has: {}",
-        if names.is_empty() {
-            "none".to_string()
-        } else {
-            names.join(", ")
-        }
-    )))
+        .nth(index)
+        .ok_or_else(|| LoadError::Option(format!("no animation {index}")))
 }
 
 /// World transforms over the frames.
