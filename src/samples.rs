@@ -1402,7 +1402,13 @@ mod tests {
 
     #[test]
     fn closed_scenes_are_watertight_and_wound_toward_the_inside() {
-        let inward = ["cornell_room", "furnace", "level_shell", "spheres_room", "Room"];
+        let inward = [
+            "cornell_room",
+            "furnace",
+            "level_shell",
+            "spheres_room",
+            "Room",
+        ];
         let expected_volume = [
             ("cornell_room", 1.0),
             ("furnace", 1.0),
