@@ -923,6 +923,20 @@ fn meshopt_compressed_views_load_as_their_plain_bytes_do() {
         }
         assert!((scene.normalisation.center - plain.normalisation.center).length() < 1e-6);
     }
+    // A hostile file cannot make the loader allocate what it does not hold: a fallback buffer
+    // larger than its views, or a view decoding to far more than its compressed bytes.
+    let mut json: serde_json::Value =
+        serde_json::from_slice(&meshopt_quad(false, "ATTRIBUTES")).unwrap();
+    json["buffers"][1]["byteLength"] = json!(1u64 << 50);
+    let message = err(&serde_json::to_vec(&json).unwrap(), &opts());
+    assert!(message.contains("beyond the views"), "{message}");
+    let mut json: serde_json::Value =
+        serde_json::from_slice(&meshopt_quad(false, "ATTRIBUTES")).unwrap();
+    let huge = 1u64 << 40;
+    json["bufferViews"][0]["byteLength"] = json!(huge * 8);
+    json["bufferViews"][0]["extensions"]["EXT_meshopt_compression"]["count"] = json!(huge);
+    let message = err(&serde_json::to_vec(&json).unwrap(), &opts());
+    assert!(message.contains("at most 128 times"), "{message}");
     // A view that is not as the extension defines it: refused, naming it.
     let message = err(&meshopt_quad(false, "STRIPS"), &opts());
     assert!(

@@ -96,8 +96,9 @@ pub fn parse(bytes: &[u8]) -> Result<Container, LoadError> {
     for buffer in document.buffers() {
         let what = || format!("buffer {}", buffer.index());
         // A fallback buffer holds only views decoded below.
+        // (allocated by `decode`, once the compressed bytes it holds are known to be present).
         if compressed.is_fallback(buffer.index()) {
-            buffers.push(vec![0; buffer.length()]);
+            buffers.push(Vec::new());
             continue;
         }
         let mut data = match buffer.source() {
@@ -122,7 +123,8 @@ pub fn parse(bytes: &[u8]) -> Result<Container, LoadError> {
         data.truncate(length);
         buffers.push(data);
     }
-    compressed.decode(&mut buffers)?;
+    let lengths: Vec<usize> = document.buffers().map(|b| b.length()).collect();
+    compressed.decode(&mut buffers, &lengths)?;
     Ok(Container {
         document,
         buffers,

@@ -16,6 +16,13 @@ use super::LoadError;
 /// The extension's name.
 pub const EXTENSION: &str = "EXT_meshopt_compression";
 
+/// Most bytes a view may decode to per compressed byte (plus [`SLACK`]): far above what real
+/// geometry reaches (gltfpack's output decodes to 2–8 times its size), and a bound on what a
+/// hostile file's few bytes can make the loader allocate.
+const MAX_RATIO: usize = 128;
+/// Bytes a view may decode to beyond [`MAX_RATIO`] times its compressed bytes.
+const SLACK: usize = 1 << 16;
+
 /// How a view's bytes were encoded.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum Mode {
@@ -179,9 +186,48 @@ impl Plan {
         self.fallback.contains(&b)
     }
 
-    /// Decodes every compressed view into its place in `buffers` (each `byteLength` long, the
-    /// fallback ones zeros).
-    pub fn decode(&self, buffers: &mut [Vec<u8>]) -> Result<(), LoadError> {
+    /// Decodes every compressed view into its place in `buffers` (the fallback ones empty,
+    /// made `lengths[b]` zeros here once every view's compressed bytes are known to be present
+    /// and its decoded bytes within [`MAX_RATIO`] of them, so that a file cannot make the
+    /// loader allocate far more than it holds).
+    pub fn decode(&self, buffers: &mut [Vec<u8>], lengths: &[usize]) -> Result<(), LoadError> {
+        let mut reach = vec![0usize; buffers.len()];
+        for view in &self.views {
+            let what = || format!("bufferViews[{}] ({EXTENSION})", view.index);
+            let (b, offset, length) = view.source;
+            let present = (buffers.get(b)).is_some_and(|data| {
+                !self.is_fallback(b)
+                    && offset
+                        .checked_add(length)
+                        .is_some_and(|end| end <= data.len())
+            });
+            let decoded = view.count * view.stride;
+            if !present || decoded > length.saturating_mul(MAX_RATIO).saturating_add(SLACK) {
+                return Err(LoadError::malformed(
+                    what(),
+                    format!(
+                        "its {decoded} bytes do not come from {length} compressed bytes present \
+                         in buffer {b} (at most {MAX_RATIO} times as many)"
+                    ),
+                ));
+            }
+            let (t, at) = view.target;
+            if let Some(r) = reach.get_mut(t) {
+                *r = (*r).max(at.saturating_add(decoded));
+            }
+        }
+        for &b in &self.fallback {
+            let length = lengths.get(b).copied().unwrap_or(0);
+            if length > reach.get(b).copied().unwrap_or(0) {
+                return Err(LoadError::malformed(
+                    format!("buffer {b} ({EXTENSION} fallback)"),
+                    format!("byteLength {length} is beyond the views decoded into it"),
+                ));
+            }
+            if let Some(data) = buffers.get_mut(b) {
+                *data = vec![0; length];
+            }
+        }
         for view in &self.views {
             let what = || format!("bufferViews[{}] ({EXTENSION})", view.index);
             let (b, offset, length) = view.source;
