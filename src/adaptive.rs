@@ -839,6 +839,9 @@ fn gathered(
 ) -> (Vec<f64>, Vec<Near>) {
     let scene = &bake.scene;
     let list = bake.list();
+    // Every segment counts once: the patches are made before [`Bake::split`] makes the gaps'
+    // lines denser (their lines weigh differently, `IntersectionList::line_weights`).
+    debug_assert!(list.dense().0.is_empty(), "auto patches from dense lines");
     let surfaces = bake.tracer().surfaces();
     let corners = Corners::new(scene);
     // Sums in fixed point: the cuts, and so the patch ids, are the same on any machine.

@@ -132,6 +132,15 @@ pub enum Outcome {
 }
 
 /// The deterministic summary of a bake.
+/// The gaps' denser lines in `summary.json`: how many regions, how many times denser, and the
+/// lines drawn there (counted in `lines`).
+#[derive(Serialize)]
+struct GapLines {
+    regions: usize,
+    factor: u32,
+    lines: usize,
+}
+
 #[derive(Serialize)]
 struct Summary<'a> {
     scene: &'a str,
@@ -143,6 +152,8 @@ struct Summary<'a> {
     /// The pieces the frames were solved on (`Bake::split`; the patches if none was cut).
     pieces: usize,
     lines: usize,
+    /// The gaps' denser lines ([`crate::timeline::IntersectionList::add_dense`]).
+    gap_lines: GapLines,
     seed: u64,
     fps: f64,
     /// `auto`, `source` or the length asked for.
@@ -566,6 +577,11 @@ pub fn bake_one(
         patches: scene.patches.len(),
         pieces,
         lines: bake.list().lines(),
+        gap_lines: GapLines {
+            regions: bake.list().dense().0.len(),
+            factor: bake.list().dense().1,
+            lines: bake.list().dense_lines(),
+        },
         seed: params.lines.seed,
         fps: params.load.fps,
         patch_size: params.patch_size(),

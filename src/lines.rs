@@ -43,6 +43,9 @@ pub struct Batch {
     pub bundles: u32,
     /// Area Δ of a grid cell, in normalised units: one line per Δ of projected area.
     pub cell_area: f64,
+    /// For a batch of denser lines ([`Batch::dense`]): the region's index and box, the lines
+    /// kept being those that meet it. `None`: the lines that meet the scene's box.
+    pub region: Option<(u32, Bounds)>,
 }
 
 impl Batch {
@@ -67,6 +70,35 @@ impl Batch {
             index,
             bundles,
             cell_area,
+            region: None,
+        }
+    }
+
+    /// The lines that meet `region` (box number `number` of a list's dense regions),
+    /// `factor` times as dense as the lines of `global`: a batch's density in the space of
+    /// lines is its bundles over its cell area (B/Δ lines per unit of projected area and of
+    /// solid angle), so Δ' = B'·Δ / (factor·B). About `factor · lines(global) · A(region) /
+    /// A(scene box)` lines, in √ of that many bundles (at least 4 per replica).
+    #[must_use]
+    pub fn dense(
+        global: &Self,
+        (number, region): (u32, Bounds),
+        factor: u32,
+        scene: &Bounds,
+        index: u32,
+    ) -> Self {
+        let global_lines =
+            f64::from(global.bundles) * scene.surface_area() / (4.0 * global.cell_area);
+        let lines = f64::from(factor) * global_lines * region.surface_area() / scene.surface_area();
+        let bundles = (lines.sqrt().round() as u32).max(4 * REPLICAS);
+        let cell_area =
+            f64::from(bundles) * global.cell_area / (f64::from(factor) * f64::from(global.bundles));
+        Self {
+            seed: global.seed,
+            index,
+            bundles,
+            cell_area,
+            region: Some((number, region)),
         }
     }
 
@@ -99,13 +131,15 @@ impl Batch {
         direction(self.rotation(replica), k / REPLICAS, in_replica)
     }
 
-    /// Bundle `k` of this batch: its direction and the lines of its grid that meet `bounds`.
+    /// Bundle `k` of this batch: its direction and the lines of its grid that meet `bounds`
+    /// (or its region, for a dense batch).
     #[must_use]
     pub fn bundle(&self, k: u32, bounds: &Bounds) -> Bundle {
         let mut rng =
             Xoshiro256PlusPlus::seed_from_u64(mix(self.seed, u64::from(self.index), u64::from(k)));
         let offset: (f64, f64) = (rng.random(), rng.random());
-        parallel_bundle(self.direction(k), self.cell_area, offset, bounds)
+        let within = self.region.as_ref().map_or(bounds, |(_, r)| r);
+        parallel_bundle(self.direction(k), self.cell_area, offset, within)
     }
 }
 
@@ -165,7 +199,7 @@ fn direction(rotation: DQuat, k: u32, n: u32) -> DVec3 {
 }
 
 /// Whether the line through `point` with direction `w` meets the box (slab test in f64).
-fn meets_box(point: DVec3, w: DVec3, bounds: &Bounds) -> bool {
+pub fn meets_box(point: DVec3, w: DVec3, bounds: &Bounds) -> bool {
     let (mut near, mut far) = (f64::NEG_INFINITY, f64::INFINITY);
     for axis in 0..3 {
         let (o, d) = (point[axis], w[axis]);

@@ -1,6 +1,9 @@
 //! The path-traced reference (`radiosity::direct::reference`) against closed forms: it is what
 //! the solver is judged against, so it is judged first.
 
+#[allow(dead_code)] // the helpers serve several test binaries; this one uses a part
+mod common;
+
 use radiosity::direct::reference::{Estimate, path_traced};
 use radiosity::loader::{LoadOptions, load};
 use radiosity::scene::{Material, Scene};
@@ -133,4 +136,51 @@ fn facing_a_square_emitter_each_patch_gets_rho_times_its_form_factor() {
         })
         .collect();
     check(&estimates, &expected);
+}
+
+/// Deep under a plate hanging 1 cm over a floor, open to the sky, light arrives only along the
+/// rare paths that find the rim half a metre away: a few dozen paths mostly miss them, and the
+/// estimate and its standard error come out far too low together. The bench's reference
+/// (`bench::reference_halves`) draws more paths wherever its error is large against its
+/// estimate, until it is believed: then it agrees with a long run within its error bar.
+#[test]
+fn the_bench_reference_draws_paths_until_a_gap_is_believed() {
+    use common::quad;
+    let mut scene =
+        common::static_scene(&[quad(1.0, 0.0, true), quad(0.5, 0.01, false)], Some(0.2));
+    for m in &mut scene.materials {
+        m.reflectance = [0.8; 3];
+    }
+    let tracer = SceneTracer::new(&scene);
+    // The floor patch nearest the middle, facing up.
+    let centre = |p: usize| {
+        let t = scene.statics.triangles[p];
+        let c = t.map(|v| scene.statics.positions[v as usize].as_dvec3());
+        let m = (c[0] + c[1] + c[2]) / 3.0;
+        (m.x * m.x + m.z * m.z, m.y)
+    };
+    let deep = (0..scene.patches.len())
+        .filter(|&p| centre(p).1 < scene.bounds.min.y + 1e-9)
+        .min_by(|&a, &b| centre(a).0.total_cmp(&centre(b).0))
+        .unwrap();
+    let sky = [1.0; 3];
+    let long = radiosity::direct::reference::path_traced_each(
+        &scene,
+        &tracer,
+        0,
+        &|p| if p == deep { 400_000 } else { 0 },
+        sky,
+        99,
+    )[deep];
+    let (a, b) = radiosity::bench::reference_halves((&scene, &tracer), 0, 32, sky, 5);
+    let mean = 0.5 * (a[deep].radiance[0] + b[deep].radiance[0]);
+    let sigma = 0.5 * a[deep].stderr[0].hypot(b[deep].stderr[0]);
+    let z = (mean - long.radiance[0]) / sigma.hypot(long.stderr[0]);
+    eprintln!(
+        "deep floor patch {deep}: {mean:.5} ± {sigma:.5} against {:.5} ± {:.5} (z {z:.2})",
+        long.radiance[0], long.stderr[0]
+    );
+    assert!(long.stderr[0] < 0.05 * long.radiance[0], "{long:?}");
+    assert!(z.abs() < 3.0, "z = {z}");
+    assert!(sigma < 0.5 * mean, "{mean} ± {sigma}");
 }

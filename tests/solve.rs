@@ -712,3 +712,61 @@ fn stopping_at_the_noise_moves_no_patch_by_a_twentieth_of_its_error() {
         );
     }
 }
+
+/// Denser lines through a region between the parallel squares leave every receiver patch's
+/// form factor as it was: each part of the line space is counted once, at its own density
+/// ([`radiosity::timeline::IntersectionList::line_weights`]). Counted at the global lines'
+/// weight, the region's lines would make the directions through it count 17 times, and the
+/// receiver patches beside it would see too much of the emitter.
+#[test]
+fn denser_lines_through_a_region_leave_the_form_factors_unbiased() {
+    let options = LoadOptions {
+        patch_size: Some(0.25),
+        ..LoadOptions::default()
+    };
+    let scene = sample("parallel_squares.gltf", &options);
+    let n = scene.normalisation;
+    let mut bake = Bake::trace(scene, &lines(200_000, 5)).unwrap();
+    // A box floating between the squares over a third of them (scene units: the emitter at
+    // y = 0, the receiver at y = 1).
+    let to = n.to_normalised();
+    let (a, b) = (
+        to.transform_point3(glam::DVec3::new(-0.5, 0.3, -0.5)),
+        to.transform_point3(glam::DVec3::new(-0.15, 0.7, 0.5)),
+    );
+    let region = radiosity::scene::Bounds {
+        min: a.min(b),
+        max: a.max(b),
+    };
+    let before = bake.list().lines();
+    bake.densify((&[region], 16), &radiosity::control::Control::default())
+        .unwrap();
+    let dense = bake.list().lines() - before;
+    assert!(dense > before / 2, "{dense} dense lines for {before}");
+    let s = bake.solve_frame(0, &bake.scene.materials, &SolveParams::default());
+    let (mut z2, mut receivers) = (0.0, 0);
+    let mut whole = 0.0;
+    for (p, patch) in bake.scene.patches.iter().enumerate() {
+        if bake.scene.materials[patch.material as usize].is_emitter() {
+            continue;
+        }
+        let t = bake.scene.statics.triangles[p];
+        let [a, b, c] = t.map(|i| n.to_scene(bake.scene.statics.positions[i as usize].as_dvec3()));
+        let exact = 0.5 * triangle_to_parallel_rectangle([a, b, c], (-0.5, 0.5), (-0.5, 0.5), 0.0);
+        let sigma = s.stderr[p].expect("every receiver patch is sampled")[0];
+        z2 += ((s.radiance[p][0] - exact) / sigma).powi(2);
+        receivers += 1;
+        whole += s.radiance[p][0] * patch.area;
+    }
+    // Mean z² of honest error bars: 1, within a few times √(2/n) (n = 32 patches).
+    let mean_z2 = z2 / f64::from(receivers);
+    eprintln!(
+        "{receivers} receiver patches, {dense} dense lines: mean z² {mean_z2:.2}, F {}",
+        whole / 0.5
+    );
+    assert!(
+        mean_z2 < 2.0,
+        "mean z² {mean_z2}: the dense lines bias the form factors"
+    );
+    assert!((whole / 0.5 - 0.19982).abs() < 0.004, "F = {}", whole / 0.5);
+}

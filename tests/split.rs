@@ -1,6 +1,9 @@
 //! Split bakes ([`Bake::split`]): the frames solved on pieces of the patches, each patch
 //! answered by the mean of its pieces.
 
+#[allow(dead_code)] // the helpers serve several test binaries; this one uses a part
+mod common;
+
 use radiosity::bake::Bake;
 use radiosity::bench::{PatchClass, dark_floor};
 use radiosity::control::Control;
@@ -152,4 +155,84 @@ fn light_trapped_in_a_gap_stays_there_at_the_sources_own_triangles() {
     );
     // Measured: +1.1%; +20.6% without the further cuts (GAP_ROUNDS 0).
     assert!(bias.abs() < 0.05, "{bias:+.4}");
+}
+
+/// A plate hanging 1 cm over a wide floor, open to the sky: the floor under it and the plate's
+/// underside face each other closer than they are wide, a gap ([`radiosity::bake::gaps`]).
+/// [`Bake::split`] makes the lines through it denser (one region, around the plate) and cuts
+/// the gap's pieces finer from them: a floor patch under the plate ends up in more pieces than
+/// one as large out in the open. A closed room's corners are no gap: the furnace gets no dense
+/// lines.
+#[test]
+fn the_lines_are_denser_in_a_gap_and_its_pieces_finer() {
+    use common::quad;
+    // An 8 m floor: the gap is a small part of the scene.
+    let floor = quad(4.0, 0.0, true);
+    let mut scene = common::static_scene(&[floor, quad(0.5, 0.01, false)], Some(0.25));
+    for m in &mut scene.materials {
+        m.reflectance = [0.8; 3];
+    }
+    let solve = SolveParams {
+        sky: [1.0; 3],
+        ..SolveParams::default()
+    };
+    let params = LineParams {
+        lines: 100_000,
+        seed: 2,
+    };
+    let mut bake = Bake::trace(scene, &params).unwrap();
+    let before = bake.list().lines();
+    bake.split(&solve, &Control::default()).unwrap();
+    let (regions, factor) = bake.list().dense();
+    let after = bake.list().lines();
+    eprintln!("{before} lines, {after} with the dense ones: {regions:?}, factor {factor}");
+    assert_eq!(regions.len(), 1, "{regions:?}");
+    assert!(
+        factor >= 2 && after > before,
+        "factor {factor}, {after} lines"
+    );
+    let scene = &bake.scene;
+    let n = scene.normalisation;
+    let inside = |p: glam::DVec3| {
+        let q = n.to_normalised().transform_point3(p);
+        q.cmpge(regions[0].min).all() && q.cmple(regions[0].max).all()
+    };
+    assert!(inside(glam::DVec3::new(0.0, 0.005, 0.0)));
+    assert!(inside(glam::DVec3::new(0.45, 0.005, -0.45)));
+    assert!(!inside(glam::DVec3::new(2.0, 0.005, 2.0)));
+    // The pieces (the split bake's triangles) of the floor patch at a point.
+    let pieces_at = |x: f64, z: f64| {
+        let centre = |t: usize| {
+            let c = (scene.statics.triangles[t])
+                .map(|v| n.to_scene(scene.statics.positions[v as usize].as_dvec3()));
+            (c[0] + c[1] + c[2]) / 3.0
+        };
+        let on_floor = |t: usize| centre(t).y.abs() < 1e-6;
+        let nearest = (0..scene.statics.triangles.len())
+            .filter(|&t| on_floor(t))
+            .min_by(|&a, &b| {
+                let d = |t: usize| (centre(t) - glam::DVec3::new(x, 0.0, z)).length();
+                d(a).total_cmp(&d(b))
+            })
+            .unwrap();
+        let patch = scene.statics.faces[nearest].front;
+        let count = (scene.statics.faces.iter())
+            .filter(|f| f.front == patch)
+            .count();
+        (patch, count)
+    };
+    let ((gap, in_gap), (open, in_open)) = (pieces_at(0.1, 0.1), pieces_at(3.1, 3.1));
+    eprintln!("floor patch {gap} under the plate: {in_gap} pieces; {open} in the open: {in_open}");
+    assert!(
+        in_gap > 2 * in_open,
+        "{in_gap} pieces in the gap, {in_open} in the open"
+    );
+
+    let mut furnace = Bake::trace(sample("furnace.gltf"), &params).unwrap();
+    (furnace.split(&SolveParams::default(), &Control::default())).unwrap();
+    assert!(
+        furnace.list().dense().0.is_empty(),
+        "{:?}",
+        furnace.list().dense()
+    );
 }

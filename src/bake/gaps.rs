@@ -19,15 +19,20 @@
 //! scores. A piece's score falls
 //! with its area as it is cut, while the share across a gap's rim stays: the cuts follow the
 //! rim down until its pieces hold too little flux to matter.
+//!
+//! Inside a gap the light falls off over about the gap's height, and pieces that small need
+//! more crossings than the global lines give them: [`regions`] finds the gaps, where
+//! [`super::Bake::split`] makes the lines denser and cuts every piece as far as its crossings
+//! allow.
 
 use glam::DVec3;
 use rayon::prelude::*;
 
 use super::PIECE_CROSSINGS;
 use crate::output::tonemap::luminance;
-use crate::scene::Scene;
 use crate::scene::refine::Corners;
-use crate::solve::tally::{FixedLight, walk_from};
+use crate::scene::{Bounds, Scene};
+use crate::solve::tally::{FixedLight, HIDDEN, walk_from};
 use crate::timeline::IntersectionList;
 use crate::trace::SceneTracer;
 
@@ -36,41 +41,73 @@ use crate::trace::SceneTracer;
 /// shows no spread, hence at least [`PIECE_CROSSINGS`] segments on each side).
 pub const SIGNIFICANCE: f64 = 3.0;
 
-/// Per piece, the segments leaving it split by length at its width: count, fixed-point sum and
-/// sum of squares of the gathered luminance, near then far.
+/// Per piece, the segments leaving it split by length at its width, near then far: the
+/// segments that count (their line's weight is not 0), and in fixed point the weighted sums of
+/// one, the gathered luminance and its square, and of the weight squared (for the weighted
+/// mean's variance); and the segments across a contact.
 #[derive(Clone, Copy, Default)]
 struct Sides {
     count: [u64; 2],
-    sum: [u64; 2],
+    weight: [u64; 2],
+    sum: [u128; 2],
     square: [u128; 2],
+    weight2: [u64; 2],
+    hidden: u64,
+    /// The lengths of the near segments (contacts apart), in fixed point ([`LENGTH_UNIT`]).
+    near_length: u128,
+}
+
+/// The unit of [`Sides::near_length`]: sums of lengths in whole units do not depend on the
+/// order threads add them in.
+const LENGTH_UNIT: f64 = (1u64 << 40) as f64;
+
+impl Sides {
+    fn add(&mut self, other: &Self) {
+        for k in 0..2 {
+            self.count[k] += other.count[k];
+            self.weight[k] += other.weight[k];
+            self.sum[k] += other.sum[k];
+            self.square[k] += other.square[k];
+            self.weight2[k] += other.weight2[k];
+        }
+        self.hidden += other.hidden;
+        self.near_length += other.near_length;
+    }
+}
+
+/// What the lines say of a piece at frame 0 ([`misplaced`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub(super) struct Piece {
+    /// The flux it misplaces (module docs).
+    pub score: f64,
+    /// The segments leaving it that count.
+    pub segments: u64,
+    /// The share of those, contacts apart, shorter than the piece is wide: what faces
+    /// something that close ([`regions`]).
+    pub near: f64,
+    /// The mean length of those near segments (normalised units): about twice the distance
+    /// to what the piece faces, for a gap of parallel faces.
+    pub near_length: f64,
 }
 
 /// Each piece's misplaced flux (module docs) and the segments leaving it, at frame 0, with
 /// `gathered(j)` the luminance of piece `j` (the patches' solution will do: the score needs
-/// what each piece faces, not its own detail) and `sky` the sky's luminance.
+/// what each piece faces, not its own detail) and `sky` the sky's luminance. Segments count
+/// their line's weight ([`IntersectionList::line_weights`]).
 pub(super) fn misplaced(
     scene: &Scene,
     tracer: &SceneTracer,
     list: &IntersectionList,
     gathered: &(dyn Fn(u32) -> f64 + Sync),
     sky: f64,
-) -> Vec<(f64, u64)> {
-    let corners = Corners::new(scene);
-    // Each triangle's width: its longest edge at frame 0 (normalised space).
-    let width: Vec<f32> = (0..tracer.triangles() as u32)
-        .map(|g| {
-            let c = corners
-                .posed(g, Some(0))
-                .unwrap_or_else(|| corners.own(g).map(|p| p.as_dvec3()));
-            let edge = |a: DVec3, b: DVec3| a.distance(b);
-            edge(c[0], c[1]).max(edge(c[1], c[2])).max(edge(c[2], c[0])) as f32
-        })
-        .collect();
+) -> Vec<Piece> {
+    let width = widths(scene, tracer);
     // Sums in fixed point: the cuts are the same on any machine.
     let pieces = scene.patches.len();
     let light = FixedLight::new(gathered, pieces, sky);
     let (unit, value) = (light.unit, |to| light.value(to));
     let surfaces = tracer.surfaces();
+    let weights = list.line_weights();
     let sides = list
         .bundles(scene)
         .fold(
@@ -78,14 +115,24 @@ pub(super) fn misplaced(
             |(mut acc, mut hits), (first, bundle)| {
                 let surfaces = surfaces.along(bundle.direction);
                 for i in 0..bundle.origins.len() {
+                    let w = u64::from(weights[first + i]);
+                    if w == 0 {
+                        continue;
+                    }
                     list.frame_hits(first + i, 0, &mut hits);
                     walk_from(&hits, &surfaces, |from, to, at, length| {
                         let side = usize::from(length >= width[at.surface() as usize]);
                         let g = value(to);
                         let s = &mut acc[from as usize];
+                        s.hidden += u64::from(to == HIDDEN);
+                        if side == 0 && to != HIDDEN {
+                            s.near_length += (f64::from(length) * LENGTH_UNIT) as u128;
+                        }
                         s.count[side] += 1;
-                        s.sum[side] += g;
-                        s.square[side] += u128::from(g) * u128::from(g);
+                        s.weight[side] += w;
+                        s.sum[side] += u128::from(w * g);
+                        s.square[side] += u128::from(w * g) * u128::from(g);
+                        s.weight2[side] += w * w;
                     });
                 }
                 (acc, hits)
@@ -95,13 +142,7 @@ pub(super) fn misplaced(
         .reduce(
             || vec![Sides::default(); pieces],
             |mut a, b| {
-                for (x, y) in a.iter_mut().zip(&b) {
-                    for k in 0..2 {
-                        x.count[k] += y.count[k];
-                        x.sum[k] += y.sum[k];
-                        x.square[k] += y.square[k];
-                    }
-                }
+                a.iter_mut().zip(&b).for_each(|(x, y)| x.add(y));
                 a
             },
         );
@@ -109,25 +150,164 @@ pub(super) fn misplaced(
         .zip(&sides)
         .map(|(p, s)| {
             let segments = s.count[0] + s.count[1];
+            let seen = segments - s.hidden;
+            let near_count = s.count[0] - s.hidden;
+            let near = if seen > 0 {
+                near_count as f64 / seen as f64
+            } else {
+                0.0
+            };
+            let near_length = if near_count > 0 {
+                s.near_length as f64 / LENGTH_UNIT / near_count as f64
+            } else {
+                0.0
+            };
             let rho = luminance(scene.materials[p.material as usize].reflectance);
             // Both sides known from a piece's worth of segments, or no score.
             if s.count.iter().any(|&n| (n as f64) < PIECE_CROSSINGS) || rho <= 0.0 {
-                return (0.0, segments);
+                return Piece {
+                    score: 0.0,
+                    segments,
+                    near,
+                    near_length,
+                };
             }
             let (mean, variance): (Vec<f64>, Vec<f64>) = (0..2)
                 .map(|k| {
-                    let n = s.count[k] as f64;
-                    let mean = s.sum[k] as f64 * unit / n;
-                    let square = s.square[k] as f64 * unit * unit / n;
-                    // The variance of the mean: the unbiased sample variance over n.
-                    (mean, (square - mean * mean).max(0.0) * n / (n - 1.0) / n)
+                    let (n, w) = (s.count[k] as f64, s.weight[k] as f64);
+                    let mean = s.sum[k] as f64 * unit / w;
+                    let square = s.square[k] as f64 * unit * unit / w;
+                    // The variance of the weighted mean: the sample variance (unbiased for
+                    // equal weights) times Σw² / (Σw)².
+                    let spread = (square - mean * mean).max(0.0) * n / (n - 1.0);
+                    (mean, spread * s.weight2[k] as f64 / (w * w))
                 })
                 .unzip();
             let difference =
                 (mean[0] - mean[1]).abs() - SIGNIFICANCE * (variance[0] + variance[1]).sqrt();
-            let near = s.count[0] as f64 / segments as f64;
-            let score = p.area * rho * near * (1.0 - near) * difference.max(0.0);
-            (score, segments)
+            let share = s.weight[0] as f64 / (s.weight[0] + s.weight[1]) as f64;
+            Piece {
+                score: p.area * rho * share * (1.0 - share) * difference.max(0.0),
+                segments,
+                near,
+                near_length,
+            }
         })
         .collect()
+}
+
+/// Each triangle's width: its longest edge at frame 0 (normalised space).
+fn widths(scene: &Scene, tracer: &SceneTracer) -> Vec<f32> {
+    let corners = Corners::new(scene);
+    (0..tracer.triangles() as u32)
+        .map(|g| {
+            let c = corners
+                .posed(g, Some(0))
+                .unwrap_or_else(|| corners.own(g).map(|p| p.as_dvec3()));
+            let edge = |a: DVec3, b: DVec3| a.distance(b);
+            edge(c[0], c[1]).max(edge(c[1], c[2])).max(edge(c[2], c[0])) as f32
+        })
+        .collect()
+}
+
+/// The share of a piece's segments (contacts apart) that must be shorter than the piece is
+/// wide for it to lie in a gap ([`regions`]): it faces, over most of what it sees, something
+/// closer than its own size, so one radiance over it cannot hold the light's fall into the gap.
+pub const NEAR_SHARE: f64 = 0.75;
+
+/// The fewest segments a piece needs for its near share to count ([`regions`]).
+pub const NEAR_SEGMENTS: u64 = 4;
+
+/// The most dense regions a bake makes ([`regions`]): every line is tested against each.
+pub const MAX_REGIONS: usize = 64;
+
+/// How many times denser the lines through a gap are, at most ([`regions`]).
+pub const MAX_FACTOR: u32 = 16;
+
+/// The most a bake's dense lines may add to its lines ([`regions`]), as a share of them.
+pub const DENSE_SHARE: f64 = 0.5;
+
+/// Where the lines should be denser, and by how much: the gaps, boxes around the static pieces
+/// that lie in one ([`NEAR_SHARE`]), each box grown by the mean length of its near segments so
+/// that the two faces of a gap meet, overlapping boxes merged. Light trapped in a gap falls off over about
+/// the gap's height; a piece much wider than that spreads what enters at the rim over all of
+/// it and sends it on, so light leaks in deep (a fixture's housing, the ceiling above it): the
+/// pieces there must be about as small as the gap is high, and need the lines to be known.
+///
+/// The factor is the largest power of two up to [`MAX_FACTOR`] whose dense lines add at most
+/// [`DENSE_SHARE`] of the lines (the lines meeting a box scale with its surface area), the
+/// regions kept being the [`MAX_REGIONS`] holding the most gap area; none if even twice as
+/// dense costs more. `lines` (the global lines) bounds it too: the tallies' counts, every
+/// line's weight summed, stay below 2^32.
+pub(super) fn regions(scene: &Scene, pieces: &[Piece], lines: usize) -> (Vec<Bounds>, u32) {
+    let corners = Corners::new(scene);
+    let in_gap = |p: u32| {
+        let q = pieces[p as usize];
+        q.segments >= NEAR_SEGMENTS && q.near >= NEAR_SHARE
+    };
+    // (box, gap area) of every static triangle with a face in a gap, grown by the mean length
+    // of its near segments (about twice the gap's height): the faces across the gap meet.
+    let mut boxes: Vec<(Bounds, f64)> = (scene.statics.faces.iter().enumerate())
+        .filter_map(|(t, f)| {
+            let pad = [Some(f.front), f.back]
+                .into_iter()
+                .flatten()
+                .filter(|&p| in_gap(p))
+                .map(|p| pieces[p as usize].near_length)
+                .reduce(f64::max)?;
+            let c = corners.own(t as u32).map(|p| p.as_dvec3());
+            let area = 0.5 * (c[1] - c[0]).cross(c[2] - c[0]).length();
+            let pad = DVec3::splat(pad);
+            let min = c[0].min(c[1]).min(c[2]) - pad;
+            let max = c[0].max(c[1]).max(c[2]) + pad;
+            Some((Bounds { min, max }, area))
+        })
+        .collect();
+    // Merge overlapping boxes until none overlap.
+    let overlap = |a: &Bounds, b: &Bounds| a.min.cmple(b.max).all() && b.min.cmple(a.max).all();
+    loop {
+        boxes.sort_by(|a, b| a.0.min.x.total_cmp(&b.0.min.x));
+        let mut merged: Vec<(Bounds, f64)> = Vec::with_capacity(boxes.len());
+        let mut any = false;
+        for (b, area) in boxes {
+            match merged.iter_mut().rev().find(|(m, _)| overlap(m, &b)) {
+                Some((m, a)) => {
+                    *m = Bounds {
+                        min: m.min.min(b.min),
+                        max: m.max.max(b.max),
+                    };
+                    *a += area;
+                    any = true;
+                }
+                None => merged.push((b, area)),
+            }
+        }
+        boxes = merged;
+        if !any {
+            break;
+        }
+    }
+    boxes.sort_by(|a, b| b.1.total_cmp(&a.1));
+    boxes.truncate(MAX_REGIONS);
+    // Clipped to the scene's box, where the lines are.
+    let regions: Vec<Bounds> = boxes
+        .iter()
+        .map(|(b, _)| Bounds {
+            min: b.min.max(scene.bounds.min),
+            max: b.max.min(scene.bounds.max),
+        })
+        .collect();
+    let measure: f64 = regions.iter().map(Bounds::surface_area).sum();
+    let affordable = DENSE_SHARE * scene.bounds.surface_area() / measure.max(f64::MIN_POSITIVE);
+    // The tallies count in u32: every line's weight summed stays below 2^32 for the lines
+    // there are and as many again.
+    let most = f64::from(u32::MAX) / (2.0 * lines.max(1) as f64);
+    let factor = (1..=MAX_FACTOR.ilog2())
+        .map(|k| 1u32 << k)
+        .take_while(|&f| f64::from(f) <= affordable.min(most))
+        .last();
+    match factor {
+        Some(f) if !regions.is_empty() => (regions, f),
+        _ => (Vec::new(), 1),
+    }
 }

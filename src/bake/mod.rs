@@ -170,6 +170,32 @@ impl Bake {
         resample(&mut self.area, &self.scene, &self.tracer, lines, control)
     }
 
+    /// Makes the lines through `regions` (boxes in normalised space) `factor` times as dense
+    /// as elsewhere ([`IntersectionList::add_dense`]) and tallies everything again with the
+    /// lines' weights: the same estimates, with `factor` times the crossings inside the
+    /// regions. [`Bake::split`] does it for the gaps it finds.
+    ///
+    /// # Errors
+    /// [`TraceError::Cancelled`] if `control` is cancelled (the bake is then as it was).
+    ///
+    /// # Panics
+    /// If the lines are dense somewhere already, or `factor` is not in 2..=255.
+    pub fn densify(
+        &mut self,
+        (regions, factor): (&[crate::scene::Bounds], u32),
+        control: &Control,
+    ) -> Result<(), TraceError> {
+        let dense = (regions, factor);
+        (self.list).add_dense(&self.scene, &self.tracer, dense, control)?;
+        let patches = self.scene.patches.len();
+        (self.tallies).update(&self.list, &self.tracer.surfaces(), patches);
+        if let Some(pieces) = &mut self.pieces {
+            let count = pieces.scene.patches.len();
+            (pieces.tallies).update(&self.list, &pieces.tracer.surfaces(), count);
+        }
+        Ok(())
+    }
+
     /// Cuts the traced triangles as `cuts` says (a bisection tree per triangle by global index,
     /// [`crate::scene::refine::cut`]), with the cuts their neighbours need, and moves every
     /// crossing of the list to
@@ -274,11 +300,16 @@ impl Bake {
     /// crossings): measured with `bench-patches`, the per-patch error against the path
     /// tracer falls two to seven times on the sample scenes (README, "Pieces").
     ///
+    /// First the lines through the gaps are made denser, once ([`gaps::regions`],
+    /// [`Bake::densify`]): light trapped in a gap falls off over about the gap's height, and
+    /// the pieces there need more crossings than the global lines give to be that small.
+    ///
     /// Then, for up to [`GAP_ROUNDS`] rounds, the pieces that misplace light are bisected once
     /// more: where part of a piece faces something closer than the piece is wide (a gap under
     /// a panel or a fixture, a box resting on the floor) and gathers other light than the rest
     /// ([`gaps`]), those misplacing over [`GAP_SHARE`] of the scene's reflected light, most
-    /// first, within the same budget, while each half keeps [`PIECE_CROSSINGS`] crossings. The
+    /// first, and then every piece in a dense region, within the same budget, while each half
+    /// keeps [`PIECE_CROSSINGS`] crossings. The
     /// cuts follow a gap's rim down until its pieces hold too little light to matter: the
     /// panel room at its source's triangles went from +25% to the path tracer's brightness.
     ///
@@ -294,9 +325,29 @@ impl Bake {
         if let Some(pieces) = &self.pieces {
             return Ok(pieces.scene.patches.len());
         }
+        // Denser lines through the gaps, once: the patches that face something closer than
+        // they are wide ([`gaps::regions`]). On cancellation the lines are left as they were.
+        if self.list.dense().0.is_empty() {
+            let scores = gaps::misplaced(&self.scene, &self.tracer, &self.list, &|_| 0.0, 0.0);
+            let lines = self.list.lines();
+            let (regions, factor) = gaps::regions(&self.scene, &scores, lines);
+            if !regions.is_empty() {
+                match self.densify((&regions, factor), control) {
+                    Ok(()) | Err(TraceError::Cancelled) => {}
+                    Err(e) => self
+                        .warnings
+                        .push(format!("the gaps' lines were not made denser: {e}")),
+                }
+            }
+        }
         let (apart, of_apart) = refine::apart(&self.scene);
-        // Each face's expected crossings: its patch's, by its share of the patch's area.
-        let crossings = self.frame_tally(0).crossings;
+        // Each face's expected crossings: its patch's, by its share of the patch's area, in
+        // the global lines' units (the tallies count a global line the dense factor times): a
+        // gap's pieces are cut further by the rounds below, from the crossings they have.
+        let scale = f64::from(self.list.dense().1);
+        let crossings: Vec<f64> = (self.frame_tally(0).crossings.iter())
+            .map(|&c| c as f64 / scale)
+            .collect();
         let expected = |p: u32| {
             let whole = &self.scene.patches[of_apart[p as usize] as usize];
             let share = if whole.area > 0.0 {
@@ -304,7 +355,7 @@ impl Bake {
             } else {
                 0.0
             };
-            crossings[of_apart[p as usize] as usize] as f64 * share
+            crossings[of_apart[p as usize] as usize] * share
         };
         // The traced triangles' faces in global order (the static mesh's, then each object's):
         // each triangle's most crossings expected on one of its faces.
@@ -388,6 +439,9 @@ impl Bake {
         // same patches), without pieces.
         let grouped = refine::regroup(&scene, &of, self.scene.patches.clone());
         self.tracer = SceneTracer::new(&grouped);
+        // The same crossings on the same patches, but the dense lines' weights: tallied again.
+        let patches = grouped.patches.len();
+        (self.tallies).update(&self.list, &self.tracer.surfaces(), patches);
         let before = std::mem::replace(&mut self.scene, grouped);
         self.shown.get_or_insert(before);
         if control.is_cancelled() {
@@ -412,12 +466,30 @@ impl Bake {
         Ok(count)
     }
 
+    /// What the lines say of each piece of `scene` (piece `k` of patch `of[k]`) at frame 0
+    /// ([`gaps::misplaced`]), `radiance` being the patches' answer under `sky`: what each
+    /// piece faces.
+    fn piece_scores(
+        &self,
+        scene: &Scene,
+        of: &[u32],
+        (radiance, sky): (&[[f64; 3]], [f64; 3]),
+    ) -> (SceneTracer, Vec<gaps::Piece>) {
+        use crate::output::tonemap::luminance;
+        let tracer = SceneTracer::new(scene);
+        let brightness: Vec<f64> = radiance.iter().map(|&l| luminance(l)).collect();
+        let gathered = |j: u32| brightness[of[j as usize] as usize];
+        let scores = gaps::misplaced(scene, &tracer, &self.list, &gathered, luminance(sky));
+        (tracer, scores)
+    }
+
     /// One round of [`Bake::split`]'s further cuts ([`gaps`]): the pieces of `scene` (piece `k`
     /// of patch `of[k]`) that misplace more than [`GAP_SHARE`] of the light the patches reflect
-    /// (`radiance`, the patches' answer at frame 0 under `sky`) and have the crossings of two
-    /// pieces (deforming objects' are not cut), each bisected once, those that misplace the
-    /// most first, within `budget` pieces (the cuts neighbours need included). `None` when
-    /// nothing is cut.
+    /// (`radiance`, the patches' answer at frame 0 under `sky`), those that misplace the most
+    /// first, then the pieces in a dense region of the lines (a gap: [`gaps::regions`]), the
+    /// most crossed first: each bisected once, if it has the crossings of two pieces
+    /// (deforming objects' are not cut), within `budget` pieces (the cuts neighbours need
+    /// included). `None` when nothing is cut.
     fn cut_gaps(
         &self,
         scene: &Scene,
@@ -427,15 +499,12 @@ impl Bake {
     ) -> Option<(Scene, crate::scene::refine::Refinement)> {
         use crate::output::tonemap::luminance;
         use crate::scene::refine;
-        let tracer = SceneTracer::new(scene);
-        let brightness: Vec<f64> = radiance.iter().map(|&l| luminance(l)).collect();
-        let gathered = |j: u32| brightness[of[j as usize] as usize];
-        let scores = gaps::misplaced(scene, &tracer, &self.list, &gathered, luminance(sky));
+        let (_, scores) = self.piece_scores(scene, of, (radiance, sky));
         let reflected: f64 = (self.scene.patches.iter())
-            .zip(&brightness)
+            .zip(radiance)
             .map(|(p, &l)| {
                 let emitted = luminance(self.scene.materials[p.material as usize].emission);
-                p.area * (l - emitted).max(0.0)
+                p.area * (luminance(l) - emitted).max(0.0)
             })
             .sum();
         // Each piece's triangle (global index), and whether it can be cut (not deforming).
@@ -448,19 +517,35 @@ impl Bake {
                 triangle[p as usize] = (t as u32, cuttable);
             }
         }
+        // Whether a piece lies in a dense region: a static triangle whose centroid does.
+        let (regions, _) = self.list.dense();
+        let corners = refine::Corners::new(scene);
+        let statics = scene.statics.triangles.len() as u32;
+        let in_region = |t: u32| {
+            t < statics && {
+                let c = corners.own(t).map(|p| p.as_dvec3());
+                let centroid = (c[0] + c[1] + c[2]) / 3.0;
+                (regions.iter()).any(|r| centroid.cmpge(r.min).all() && centroid.cmple(r.max).all())
+            }
+        };
+        let enough = |k: usize| scores[k].segments as f64 >= 2.0 * PIECE_CROSSINGS;
         let mut order: Vec<(f64, u32)> = (scores.iter().enumerate())
-            .filter(|&(k, &(score, segments))| {
-                triangle[k].1
-                    && score > GAP_SHARE * reflected
-                    && segments as f64 >= 2.0 * PIECE_CROSSINGS
-            })
-            .map(|(k, &(score, _))| (score, k as u32))
+            .filter(|&(k, q)| triangle[k].1 && q.score > GAP_SHARE * reflected && enough(k))
+            .map(|(k, q)| (q.score, k as u32))
             .collect();
         order.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+        let mut dense: Vec<(u64, u32)> = (0..scores.len())
+            .filter(|&k| {
+                let (t, cuttable) = triangle[k];
+                cuttable && enough(k) && scores[k].score <= GAP_SHARE * reflected && in_region(t)
+            })
+            .map(|k| (scores[k].segments, k as u32))
+            .collect();
+        dense.sort_by(|a, b| b.0.cmp(&a.0).then(a.1.cmp(&b.1)));
         // Each piece's triangle cut once: the root of its tree (heap order, node 1).
-        let order: Vec<(u32, u32)> = order
-            .iter()
-            .map(|&(_, p)| (triangle[p as usize].0, 1))
+        let order: Vec<(u32, u32)> = (order.iter().map(|&(_, p)| p))
+            .chain(dense.iter().map(|&(_, p)| p))
+            .map(|p| (triangle[p as usize].0, 1))
             .collect();
         let cuts = refine::within_budget(scene, &order, budget);
         if cuts.iter().all(|&c| c == 0) {

@@ -103,6 +103,20 @@ pub fn path_traced(
     sky: [f64; 3],
     seed: u64,
 ) -> Vec<Estimate> {
+    path_traced_each(scene, tracer, frame, &|_| paths, sky, seed)
+}
+
+/// [`path_traced`] with `paths(i)` paths for patch `i` (none: a patch of 0 paths answers
+/// nothing, all zeros).
+#[must_use]
+pub fn path_traced_each(
+    scene: &Scene,
+    tracer: &SceneTracer,
+    frame: usize,
+    paths: &(dyn Fn(usize) -> usize + Sync),
+    sky: [f64; 3],
+    seed: u64,
+) -> Vec<Estimate> {
     let posed = Posed::at(scene, tracer, frame);
     let view = posed.frame(scene, tracer, Occluders::All);
     let (places, members) = places(scene, &view);
@@ -137,7 +151,15 @@ pub fn path_traced(
             let mut rng = Xoshiro256PlusPlus::seed_from_u64(
                 seed ^ (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
             );
-            tracer.patch(i, paths.max(2), &mut rng)
+            match paths(i) {
+                0 => Estimate {
+                    radiance: [0.0; 3],
+                    stderr: [0.0; 3],
+                    spread: [0.0; 3],
+                    visible: 0.0,
+                },
+                n => tracer.patch(i, n.max(2), &mut rng),
+            }
         })
         .collect()
 }

@@ -101,12 +101,16 @@ impl Information {
         // the order the threads add them in: the summary of a bake is the same on any run.
         let fixed = |x: f64| (x * UNIT).round() as i128;
         let groups = list.line_groups(GROUPS);
+        // Each segment counts its line's weight, as in the tallies.
+        let weights = list.line_weights();
         let (sums, by_group) = (0..list.lines())
             .into_par_iter()
+            .filter(|&l| weights[l] > 0)
             .fold(
                 || (vec![0i128; patches], [(0i128, 0u64); G], Vec::new()),
                 |(mut sums, mut by_group, mut scratch), l| {
                     let group = &mut by_group[groups[l] as usize];
+                    let weight = weights[l];
                     list.frame_hits(l, frame, &mut scratch);
                     let d = list.direction(l).as_dvec3();
                     let surfaces = surfaces.along(list.direction(l));
@@ -129,10 +133,11 @@ impl Information {
                         let term = (total_area * cos(a.surface()) * cos(b.surface())
                             / (std::f64::consts::PI * r * r))
                             .ln();
-                        sums[i as usize] += fixed(term);
-                        sums[j as usize] += fixed(term);
-                        group.0 += 2 * fixed(term);
-                        group.1 += 2;
+                        let term = i128::from(weight) * fixed(term);
+                        sums[i as usize] += term;
+                        sums[j as usize] += term;
+                        group.0 += 2 * term;
+                        group.1 += 2 * u64::from(weight);
                     }
                     (sums, by_group, scratch)
                 },

@@ -101,7 +101,7 @@ pub struct FrameSolution {
     /// the error of the pieces' shape ([`crate::bake::SHAPE_ERROR`]).
     pub stderr: Vec<Option<[f64; 3]>>,
     /// Crossings of each patch by the lines, where a surface touches it included (0:
-    /// unsampled).
+    /// unsampled), in global lines (a gap's denser lines count a fraction each).
     pub samples: Vec<u64>,
     /// Conjugate-gradient iterations, most over the channels.
     pub iterations: usize,
@@ -481,7 +481,9 @@ fn solve_with(
     // bottom on the floor: known black); a part left to see that no line crossed is
     // unsampled, though crossings of its hidden part were counted.
     let visible = direct.and_then(|d| d.visible);
-    let samples = |k: usize| tally.crossings[k] + tally.hidden[k];
+    // In global lines (a dense region's crossings count a fraction each), at least one for a
+    // patch any line crossed.
+    let samples = |k: usize| (tally.crossings[k] + tally.hidden[k]).div_ceil(tally.unit.max(1));
     let answer = |members: &mut dyn Iterator<Item = usize>| {
         let (mut seen, mut hidden, mut open) = (0, 0, 0.0);
         for k in members {

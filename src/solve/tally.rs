@@ -9,6 +9,11 @@
 //! and `N_i` counts the crossings of the patch's visible part only, so that a patch partly
 //! under a box answers the radiance of what can be seen of it, and sends that on.
 //!
+//! Where the list's lines are denser in some regions ([`IntersectionList::add_dense`]), every
+//! segment counts its line's weight ([`IntersectionList::line_weights`]) rather than one, so
+//! that each part of the line space counts at one density; [`FrameTally::unit`] is then what
+//! a global line's segment counts.
+//!
 //! The static segments are tallied once. A frame stores only what its moving objects change:
 //! for each line that crosses a moving object at frame f, its static segments are removed and
 //! the segments of its frame-f list added (`S^f = S^static − R^f + D^f`). Memory grows with the
@@ -220,6 +225,12 @@ pub struct Tallies {
     fingerprints: Vec<u128>,
     /// Group of each line (see [`GROUPS`]).
     groups: Vec<u8>,
+    /// Weight of each line ([`IntersectionList::line_weights`]): its segments count this many
+    /// times.
+    weights: Vec<u8>,
+    /// The dense regions of the list when it was tallied: when they change, every line's
+    /// weight may, and everything is tallied again.
+    dense: usize,
     /// Lines tallied so far.
     lines: usize,
 }
@@ -236,30 +247,42 @@ pub struct FrameTally {
     pub offsets: Vec<usize>,
     /// Column of each entry: a patch, [`SKY`], [`ABSORBED`] or [`HIDDEN`].
     pub columns: Vec<u32>,
-    /// Segment count of each entry (> 0; fewer than 2^32, as are the crossings of a list).
+    /// Segment count of each entry, each segment its line's weight (> 0; below 2^32: the dense
+    /// factor is chosen so by [`crate::bake::Bake::split`]).
     pub counts: Vec<u32>,
     /// Row starts of the per-group entries (length patches + 1).
     pub group_offsets: Vec<usize>,
     /// Per-group entries of each row: (column, group, count), for the error estimate.
     pub group_entries: Vec<(u32, u8, u32)>,
+    /// What one global line's segment counts (the dense factor of the list's regions,
+    /// [`IntersectionList::line_weights`]; 1 without them): counts over it are in global
+    /// lines.
+    pub unit: u64,
 }
 
 impl Tallies {
     /// Tallies the lines `list` holds beyond those already tallied (all of them the first
     /// time): call again after [`IntersectionList::add_lines`] to refine.
     pub fn update(&mut self, list: &IntersectionList, surfaces: &Surfaces<'_>, patches: usize) {
+        if list.dense().0.len() != self.dense {
+            *self = Self::default();
+            self.dense = list.dense().0.len();
+        }
         let new = self.lines..list.lines();
         self.groups = list.line_groups(GROUPS);
-        let statics = tally_static(list, surfaces, new.clone(), &self.groups);
+        self.weights = list.line_weights();
+        let statics = tally_static(list, surfaces, new.clone(), (&self.groups, &self.weights));
         let entries = if self.lines == 0 {
             statics
         } else {
             merge(&self.statics.entries(), &statics)
         };
         self.statics = assemble(entries, patches);
+        self.statics.unit = u64::from(list.dense().1);
         self.lines = new.end;
-        // Which lines each frame's moving objects touch, over all lines.
+        // Which lines each frame's moving objects touch, over all lines that count.
         let mut pairs: Vec<(u32, u32)> = (0..list.lines())
+            .filter(|&l| self.weights[l] > 0)
             .flat_map(|l| {
                 let mut frames: Vec<u32> = list.moving_hits(l).iter().map(|h| h.frame).collect();
                 frames.dedup();
@@ -311,13 +334,16 @@ impl Tallies {
                 let mut merged = Vec::new();
                 for &l in chunk {
                     let l = l as usize;
-                    let g = self.groups[l];
+                    let (g, w) = (self.groups[l], i64::from(self.weights[l]));
+                    if w == 0 {
+                        continue;
+                    }
                     let surfaces = surfaces.along(list.direction(l));
                     walk(list.static_hits(l), &surfaces, |a, b| {
-                        raw.push((key(a, b, g), -1))
+                        raw.push((key(a, b, g), -w))
                     });
                     list.frame_hits(l, frame, &mut merged);
-                    walk(&merged, &surfaces, |a, b| raw.push((key(a, b, g), 1)));
+                    walk(&merged, &surfaces, |a, b| raw.push((key(a, b, g), w)));
                 }
                 aggregate(raw)
             })
@@ -346,6 +372,7 @@ impl Tallies {
             + (self.touched.len() + self.touched_offsets.len()) * size_of::<u32>()
             + self.fingerprints.len() * size_of::<u128>()
             + self.groups.len()
+            + self.weights.len()
     }
 
     /// The tallies of `frame` (over the patches [`Tallies::update`] was given).
@@ -374,6 +401,7 @@ fn assemble(entries: Entries, patches: usize) -> FrameTally {
         counts: Vec::with_capacity(entries.len()),
         group_offsets: Vec::with_capacity(patches + 1),
         group_entries: Vec::with_capacity(entries.len()),
+        unit: 1,
     };
     let mut row = 0;
     t.offsets.push(0);
@@ -452,6 +480,7 @@ impl FrameTally {
             counts: Vec::with_capacity(self.columns.len() + changes.len()),
             group_offsets: Vec::with_capacity(patches + 1),
             group_entries: Vec::with_capacity(self.group_entries.len() + changes.len()),
+            unit: self.unit,
         };
         let mut next = 0;
         let mut row = 0;
@@ -563,6 +592,7 @@ impl FrameTally {
                     counts: Vec::with_capacity(size),
                     group_offsets: vec![0; patches + 1],
                     group_entries: Vec::new(),
+                    unit: self.unit,
                 }
             })
             .collect();
@@ -601,12 +631,12 @@ impl FrameTally {
     }
 }
 
-/// Static segments of `lines`.
+/// Static segments of `lines`, each counted its line's weight.
 fn tally_static(
     list: &IntersectionList,
     surfaces: &Surfaces<'_>,
     lines: Range<usize>,
-    groups: &[u8],
+    (groups, weights): (&[u8], &[u8]),
 ) -> Entries {
     let chunks: Vec<Entries> = lines
         .collect::<Vec<_>>()
@@ -614,9 +644,13 @@ fn tally_static(
         .map(|chunk| {
             let mut raw = Vec::new();
             for &l in chunk {
+                let w = i64::from(weights[l]);
+                if w == 0 {
+                    continue;
+                }
                 let surfaces = surfaces.along(list.direction(l));
                 walk(list.static_hits(l), &surfaces, |a, b| {
-                    raw.push((key(a, b, groups[l]), 1))
+                    raw.push((key(a, b, groups[l]), w))
                 });
             }
             aggregate(raw)

@@ -15,7 +15,7 @@ use crate::control::{Control, TraceError};
 use rayon::prelude::*;
 
 use crate::lines::{Batch, Bundle};
-use crate::scene::Scene;
+use crate::scene::{Bounds, Scene};
 use crate::trace::{FrameMeshes, Hit, Line, SceneTracer};
 
 /// How many lines to trace, and from which seed.
@@ -100,6 +100,11 @@ pub struct IntersectionList {
     /// sorted by frame, then along the line.
     dynamic_offsets: Vec<u32>,
     dynamic_hits: Vec<FrameHit>,
+    /// Regions whose lines are denser ([`IntersectionList::add_dense`]), and by how much.
+    dense: Vec<Bounds>,
+    factor: u32,
+    /// The scene's box the global lines were drawn against.
+    bounds: Bounds,
 }
 
 /// What the list holds and the memory it takes.
@@ -139,13 +144,18 @@ impl IntersectionList {
             static_hits: Vec::new(),
             dynamic_offsets: vec![0],
             dynamic_hits: Vec::new(),
+            dense: Vec::new(),
+            factor: 1,
+            bounds: scene.bounds,
         };
         list.add_lines(scene, tracer, params, control)?;
         Ok(list)
     }
 
     /// Traces another batch of lines (progressive refinement): the lines already traced are
-    /// kept as they are. Batch `i` of a list uses the seed's `i`-th independent rotation.
+    /// kept as they are. Batch `i` of a list uses the seed's `i`-th independent rotation. With
+    /// dense regions ([`IntersectionList::add_dense`]), each region gets its batch of denser
+    /// lines beside the new one, so that every region stays as many times denser.
     pub fn add_lines(
         &mut self,
         scene: &Scene,
@@ -154,7 +164,181 @@ impl IntersectionList {
         control: &Control,
     ) -> Result<(), TraceError> {
         let index = self.batches.len() as u32;
-        let batch = Batch::for_budget(params.lines, None, &scene.bounds, params.seed, index);
+        let global = Batch::for_budget(params.lines, None, &scene.bounds, params.seed, index);
+        let mut batches = vec![global];
+        for (number, &region) in self.dense.iter().enumerate() {
+            let index = index + batches.len() as u32;
+            let region = (number as u32, region);
+            batches.push(Batch::dense(
+                &global,
+                region,
+                self.factor,
+                &scene.bounds,
+                index,
+            ));
+        }
+        self.add_batches(&batches, scene, tracer, control)
+    }
+
+    /// Makes the lines that meet `regions` (boxes in normalised space) `factor` times as dense
+    /// as the rest: a batch of lines among those that meet each region, `factor` times as dense
+    /// as each batch of global lines, is traced and added. The line space is then cut in parts,
+    /// each estimated by one set of lines at one density ([`IntersectionList::line_weights`]):
+    /// the lines that meet no region by the global lines, those whose first region is `b` by
+    /// region b's lines. Regions can be made dense once (the list's first call).
+    ///
+    /// # Errors
+    /// [`TraceError::Cancelled`] if `control` is cancelled: the list is then as it was.
+    pub fn add_dense(
+        &mut self,
+        scene: &Scene,
+        tracer: &SceneTracer,
+        (regions, factor): (&[Bounds], u32),
+        control: &Control,
+    ) -> Result<(), TraceError> {
+        assert!(
+            self.dense.is_empty(),
+            "the list's regions are already dense"
+        );
+        assert!(
+            factor >= 2 && factor <= u32::from(u8::MAX),
+            "a dense factor of {factor}"
+        );
+        let globals: Vec<Batch> = self.batches.iter().map(|b| b.batch).collect();
+        let mut index = globals.len() as u32;
+        let mut batches = Vec::new();
+        for global in &globals {
+            for (number, &region) in regions.iter().enumerate() {
+                let region = (number as u32, region);
+                batches.push(Batch::dense(global, region, factor, &scene.bounds, index));
+                index += 1;
+            }
+        }
+        self.add_batches(&batches, scene, tracer, control)?;
+        (self.dense, self.factor) = (regions.to_vec(), factor);
+        Ok(())
+    }
+
+    /// The regions made dense, and how many times denser ([`IntersectionList::add_dense`]).
+    #[must_use]
+    pub fn dense(&self) -> (&[Bounds], u32) {
+        (&self.dense, self.factor)
+    }
+
+    /// How many of the lines are the dense regions' ([`IntersectionList::add_dense`]).
+    #[must_use]
+    pub fn dense_lines(&self) -> usize {
+        (self.batches.iter())
+            .filter(|b| b.batch.region.is_some())
+            .map(|b| b.bundle_lines.iter().map(|&n| n as usize).sum::<usize>())
+            .sum()
+    }
+
+    /// The weight of every line in the tallies, in units of a region's line: with no dense
+    /// regions, 1 for every line; with them, a global line that meets no region weighs the
+    /// factor and one that meets a region 0 (its part of the line space is estimated by the
+    /// region's lines), and a region's line weighs 1 if that region is the first (by number)
+    /// it meets, else 0. Each part of the line space is so counted once, at one density, and
+    /// every segment in both directions with its line's weight: `S` stays symmetric and its
+    /// expectation is that of global lines alone, times the factor.
+    #[must_use]
+    pub fn line_weights(&self) -> Vec<u8> {
+        if self.dense.is_empty() {
+            return vec![1; self.lines()];
+        }
+        let factor = self.factor as u8;
+        let first_met = |origin: glam::Vec3, w: glam::DVec3| {
+            let point = origin.as_dvec3() + w * f64::from(crate::lines::ORIGIN_OFFSET);
+            (self.dense.iter()).position(|r| crate::lines::meets_box(point, w, r))
+        };
+        let ranges = self.bundle_ranges();
+        let per_bundle: Vec<Vec<u8>> = ranges
+            .par_iter()
+            .map(|&(b, k, _, n)| {
+                let batch = &self.batches[b].batch;
+                let bundle = batch.bundle(k, &self.bounds);
+                debug_assert_eq!(bundle.origins.len(), n);
+                let w = bundle.direction.as_dvec3();
+                (bundle.origins.iter())
+                    .map(|&o| match (batch.region, first_met(o, w)) {
+                        (None, None) => factor,
+                        (None, Some(_)) => 0,
+                        (Some((number, _)), met) => {
+                            u8::from(met.is_none_or(|m| m == number as usize))
+                        }
+                    })
+                    .collect()
+            })
+            .collect();
+        per_bundle.concat()
+    }
+
+    /// Traces `batches` through the whole timeline and appends them, all or none.
+    fn add_batches(
+        &mut self,
+        batches: &[Batch],
+        scene: &Scene,
+        tracer: &SceneTracer,
+        control: &Control,
+    ) -> Result<(), TraceError> {
+        let mut traced = Vec::with_capacity(batches.len());
+        for batch in batches {
+            traced.push(self.trace_batch(batch, scene, tracer, control)?);
+        }
+        // Nothing is appended to the list until everything is traced: a cancelled or failed
+        // batch leaves the list as it was.
+        let kept = (
+            self.static_offsets.len(),
+            self.dynamic_offsets.len(),
+            self.bundle_starts.len(),
+            self.batches.len(),
+        );
+        for (batch, (bundles, statics, moving)) in batches.iter().zip(traced) {
+            if let Err(e) = self.append(&bundles, &statics, moving) {
+                let (s, d, starts, count) = kept;
+                self.static_offsets.truncate(s);
+                self.dynamic_offsets.truncate(d);
+                self.static_hits
+                    .truncate(*self.static_offsets.last().unwrap_or(&0) as usize);
+                self.dynamic_hits
+                    .truncate(*self.dynamic_offsets.last().unwrap_or(&0) as usize);
+                self.bundle_starts.truncate(starts);
+                self.batches.truncate(count);
+                return Err(e);
+            }
+            let mut start = self.lines() as u32;
+            for b in bundles.iter().rev() {
+                start -= b.origins.len() as u32;
+                self.bundle_starts.push((start, b.direction));
+            }
+            let added = self.bundle_starts.len() - bundles.len();
+            self.bundle_starts[added..].reverse();
+            self.batches.push(BatchLines {
+                batch: *batch,
+                bundle_lines: bundles.iter().map(|b| b.origins.len() as u32).collect(),
+            });
+        }
+        Ok(())
+    }
+
+    /// Traces one batch through the whole timeline: its bundles, each bundle's lines' counts
+    /// and static crossings, and its moving crossings per bundle (line within the bundle,
+    /// crossing) in frame order.
+    #[allow(clippy::type_complexity)]
+    fn trace_batch(
+        &self,
+        batch: &Batch,
+        scene: &Scene,
+        tracer: &SceneTracer,
+        control: &Control,
+    ) -> Result<
+        (
+            Vec<Bundle>,
+            Vec<(Vec<u32>, Vec<Hit>)>,
+            Vec<Vec<(u32, FrameHit)>>,
+        ),
+        TraceError,
+    > {
         let bundles: Vec<Bundle> = (0..batch.bundles)
             .into_par_iter()
             .map(|k| {
@@ -176,8 +360,6 @@ impl IntersectionList {
         };
         control.add_work(lines * passes);
 
-        // Nothing is appended to the list until everything is traced: a cancelled or failed
-        // batch leaves the list as it was.
         let traced: Vec<(Vec<u32>, Vec<Hit>)> = bundles
             .par_iter()
             .map(|bundle| {
@@ -221,30 +403,7 @@ impl IntersectionList {
             }
         }
         control.check()?;
-        let (static_offsets, dynamic_offsets) =
-            (self.static_offsets.len(), self.dynamic_offsets.len());
-        let appended = self.append(&bundles, &traced, moving);
-        if appended.is_err() {
-            self.static_offsets.truncate(static_offsets);
-            self.dynamic_offsets.truncate(dynamic_offsets);
-            self.static_hits
-                .truncate(*self.static_offsets.last().unwrap_or(&0) as usize);
-            self.dynamic_hits
-                .truncate(*self.dynamic_offsets.last().unwrap_or(&0) as usize);
-            return appended;
-        }
-        let mut start = self.lines() as u32;
-        for b in bundles.iter().rev() {
-            start -= b.origins.len() as u32;
-            self.bundle_starts.push((start, b.direction));
-        }
-        let added = self.bundle_starts.len() - bundles.len();
-        self.bundle_starts[added..].reverse();
-        self.batches.push(BatchLines {
-            batch,
-            bundle_lines: bundles.iter().map(|b| b.origins.len() as u32).collect(),
-        });
-        Ok(())
+        Ok((bundles, traced, moving))
     }
 
     /// Appends a traced batch: static crossings per bundle, moving ones grouped by line.

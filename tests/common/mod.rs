@@ -291,3 +291,15 @@ pub fn static_scene(
     )
     .unwrap()
 }
+
+/// A horizontal square of half-side `h` at height `y`, one-sided, facing up or down: two
+/// triangles.
+pub fn quad(h: f32, y: f32, up: bool) -> (Vec<[f32; 3]>, Vec<u32>) {
+    let v = vec![[-h, y, -h], [h, y, -h], [h, y, h], [-h, y, h]];
+    let i = if up {
+        vec![0, 2, 1, 0, 3, 2]
+    } else {
+        vec![0, 1, 2, 0, 2, 3]
+    };
+    (v, i)
+}
