@@ -32,7 +32,7 @@ use super::PIECE_CROSSINGS;
 use crate::output::tonemap::luminance;
 use crate::scene::refine::Corners;
 use crate::scene::{Bounds, Scene};
-use crate::solve::tally::{FixedLight, HIDDEN, walk_from};
+use crate::solve::tally::{FixedLight, HIDDEN, MAX_PATCHES, walk_from};
 use crate::timeline::IntersectionList;
 use crate::trace::SceneTracer;
 
@@ -53,9 +53,16 @@ struct Sides {
     square: [u128; 2],
     weight2: [u64; 2],
     hidden: u64,
-    /// The lengths of the near segments (contacts apart), in fixed point ([`LENGTH_UNIT`]).
+    /// The near segments that meet a face turned back towards the piece ([`FACING`]), and
+    /// their lengths in fixed point ([`LENGTH_UNIT`]).
+    facing: u64,
     near_length: u128,
 }
+
+/// The most the cosine between a piece's normal and that of the face a near segment meets may
+/// be for the segment to cross a gap ([`Piece::near`]): faces turned back towards each other
+/// (a ceiling over a housing's top, cosine −1), not the two walls of a corner (0).
+pub const FACING: f64 = -0.5;
 
 /// The unit of [`Sides::near_length`]: sums of lengths in whole units do not depend on the
 /// order threads add them in.
@@ -71,6 +78,7 @@ impl Sides {
             self.weight2[k] += other.weight2[k];
         }
         self.hidden += other.hidden;
+        self.facing += other.facing;
         self.near_length += other.near_length;
     }
 }
@@ -82,8 +90,9 @@ pub(super) struct Piece {
     pub score: f64,
     /// The segments leaving it that count.
     pub segments: u64,
-    /// The share of those, contacts apart, shorter than the piece is wide: what faces
-    /// something that close ([`regions`]).
+    /// The share of those, contacts apart, shorter than the piece is wide and meeting a face
+    /// turned back towards it ([`FACING`]): what faces something that close across a gap
+    /// ([`regions`]).
     pub near: f64,
     /// The mean length of those near segments (normalised units): about twice the distance
     /// to what the piece faces, for a gap of parallel faces.
@@ -101,7 +110,7 @@ pub(super) fn misplaced(
     gathered: &(dyn Fn(u32) -> f64 + Sync),
     sky: f64,
 ) -> Vec<Piece> {
-    let width = widths(scene, tracer);
+    let (width, normal) = geometry(scene, tracer);
     // Sums in fixed point: the cuts are the same on any machine.
     let pieces = scene.patches.len();
     let light = FixedLight::new(gathered, pieces, sky);
@@ -125,7 +134,11 @@ pub(super) fn misplaced(
                         let g = value(to);
                         let s = &mut acc[from as usize];
                         s.hidden += u64::from(to == HIDDEN);
-                        if side == 0 && to != HIDDEN {
+                        // Near, and facing back: across a gap, not into a corner.
+                        let facing = (to as usize) < MAX_PATCHES
+                            && normal[from as usize].dot(normal[to as usize]) < FACING;
+                        if side == 0 && facing {
+                            s.facing += 1;
                             s.near_length += (f64::from(length) * LENGTH_UNIT) as u128;
                         }
                         s.count[side] += 1;
@@ -151,7 +164,7 @@ pub(super) fn misplaced(
         .map(|(p, s)| {
             let segments = s.count[0] + s.count[1];
             let seen = segments - s.hidden;
-            let near_count = s.count[0] - s.hidden;
+            let near_count = s.facing;
             let near = if seen > 0 {
                 near_count as f64 / seen as f64
             } else {
@@ -196,18 +209,29 @@ pub(super) fn misplaced(
         .collect()
 }
 
-/// Each triangle's width: its longest edge at frame 0 (normalised space).
-fn widths(scene: &Scene, tracer: &SceneTracer) -> Vec<f32> {
+/// Each triangle's width (its longest edge) and each patch's normal (its front face's, or
+/// the opposite for a back face; a merged patch's last face's), at frame 0 in normalised
+/// space.
+fn geometry(scene: &Scene, tracer: &SceneTracer) -> (Vec<f32>, Vec<DVec3>) {
     let corners = Corners::new(scene);
-    (0..tracer.triangles() as u32)
+    let faces = tracer.surfaces().faces;
+    let mut normals = vec![DVec3::ZERO; scene.patches.len()];
+    let width = (0..tracer.triangles() as u32)
         .map(|g| {
             let c = corners
                 .posed(g, Some(0))
                 .unwrap_or_else(|| corners.own(g).map(|p| p.as_dvec3()));
+            let n = (c[1] - c[0]).cross(c[2] - c[0]).normalize_or_zero();
+            let f = faces[g as usize];
+            normals[f.front as usize] = n;
+            if let Some(back) = f.back {
+                normals[back as usize] = -n;
+            }
             let edge = |a: DVec3, b: DVec3| a.distance(b);
             edge(c[0], c[1]).max(edge(c[1], c[2])).max(edge(c[2], c[0])) as f32
         })
-        .collect()
+        .collect();
+    (width, normals)
 }
 
 /// The share of a piece's segments (contacts apart) that must be shorter than the piece is
