@@ -85,7 +85,7 @@ impl Sides {
 
 /// What the lines say of a piece at frame 0 ([`misplaced`]).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub(super) struct Piece {
+pub struct Piece {
     /// The flux it misplaces (module docs).
     pub score: f64,
     /// The segments leaving it that count.
@@ -103,7 +103,7 @@ pub(super) struct Piece {
 /// `gathered(j)` the luminance of piece `j` (the patches' solution will do: the score needs
 /// what each piece faces, not its own detail) and `sky` the sky's luminance. Segments count
 /// their line's weight ([`IntersectionList::line_weights`]).
-pub(super) fn misplaced(
+pub fn misplaced(
     scene: &Scene,
     tracer: &SceneTracer,
     list: &IntersectionList,
@@ -263,7 +263,7 @@ pub const DENSE_SHARE: f64 = 0.5;
 /// regions kept being the [`MAX_REGIONS`] holding the most gap area; none if even twice as
 /// dense costs more. `lines` (the global lines) bounds it too: the tallies' counts, every
 /// line's weight summed, stay below 2^32.
-pub(super) fn regions(scene: &Scene, pieces: &[Piece], lines: usize) -> (Vec<Bounds>, u32) {
+pub fn regions(scene: &Scene, pieces: &[Piece], lines: usize) -> (Vec<Bounds>, u32) {
     let corners = Corners::new(scene);
     let in_gap = |p: u32| {
         let q = pieces[p as usize];

@@ -474,13 +474,12 @@ impl Bake {
         scene: &Scene,
         of: &[u32],
         (radiance, sky): (&[[f64; 3]], [f64; 3]),
-    ) -> (SceneTracer, Vec<gaps::Piece>) {
+    ) -> Vec<gaps::Piece> {
         use crate::output::tonemap::luminance;
         let tracer = SceneTracer::new(scene);
         let brightness: Vec<f64> = radiance.iter().map(|&l| luminance(l)).collect();
         let gathered = |j: u32| brightness[of[j as usize] as usize];
-        let scores = gaps::misplaced(scene, &tracer, &self.list, &gathered, luminance(sky));
-        (tracer, scores)
+        gaps::misplaced(scene, &tracer, &self.list, &gathered, luminance(sky))
     }
 
     /// One round of [`Bake::split`]'s further cuts ([`gaps`]): the pieces of `scene` (piece `k`
@@ -499,7 +498,7 @@ impl Bake {
     ) -> Option<(Scene, crate::scene::refine::Refinement)> {
         use crate::output::tonemap::luminance;
         use crate::scene::refine;
-        let (_, scores) = self.piece_scores(scene, of, (radiance, sky));
+        let scores = self.piece_scores(scene, of, (radiance, sky));
         let reflected: f64 = (self.scene.patches.iter())
             .zip(radiance)
             .map(|(p, &l)| {
