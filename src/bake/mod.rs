@@ -344,9 +344,9 @@ impl Bake {
         // Each face's expected crossings: its patch's, by its share of the patch's area, in
         // the global lines' units (the tallies count a global line the dense factor times): a
         // gap's pieces are cut further by the rounds below, from the crossings they have.
-        let scale = f64::from(self.list.dense().1);
-        let crossings: Vec<f64> = (self.frame_tally(0).crossings.iter())
-            .map(|&c| c as f64 / scale)
+        let tally = self.frame_tally(0);
+        let crossings: Vec<f64> = (tally.crossings.iter())
+            .map(|&c| c as f64 / tally.unit as f64)
             .collect();
         let expected = |p: u32| {
             let whole = &self.scene.patches[of_apart[p as usize] as usize];
