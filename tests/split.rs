@@ -236,3 +236,43 @@ fn the_lines_are_denser_in_a_gap_and_its_pieces_finer() {
         furnace.list().dense()
     );
 }
+
+#[test]
+fn a_gaps_pieces_are_cut_no_finer_than_it_is_high() {
+    // The floor under a 1 m plate hanging 5 cm over it: the light there changes over about
+    // 5 cm, and the lines (dense in the gap) have the crossings to cut its pieces finer (with
+    // no bound the narrowest reads 4.4 cm). A piece whose near segments say it is no wider
+    // than twice the gap's height is cut no further; bisections leave it at least about the
+    // height wide.
+    let height = 0.05;
+    let floor = common::quad(4.0, 0.0, true);
+    let plate = common::quad(0.5, height as f32, false);
+    let mut scene = common::static_scene(&[floor, plate], Some(0.25));
+    for m in &mut scene.materials {
+        m.reflectance = [0.8; 3];
+    }
+    let solve = SolveParams {
+        sky: [1.0; 3],
+        ..SolveParams::default()
+    };
+    let params = LineParams {
+        lines: 100_000,
+        seed: 2,
+    };
+    let mut bake = Bake::trace(scene, &params).unwrap();
+    bake.split(&solve, &Control::default()).unwrap();
+    assert!(!bake.list().dense().0.is_empty(), "no gap found");
+    let scene = &bake.scene;
+    let n = scene.normalisation;
+    let under_plate = |c: &[glam::DVec3; 3]| {
+        (c.iter()).all(|p| p.y.abs() < 1e-6 && p.x.abs() < 0.5 && p.z.abs() < 0.5)
+    };
+    let (narrowest, count) = (scene.statics.triangles.iter())
+        .map(|t| t.map(|v| n.to_scene(scene.statics.positions[v as usize].as_dvec3())))
+        .filter(under_plate)
+        .map(|c| (c[0].distance(c[1])).max(c[1].distance(c[2])).max(c[2].distance(c[0])))
+        .fold((f64::INFINITY, 0), |(w, k), x| (w.min(x), k + 1));
+    eprintln!("{count} floor pieces under the plate, the narrowest {narrowest} m wide");
+    assert!(count > 32, "{count} pieces: the gap was not cut");
+    assert!(narrowest >= height, "{narrowest} m");
+}

@@ -88,7 +88,9 @@ impl Sides {
 pub struct Piece {
     /// The flux it misplaces (module docs).
     pub score: f64,
-    /// The segments leaving it that count.
+    /// The segments leaving it that count, as so many of equal weight (Kish's effective
+    /// sample size: a piece crossed by a gap's dense lines and a few global ones counts about
+    /// as the global ones).
     pub segments: u64,
     /// The share of those, contacts apart, shorter than the piece is wide and meeting a face
     /// turned back towards it ([`FACING`]): what faces something that close across a gap
@@ -97,6 +99,15 @@ pub struct Piece {
     /// The mean length of those near segments (normalised units): about twice the distance
     /// to what the piece faces, for a gap of parallel faces.
     pub near_length: f64,
+}
+
+impl Piece {
+    /// Whether it lies in a gap: enough of its segments ([`NEAR_SEGMENTS`]) and most of them
+    /// ([`NEAR_SHARE`]) near and facing back.
+    #[must_use]
+    pub fn in_gap(&self) -> bool {
+        self.segments >= NEAR_SEGMENTS && self.near >= NEAR_SHARE
+    }
 }
 
 /// Each piece's misplaced flux (module docs) and the segments leaving it, at frame 0, with
@@ -162,8 +173,18 @@ pub fn misplaced(
     (scene.patches.iter())
         .zip(&sides)
         .map(|(p, s)| {
-            let segments = s.count[0] + s.count[1];
-            let seen = segments - s.hidden;
+            // The segments as so many of equal weight (Kish's effective sample size): a piece
+            // beside a gap is crossed by many of its dense lines, each weighing a fraction.
+            let effective = |k: usize| {
+                let w = s.weight[k] as f64;
+                if w > 0.0 {
+                    w * w / s.weight2[k] as f64
+                } else {
+                    0.0
+                }
+            };
+            let segments = (effective(0) + effective(1)).round() as u64;
+            let seen = s.count[0] + s.count[1] - s.hidden;
             let near_count = s.facing;
             let near = if seen > 0 {
                 near_count as f64 / seen as f64
@@ -177,7 +198,7 @@ pub fn misplaced(
             };
             let rho = luminance(scene.materials[p.material as usize].reflectance);
             // Both sides known from a piece's worth of segments, or no score.
-            if s.count.iter().any(|&n| (n as f64) < PIECE_CROSSINGS) || rho <= 0.0 {
+            if (0..2).any(|k| effective(k) < PIECE_CROSSINGS) || rho <= 0.0 {
                 return Piece {
                     score: 0.0,
                     segments,
@@ -265,10 +286,7 @@ pub const DENSE_SHARE: f64 = 0.5;
 /// line's weight summed, stay below 2^32.
 pub fn regions(scene: &Scene, pieces: &[Piece], lines: usize) -> (Vec<Bounds>, u32) {
     let corners = Corners::new(scene);
-    let in_gap = |p: u32| {
-        let q = pieces[p as usize];
-        q.segments >= NEAR_SEGMENTS && q.near >= NEAR_SHARE
-    };
+    let in_gap = |p: u32| pieces[p as usize].in_gap();
     // (box, gap area) of every static triangle with a face in a gap, grown by the mean length
     // of its near segments (about twice the gap's height): the faces across the gap meet.
     let mut boxes: Vec<(Bounds, f64)> = (scene.statics.faces.iter().enumerate())

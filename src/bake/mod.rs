@@ -527,16 +527,36 @@ impl Bake {
                 (regions.iter()).any(|r| centroid.cmpge(r.min).all() && centroid.cmple(r.max).all())
             }
         };
-        let enough = |k: usize| scores[k].segments as f64 >= 2.0 * PIECE_CROSSINGS;
+        // A piece in a region no wider than twice the gap's height is cut no further: the
+        // light in a gap falls off over about its height, and smaller pieces only cost time.
+        // Across parallel faces h apart, a segment's length is h / cos θ with cos θ of density
+        // 2 cos θ, so the mean m of those shorter than the width W is 2h / (1 + h/W): h =
+        // m / (2 − m/W).
+        let small = |t: u32, m: f64| {
+            let c = corners.own(t).map(|p| p.as_dvec3());
+            let w = (c[0].distance(c[1]))
+                .max(c[1].distance(c[2]))
+                .max(c[2].distance(c[0]));
+            m > 0.0 && w <= 2.0 * m / (2.0 - m / w)
+        };
+        let cuttable = |k: usize| {
+            let (t, cuttable) = triangle[k];
+            cuttable
+                && scores[k].segments as f64 >= 2.0 * PIECE_CROSSINGS
+                && !(in_region(t) && small(t, scores[k].near_length))
+        };
         let mut order: Vec<(f64, u32)> = (scores.iter().enumerate())
-            .filter(|&(k, q)| triangle[k].1 && q.score > GAP_SHARE * reflected && enough(k))
+            .filter(|&(k, q)| q.score > GAP_SHARE * reflected && cuttable(k))
             .map(|(k, q)| (q.score, k as u32))
             .collect();
         order.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
         let mut dense: Vec<(u64, u32)> = (0..scores.len())
             .filter(|&k| {
-                let (t, cuttable) = triangle[k];
-                cuttable && enough(k) && scores[k].score <= GAP_SHARE * reflected && in_region(t)
+                let q = &scores[k];
+                q.score <= GAP_SHARE * reflected
+                    && q.in_gap()
+                    && cuttable(k)
+                    && in_region(triangle[k].0)
             })
             .map(|k| (scores[k].segments, k as u32))
             .collect();
