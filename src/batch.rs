@@ -28,30 +28,21 @@ use std::time::Instant;
 use rayon::prelude::*;
 use serde::Serialize;
 
-use crate::adaptive::{self, Adaptive};
+use crate::adaptive;
 use crate::bake::Bake;
 use crate::control::{Control, TraceError};
-use crate::loader::{self, LoadOptions};
+use crate::loader;
 use crate::output::{self, FrameSpec, ToneMap};
-use crate::params::PatchSize;
+use crate::params::{BakeSettings, PatchSize};
 use crate::scene::Scene;
 use crate::solve::{FrameSolution, SolveParams};
-use crate::timeline::LineParams;
 
 /// What to bake with; the same names as the service's parameters.
 #[derive(Clone, Debug, PartialEq)]
 pub struct BatchParams {
-    /// What to load from each scene.
-    pub load: LoadOptions,
-    /// Cut the patches after tracing where the light needs them (`patch_size=auto`,
-    /// [`crate::adaptive`]), starting from those `load` gives.
-    pub auto: bool,
-    /// Most patches `auto` may reach; [`Adaptive::for_lines`]'s by default.
-    pub patch_budget: Option<usize>,
-    /// Lines and seed.
-    pub lines: LineParams,
-    /// Radiance of the sky.
-    pub sky: [f64; 3],
+    /// What each scene is baked with: what to load, how patches are made, lines and seed, the
+    /// sky ([`crate::params::BakeRequest::validate`]).
+    pub settings: BakeSettings,
     /// The baked glTF and previews to write.
     pub outputs: Outputs,
     /// Bake even if the outputs are up to date.
@@ -59,18 +50,6 @@ pub struct BatchParams {
     /// Iteration cap of each frame's solve ([`SolveParams::max_iterations`]): a frame that
     /// reaches it fails the scene.
     pub max_iterations: usize,
-}
-
-impl BatchParams {
-    /// The `patch_size` asked for.
-    #[must_use]
-    pub fn patch_size(&self) -> PatchSize {
-        match (self.auto, self.load.patch_size) {
-            (true, _) => PatchSize::Auto,
-            (false, Some(length)) => PatchSize::Length(length),
-            (false, None) => PatchSize::Source,
-        }
-    }
 }
 
 /// Which baked glTF files and previews to write besides `radiance.bin` and `summary.json`.
@@ -221,7 +200,8 @@ pub fn scenes(inputs: &[PathBuf]) -> std::io::Result<Vec<PathBuf>> {
 /// platforms and Rust versions, unlike a hash of `{:?}` output (issue 14).
 fn content_hash(bytes: &[u8], params: &BatchParams) -> String {
     use sha2::{Digest, Sha256};
-    let load = &params.load;
+    let settings = &params.settings;
+    let load = &settings.load;
     let outputs = &params.outputs;
     let described = serde_json::json!({
         "version": env!("CARGO_PKG_VERSION"),
@@ -237,11 +217,11 @@ fn content_hash(bytes: &[u8], params: &BatchParams) -> String {
             "max_work": load.max_work,
             "max_reflectance": load.max_reflectance,
         },
-        "auto": params.auto,
-        "patch_budget": params.patch_budget,
-        "lines": params.lines.lines,
-        "seed": params.lines.seed,
-        "sky": params.sky,
+        "auto": settings.patch_size == PatchSize::Auto,
+        "patch_budget": settings.patch_budget,
+        "lines": settings.lines.lines,
+        "seed": settings.lines.seed,
+        "sky": settings.sky,
         "max_iterations": params.max_iterations,
         "outputs": {
             "glb_frames": outputs.glb_frames.to_string(),
@@ -437,35 +417,32 @@ pub fn bake_one(
     let started = Instant::now();
     control.start_stage(0);
     log(&format!("{name}: loading"));
-    let scene = match loader::load(&bytes, &params.load) {
+    let scene = match loader::load(&bytes, &params.settings.load) {
         Ok(s) => s,
         Err(e) => return Outcome::Failed(e.to_string()),
     };
     let load_seconds = started.elapsed().as_secs_f64();
     log(&format!(
         "{name}: tracing {} lines through {} frame{}, {} patches",
-        params.lines.lines,
+        params.settings.lines.lines,
         scene.frames.count,
         if scene.frames.count == 1 { "" } else { "s" },
         scene.patches.len()
     ));
     let started = Instant::now();
-    let mut bake = match Bake::trace_with(scene, &params.lines, control) {
+    let mut bake = match Bake::trace_with(scene, &params.settings.lines, control) {
         Ok(b) => b,
         Err(TraceError::Cancelled) => return Outcome::Cancelled,
         Err(e) => return Outcome::Failed(e.to_string()),
     };
     let trace_seconds = started.elapsed().as_secs_f64();
     let solve = SolveParams {
-        sky: params.sky,
+        sky: params.settings.sky,
         max_iterations: params.max_iterations,
         ..SolveParams::default()
     };
     let started = Instant::now();
-    let rounds = if params.auto {
-        let auto = Adaptive::for_lines(params.lines.lines, bake.scene.patches.len())
-            .with_budget(params.patch_budget)
-            .within(params.load.max_patches);
+    let rounds = if let Some(auto) = params.settings.adaptive(bake.scene.patches.len()) {
         log(&format!(
             "{name}: cutting patches where the light needs them (at most {})",
             auto.budget
@@ -582,12 +559,12 @@ pub fn bake_one(
             factor: bake.list().dense().1,
             lines: bake.list().dense_lines(),
         },
-        seed: params.lines.seed,
-        fps: params.load.fps,
-        patch_size: params.patch_size(),
+        seed: params.settings.lines.seed,
+        fps: params.settings.load.fps,
+        patch_size: params.settings.patch_size,
         adaptive: rounds,
-        animation: params.load.animation.as_deref(),
-        sky: params.sky,
+        animation: params.settings.load.animation.as_deref(),
+        sky: params.settings.sky,
         worst_residual: frames.iter().map(|f| f.residual).fold(0.0, f64::max),
         iterations: frames.iter().map(|f| f.iterations).collect(),
         converged: frames.iter().all(|f| f.converged),
@@ -634,6 +611,7 @@ pub fn bake_one(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::params::{BakeRequest, Limits};
 
     #[test]
     fn the_gif_keeps_at_most_its_frame_budget_at_a_delay_browsers_honour() {
@@ -653,14 +631,7 @@ mod tests {
 
     fn params() -> BatchParams {
         BatchParams {
-            load: LoadOptions::default(),
-            auto: true,
-            patch_budget: None,
-            lines: LineParams {
-                lines: 1_000_000,
-                seed: 1,
-            },
-            sky: [0.0; 3],
+            settings: BakeRequest::default().validate(&Limits::default()).unwrap(),
             outputs: Outputs::default(),
             force: false,
             max_iterations: SolveParams::default().max_iterations,
@@ -679,21 +650,21 @@ mod tests {
         // text cannot give the same input.
         assert_ne!(content_hash(b"", &params()), content_hash(b"{", &params()));
         let changed: Vec<fn(&mut BatchParams)> = vec![
-            |p| p.load.fps += 1.0,
-            |p| p.load.animation = Some("door".into()),
-            |p| p.load.camera = Some("auto".into()),
-            |p| p.load.start = Some(0.5),
-            |p| p.load.end = Some(1.5),
-            |p| p.load.patch_size = Some(0.25),
-            |p| p.load.max_frames += 1,
-            |p| p.load.max_patches += 1,
-            |p| p.load.max_work += 1,
-            |p| p.load.max_reflectance = 0.99,
-            |p| p.auto = false,
-            |p| p.patch_budget = Some(500),
-            |p| p.lines.lines += 1,
-            |p| p.lines.seed = 2,
-            |p| p.sky = [0.0, 0.0, 1e-9],
+            |p| p.settings.load.fps += 1.0,
+            |p| p.settings.load.animation = Some("door".into()),
+            |p| p.settings.load.camera = Some("auto".into()),
+            |p| p.settings.load.start = Some(0.5),
+            |p| p.settings.load.end = Some(1.5),
+            |p| p.settings.load.patch_size = Some(0.25),
+            |p| p.settings.load.max_frames += 1,
+            |p| p.settings.load.max_patches += 1,
+            |p| p.settings.load.max_work += 1,
+            |p| p.settings.load.max_reflectance = 0.99,
+            |p| p.settings.patch_size = PatchSize::Source,
+            |p| p.settings.patch_budget = Some(500),
+            |p| p.settings.lines.lines += 1,
+            |p| p.settings.lines.seed = 2,
+            |p| p.settings.sky = [0.0, 0.0, 1e-9],
             |p| p.max_iterations += 1,
             |p| p.outputs.glb_frames = FrameSpec::List(vec![output::FrameItem::First]),
             |p| p.outputs.preview_frames = FrameSpec::All,

@@ -5,6 +5,8 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 use radiosity::loader::{self, LoadOptions};
+use radiosity::params::{BakeRequest, BakeSettings, Limits};
+use radiosity::timeline::LineParams;
 
 #[derive(Parser)]
 #[command(version, about = "Radiosity baking for animated glTF scenes")]
@@ -13,57 +15,43 @@ struct Cli {
     command: Command,
 }
 
-/// Options that choose what is loaded from a scene, with the names the HTTP API uses.
-#[derive(clap::Args)]
-struct SceneArgs {
-    /// Frames per second of the timeline.
-    #[arg(long, default_value_t = 24.0)]
-    fps: f64,
-    /// Play only this animation (name or index); all play together by default.
-    #[arg(long)]
-    animation: Option<String>,
-    /// The previews' camera: a camera node's name or index, or auto (the automatic view);
-    /// the scene's first camera by default.
-    #[arg(long)]
-    camera: Option<String>,
-    /// Time of the first frame (seconds); defaults to the first keyframe.
-    #[arg(long)]
-    start: Option<f64>,
-    /// Time of the last frame (seconds); defaults to the last keyframe.
-    #[arg(long)]
-    end: Option<f64>,
-    /// How patches are made: auto (cut after tracing where the light needs them, merged where
-    /// it does not), source (one per side of each source triangle) or a length (every edge at
-    /// most that long, scene units).
-    #[arg(long, default_value_t)]
+/// What `radiosity scene` says a bake with its options would take.
+#[derive(serde::Serialize)]
+struct Plan {
+    lines: u64,
+    seed: u64,
     patch_size: radiosity::params::PatchSize,
-    /// With --patch-size auto: most patches (the cuts neighbours need included; merges bring a
-    /// scene of more triangles down to it where they can); one per 200 lines by default.
-    #[arg(long)]
+    /// With `auto`, the most patches its cuts may reach.
     patch_budget: Option<usize>,
-    /// Largest diffuse reflectance, in (0, 1]: higher ones are lowered to it, with a warning.
-    #[arg(long, default_value_t = loader::MAX_REFLECTANCE)]
-    max_reflectance: f64,
+    sky: [f64; 3],
+    /// The memory the service estimates before tracing (and refuses a job over its budget by).
+    estimated_bytes: u64,
 }
 
-impl TryFrom<SceneArgs> for LoadOptions {
-    type Error = String;
-
-    /// The load options, checked by the rules the service applies too.
-    fn try_from(a: SceneArgs) -> Result<Self, String> {
-        let options = Self {
-            fps: a.fps,
-            animation: a.animation,
-            camera: a.camera,
-            start: a.start,
-            end: a.end,
-            patch_size: a.patch_size.length(),
-            max_reflectance: a.max_reflectance,
-            ..Self::default()
-        };
-        radiosity::params::validate_load(&options).map_err(|e| e.to_string())?;
-        Ok(options)
+impl std::fmt::Display for Plan {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "bake            {} lines (seed {}), patches {}",
+            self.lines, self.seed, self.patch_size
+        )?;
+        if let Some(budget) = self.patch_budget {
+            write!(f, " (at most {budget})")?;
+        }
+        let [r, g, b] = self.sky;
+        write!(
+            f,
+            ", sky {r},{g},{b}: about {:.2} GiB before tracing",
+            self.estimated_bytes as f64 / f64::from(1u32 << 30)
+        )
     }
+}
+
+/// The bake a command asks for, checked as the service checks it.
+fn settings(request: BakeRequest) -> Result<BakeSettings, String> {
+    request
+        .validate(&Limits::default())
+        .map_err(|e| e.to_string())
 }
 
 #[derive(Subcommand)]
@@ -79,19 +67,7 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
         #[command(flatten)]
-        args: SceneArgs,
-        /// Line budget by name: draft, default or final.
-        #[arg(long, conflicts_with = "lines")]
-        preset: Option<radiosity::timeline::Preset>,
-        /// Number of lines.
-        #[arg(long)]
-        lines: Option<u64>,
-        /// Seed of the lines.
-        #[arg(long, default_value_t = 1)]
-        seed: u64,
-        /// Radiance of the sky: three numbers ≥ 0, r,g,b (such as 1,1,1).
-        #[arg(long, value_name = "R,G,B", default_value = "0,0,0")]
-        sky: radiosity::params::Sky,
+        request: BakeRequest,
         /// Bake even scenes whose outputs are up to date.
         #[arg(long)]
         force: bool,
@@ -137,12 +113,13 @@ enum Command {
         data_dir: PathBuf,
     },
     /// Print a summary of a glTF scene: triangles, patches, static and moving objects, frames,
-    /// emitters, warnings.
+    /// emitters, warnings; and what a bake with the same options would take (lines, patches,
+    /// estimated memory), checked as `bake` checks them.
     Scene {
         /// A .glb, or a .gltf with embedded (data:) buffers.
         file: PathBuf,
         #[command(flatten)]
-        args: SceneArgs,
+        request: BakeRequest,
         /// Print the summary as JSON.
         #[arg(long)]
         json: bool,
@@ -153,13 +130,7 @@ enum Command {
         /// A .glb, or a .gltf with embedded (data:) buffers.
         file: PathBuf,
         #[command(flatten)]
-        args: SceneArgs,
-        /// Number of lines.
-        #[arg(long, default_value_t = 1_000_000)]
-        lines: u64,
-        /// Seed of the lines.
-        #[arg(long, default_value_t = 1)]
-        seed: u64,
+        request: BakeRequest,
         /// Print the report as JSON.
         #[arg(long)]
         json: bool,
@@ -302,11 +273,7 @@ fn run(cli: Cli) -> Result<(), String> {
         Command::Bake {
             inputs,
             out,
-            args,
-            preset,
-            lines,
-            seed,
-            sky,
+            request,
             force,
             glb_frames,
             preview_frames,
@@ -315,22 +282,8 @@ fn run(cli: Cli) -> Result<(), String> {
             exposure,
             preview_shading,
         } => {
-            let lines = lines.unwrap_or_else(|| {
-                preset
-                    .unwrap_or(radiosity::timeline::Preset::Default)
-                    .lines()
-            });
-            let auto = args.patch_size == radiosity::params::PatchSize::Auto;
-            let patch_budget = args.patch_budget;
-            if patch_budget.is_some() && !auto {
-                return Err("--patch-budget applies to --patch-size auto only".into());
-            }
             let params = radiosity::batch::BatchParams {
-                auto,
-                patch_budget,
-                load: args.try_into()?,
-                lines: radiosity::timeline::LineParams { lines, seed },
-                sky: sky.0,
+                settings: settings(request)?,
                 outputs: radiosity::batch::Outputs {
                     glb_frames,
                     preview_frames,
@@ -360,24 +313,45 @@ fn run(cli: Cli) -> Result<(), String> {
             };
             serve(&addr, config)
         }
-        Command::Scene { file, args, json } => {
-            let summary = loader::load_file(&file, &args.try_into()?)?.summary();
+        Command::Scene {
+            file,
+            request,
+            json,
+        } => {
+            let settings = settings(request)?;
+            let scene = loader::load_file(&file, &settings.load)?;
+            let auto = settings.adaptive(scene.patches.len());
+            let plan = Plan {
+                lines: settings.lines.lines,
+                seed: settings.lines.seed,
+                patch_size: settings.patch_size,
+                patch_budget: auto.map(|a| a.budget),
+                sky: settings.sky,
+                estimated_bytes: radiosity::bake::estimate_bytes(
+                    &scene,
+                    settings.lines.lines,
+                    auto.as_ref(),
+                ),
+            };
+            let summary = scene.summary();
             if json {
-                let text = serde_json::to_string_pretty(&summary).map_err(|e| e.to_string())?;
+                let report = serde_json::json!({"scene": summary, "bake": plan});
+                let text = serde_json::to_string_pretty(&report).map_err(|e| e.to_string())?;
                 println!("{text}");
             } else {
                 print!("{summary}");
+                println!("{plan}");
             }
             Ok(())
         }
         Command::Bench {
             file,
-            args,
-            lines,
-            seed,
+            request,
             json,
         } => {
-            let scene = loader::load_file(&file, &args.try_into()?)?;
+            let settings = settings(request)?;
+            let scene = loader::load_file(&file, &settings.load)?;
+            let LineParams { lines, seed } = settings.lines;
             let report = radiosity::bench::trace(&scene, lines, seed).map_err(|e| e.to_string())?;
             if json {
                 let text = serde_json::to_string_pretty(&report).map_err(|e| e.to_string())?;

@@ -1,14 +1,21 @@
-//! The rules on parameters that the command line and the HTTP API share, written once so the
-//! two front ends cannot disagree: `radiosity bake --sky 1,1,1` and `POST
-//! /v1/timelines?sky=1,1,1` read the sky with the same parser, and both refuse a timeline that
-//! ends before it starts with the same message.
+//! What a bake is asked for, written once so the two front ends cannot disagree: a
+//! [`BakeRequest`] is both the `radiosity bake` command's options (clap) and the query of `POST
+//! /v1/timelines` (serde), and [`BakeRequest::validate`] checks it against the [`Limits`] for
+//! both. `radiosity bake --sky 1,1,1` and `POST /v1/timelines?sky=1,1,1` read the sky with one
+//! parser, refuse 500 lines with one message, and take one default preset.
 //!
-//! The loader checks the rest of [`LoadOptions`] itself (positive `fps`, finite times, positive
-//! `patch_size`), whoever calls it.
+//! The loader checks the rest of [`LoadOptions`] itself (finite times, positive `patch_size`,
+//! the reflectance cap), whoever calls it.
 
+use std::fmt::Display;
 use std::str::FromStr;
 
+use serde::de::Error as _;
+use serde::{Deserialize, Deserializer};
+
+use crate::adaptive::Adaptive;
 use crate::loader::LoadOptions;
+use crate::timeline::{LineParams, Preset};
 
 /// A parameter that breaks a shared rule; the message quotes the value.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
@@ -29,6 +36,236 @@ pub enum ParamError {
         /// The requested time of the last frame, seconds.
         end: f64,
     },
+    /// `fps` is outside (0, [`MAX_FPS`]].
+    #[error("fps must be in (0, {MAX_FPS}], not {0}")]
+    Fps(f64),
+    /// `lines` is outside [[`MIN_LINES`], the limit].
+    #[error("lines must be a whole number from {MIN_LINES} to {max}, not {lines}")]
+    Lines {
+        /// The lines asked for.
+        lines: u64,
+        /// The limit ([`Limits::max_lines`]).
+        max: u64,
+    },
+    /// Both `lines` and `preset` are given.
+    #[error("give lines or preset, not both")]
+    LinesAndPreset,
+    /// `patch_budget` is 0.
+    #[error("patch_budget must be at least 1")]
+    NoPatches,
+    /// `patch_budget` is given with a `patch_size` other than `auto`.
+    #[error("patch_budget applies to patch_size=auto only, not {0}")]
+    BudgetWithoutAuto(PatchSize),
+}
+
+/// The highest frame rate a timeline may have.
+pub const MAX_FPS: f64 = 1000.0;
+
+/// The fewest lines a bake may have: fewer estimate nothing.
+pub const MIN_LINES: u64 = 1_000;
+
+/// What one bake may ask for at most: the service's configuration holds them, the command line
+/// takes the defaults.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Limits {
+    /// Most lines of one bake (a refine's added lines included).
+    pub max_lines: u64,
+    /// Most frames of one timeline ([`LoadOptions::max_frames`]).
+    pub max_frames: usize,
+    /// Most patches of one scene ([`LoadOptions::max_patches`]; `auto`'s budget is capped by it
+    /// too).
+    pub max_patches: usize,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        let load = LoadOptions::default();
+        Self {
+            max_lines: 100_000_000,
+            max_frames: load.max_frames,
+            max_patches: load.max_patches,
+        }
+    }
+}
+
+/// A bake asked for, as the command line and the HTTP API both take it: every field is optional
+/// and [`BakeRequest::validate`] gives the defaults (the same for both). The command line reads
+/// `--patch-size`, the query string `patch_size`; values are read from text by the same
+/// parsers ([`Sky`], [`PatchSize`], [`Preset`]). A query parameter it does not have is refused.
+#[derive(Clone, Debug, Default, PartialEq, clap::Args, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BakeRequest {
+    /// Frames per second of the timeline, in (0, 1000]; 24 by default.
+    #[arg(long)]
+    #[serde(default, deserialize_with = "number")]
+    pub fps: Option<f64>,
+    /// Number of lines, from 1,000 to the limit (100,000,000 by default); exclusive with
+    /// preset.
+    #[arg(long, conflicts_with = "preset")]
+    #[serde(default, deserialize_with = "whole")]
+    pub lines: Option<u64>,
+    /// Line budget by name: draft, default or final; default when neither it nor lines is
+    /// given.
+    #[arg(long)]
+    #[serde(default, deserialize_with = "parsed")]
+    pub preset: Option<Preset>,
+    /// Seed of the lines; 1 by default.
+    #[arg(long)]
+    #[serde(default, deserialize_with = "whole")]
+    pub seed: Option<u64>,
+    /// How patches are made: auto (cut after tracing where the light needs them, merged where
+    /// it does not; the default), source (one per side of each source triangle) or a length
+    /// (every edge at most that long, scene units).
+    #[arg(long, value_name = "auto|source|LENGTH")]
+    #[serde(default, deserialize_with = "parsed")]
+    pub patch_size: Option<PatchSize>,
+    /// With patch size auto: most patches (the cuts neighbours need included; merges bring a
+    /// scene of more triangles down to it where they can); one per 200 lines by default.
+    #[arg(long)]
+    #[serde(default, deserialize_with = "whole")]
+    pub patch_budget: Option<u64>,
+    /// Play only this animation (name or index); all play together by default.
+    #[arg(long)]
+    pub animation: Option<String>,
+    /// The previews' camera: a camera node's name or index, or auto (the automatic view); the
+    /// scene's first camera by default.
+    #[arg(long)]
+    pub camera: Option<String>,
+    /// Radiance of the sky that lines leaving the scene see, r,g,b (such as 1,1,1); black by
+    /// default.
+    #[arg(long, value_name = "R,G,B")]
+    #[serde(default, deserialize_with = "parsed")]
+    pub sky: Option<Sky>,
+    /// Time of the first frame (seconds); the first keyframe by default.
+    #[arg(long, allow_negative_numbers = true)]
+    #[serde(default, deserialize_with = "number")]
+    pub start: Option<f64>,
+    /// Time of the last frame (seconds); the last keyframe by default.
+    #[arg(long, allow_negative_numbers = true)]
+    #[serde(default, deserialize_with = "number")]
+    pub end: Option<f64>,
+    /// Largest diffuse reflectance, in (0, 1]: higher ones are lowered to it, with a warning;
+    /// 0.999 by default.
+    #[arg(long)]
+    #[serde(default, deserialize_with = "number")]
+    pub max_reflectance: Option<f64>,
+}
+
+/// A [`BakeRequest`] checked, with its defaults filled in.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BakeSettings {
+    /// What to load ([`Limits::max_frames`] and [`Limits::max_patches`] included).
+    pub load: LoadOptions,
+    /// How patches are made.
+    pub patch_size: PatchSize,
+    /// The patch budget asked for, if one was (`auto` only): [`BakeSettings::adaptive`].
+    pub patch_budget: Option<usize>,
+    /// Lines and seed.
+    pub lines: LineParams,
+    /// Radiance of the sky.
+    pub sky: [f64; 3],
+}
+
+impl BakeSettings {
+    /// With `auto`, how its patches are cut and merged for a scene loaded with `patches`
+    /// patches: one patch per 200 lines and at least the scene's own ([`Adaptive::for_lines`]),
+    /// or the budget asked for (below the scene's patches, merges bring it down to it where
+    /// they can), within [`LoadOptions::max_patches`].
+    #[must_use]
+    pub fn adaptive(&self, patches: usize) -> Option<Adaptive> {
+        (self.patch_size == PatchSize::Auto).then(|| {
+            Adaptive::for_lines(self.lines.lines, patches)
+                .with_budget(self.patch_budget)
+                .within(self.load.max_patches)
+        })
+    }
+}
+
+impl BakeRequest {
+    /// The bake asked for, its defaults filled in, checked against itself and `limits`.
+    ///
+    /// # Errors
+    /// The first rule broken ([`ParamError`]).
+    pub fn validate(self, limits: &Limits) -> Result<BakeSettings, ParamError> {
+        let fps = self.fps.unwrap_or(24.0);
+        if !(fps > 0.0 && fps <= MAX_FPS) {
+            return Err(ParamError::Fps(fps));
+        }
+        let lines = match (self.lines, self.preset) {
+            (Some(_), Some(_)) => return Err(ParamError::LinesAndPreset),
+            (Some(lines), None) if !(MIN_LINES..=limits.max_lines).contains(&lines) => {
+                return Err(ParamError::Lines {
+                    lines,
+                    max: limits.max_lines,
+                });
+            }
+            (Some(lines), None) => lines,
+            (None, preset) => preset.unwrap_or_default().lines(),
+        };
+        let patch_size = self.patch_size.unwrap_or_default();
+        let patch_budget = match (patch_size, self.patch_budget) {
+            (_, Some(0)) => return Err(ParamError::NoPatches),
+            (PatchSize::Auto, budget) => budget.map(|b| usize::try_from(b).unwrap_or(usize::MAX)),
+            (_, None) => None,
+            (other, Some(_)) => return Err(ParamError::BudgetWithoutAuto(other)),
+        };
+        let load = LoadOptions {
+            fps,
+            animation: self.animation,
+            camera: self.camera,
+            start: self.start,
+            end: self.end,
+            patch_size: patch_size.length(),
+            max_frames: limits.max_frames,
+            max_patches: limits.max_patches,
+            max_reflectance: (self.max_reflectance).unwrap_or(crate::loader::MAX_REFLECTANCE),
+            ..LoadOptions::default()
+        };
+        validate_load(&load)?;
+        Ok(BakeSettings {
+            load,
+            patch_size,
+            patch_budget,
+            lines: LineParams {
+                lines,
+                seed: self.seed.unwrap_or(1),
+            },
+            sky: self.sky.unwrap_or_default().0,
+        })
+    }
+}
+
+/// A finite number, read from text.
+pub(crate) fn number<'de, D: Deserializer<'de>>(d: D) -> Result<Option<f64>, D::Error> {
+    let text = String::deserialize(d)?;
+    match text.parse::<f64>() {
+        Ok(v) if v.is_finite() => Ok(Some(v)),
+        _ => Err(D::Error::custom(format!("{text:?} is not a finite number"))),
+    }
+}
+
+/// A whole number ≥ 0 of an integer type, read from text.
+pub(crate) fn whole<'de, D, T>(d: D) -> Result<Option<T>, D::Error>
+where
+    D: Deserializer<'de>,
+    T: FromStr,
+    T::Err: Display,
+{
+    let text = String::deserialize(d)?;
+    text.parse()
+        .map(Some)
+        .map_err(|e| D::Error::custom(format!("{text:?} is not a whole number ≥ 0 ({e})")))
+}
+
+/// A value read by its type's `FromStr`, whose errors quote it (a preset, a sky).
+fn parsed<'de, D, T>(d: D) -> Result<Option<T>, D::Error>
+where
+    D: Deserializer<'de>,
+    T: FromStr,
+    T::Err: Display,
+{
+    let text = String::deserialize(d)?;
+    text.parse().map(Some).map_err(D::Error::custom)
 }
 
 /// How a scene is cut into patches, written `auto`, `source` or a length (the `patch_size`

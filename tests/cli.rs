@@ -341,7 +341,7 @@ fn ctrl_c_stops_a_bake_and_keeps_the_previous_outputs_whole() {
     assert!(bake("5000").output().unwrap().status.success());
     let before = files(&out.join("cornell_moving"));
     // A bake that would take minutes, interrupted while it traces.
-    let child = bake("200000000")
+    let child = bake("100000000")
         .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap();
@@ -398,6 +398,47 @@ fn start_after_end_is_refused_by_every_subcommand() {
             log.contains("start") && log.contains("end") && log.contains("after"),
             "{command:?}: {log}"
         );
+    }
+    assert!(!out.join("furnace").exists());
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+/// Regression (issue 14): the command line checks a bake request by the service's rules, with
+/// its messages (it took 0 lines, and a patch budget with any patch size).
+#[test]
+fn the_command_line_refuses_what_the_service_refuses() {
+    let out = scratch("rules");
+    let furnace = sample("furnace.gltf");
+    let furnace = furnace.to_str().unwrap();
+    for (args, needle) in [
+        (
+            vec!["--lines", "5"],
+            "lines must be a whole number from 1000",
+        ),
+        (
+            vec!["--lines", "0"],
+            "lines must be a whole number from 1000",
+        ),
+        (
+            vec!["--patch-size", "source", "--patch-budget", "9"],
+            "patch_budget applies to patch_size=auto only",
+        ),
+        (
+            vec!["--patch-budget", "0"],
+            "patch_budget must be at least 1",
+        ),
+        (vec!["--fps", "2000"], "fps must be in (0, 1000]"),
+        (vec!["--sky", "1,x,2,3"], "is not r,g,b"),
+    ] {
+        for command in [
+            vec!["bake", furnace, "--out", out.to_str().unwrap()],
+            vec!["scene", furnace],
+        ] {
+            let output = radiosity().args(&command).args(&args).output().unwrap();
+            let log = String::from_utf8_lossy(&output.stderr);
+            assert!(!output.status.success(), "{command:?} {args:?}: {log}");
+            assert!(log.contains(needle), "{command:?} {args:?}: {log}");
+        }
     }
     assert!(!out.join("furnace").exists());
     let _ = std::fs::remove_dir_all(&out);

@@ -22,6 +22,7 @@ use radiosity::batch::{BatchParams, Outcome, Outputs, bake_one};
 use radiosity::control::Control;
 use radiosity::loader::{LoadError, LoadOptions, MAX_REFLECTANCE, load};
 use radiosity::output::{FrameItem, FrameSpec};
+use radiosity::params::{BakeSettings, PatchSize};
 use radiosity::scene::Scene;
 use radiosity::solve::{FrameSolution, SolveParams};
 use radiosity::timeline::LineParams;
@@ -106,11 +107,13 @@ fn scratch(name: &str) -> PathBuf {
 /// Batch parameters writing `radiance.bin`, `summary.json`, one `.glb` and one small preview.
 fn batch(load: LoadOptions, n: u64) -> BatchParams {
     BatchParams {
-        auto: false,
-        patch_budget: None,
-        load,
-        lines: lines(n),
-        sky: [0.0; 3],
+        settings: BakeSettings {
+            patch_size: load.patch_size.map_or(PatchSize::Source, PatchSize::Length),
+            load,
+            patch_budget: None,
+            lines: lines(n),
+            sky: [0.0; 3],
+        },
         outputs: Outputs {
             glb_frames: FrameSpec::List(vec![FrameItem::First]),
             preview_frames: FrameSpec::List(vec![FrameItem::First]),

@@ -270,7 +270,11 @@ fn a_gaps_pieces_are_cut_no_finer_than_it_is_high() {
     let (narrowest, count) = (scene.statics.triangles.iter())
         .map(|t| t.map(|v| n.to_scene(scene.statics.positions[v as usize].as_dvec3())))
         .filter(under_plate)
-        .map(|c| (c[0].distance(c[1])).max(c[1].distance(c[2])).max(c[2].distance(c[0])))
+        .map(|c| {
+            (c[0].distance(c[1]))
+                .max(c[1].distance(c[2]))
+                .max(c[2].distance(c[0]))
+        })
         .fold((f64::INFINITY, 0), |(w, k), x| (w.min(x), k + 1));
     eprintln!("{count} floor pieces under the plate, the narrowest {narrowest} m wide");
     assert!(count > 32, "{count} pieces: the gap was not cut");

@@ -1246,3 +1246,62 @@ pub fn unsampled_warning(scene: &Scene, frames: &[Arc<FrameSolution>]) -> Option
         list(&in_frames, &|f| f.to_string())
     ))
 }
+
+/// Memory a job will need, estimated from the scene before tracing: crossings per line from
+/// `2 A / A(W)` (static once, moving per frame), 8 and 12 bytes each, plus offsets and the
+/// tallies and direct light of the patches and of the pieces they are solved on, and with
+/// `auto` the patches its cuts may add. The service refuses a job over its memory budget from
+/// it; `radiosity scene` reports it.
+#[must_use]
+pub fn estimate_bytes(scene: &Scene, lines: u64, auto: Option<&crate::adaptive::Adaptive>) -> u64 {
+    let aw = scene.bounds.surface_area().max(f64::MIN_POSITIVE);
+    let r2 = scene.normalisation.radius.powi(2);
+    let (mut static_area, mut moving_area) = (0.0, 0.0);
+    for p in &scene.patches {
+        // Each traced triangle once (its front patch), in normalised units.
+        if p.side == crate::scene::Side::Front {
+            if p.object.is_some() {
+                moving_area += p.area / r2
+            } else {
+                static_area += p.area / r2
+            }
+        }
+    }
+    let frames = scene.frames.count as f64;
+    let lines = lines as f64;
+    let static_hits = lines * 2.0 * static_area / aw;
+    let moving_hits = lines * frames * 2.0 * moving_area / aw;
+    // The direct light of the punctual lights: 4 bytes per patch and state of each light, a
+    // state per frame when it or the geometry moves (an upper bound: repeated poses share).
+    let direct: f64 = scene
+        .lights
+        .iter()
+        .map(|l| {
+            let states = if l.moves() || !scene.objects.is_empty() {
+                frames
+            } else {
+                1.0
+            };
+            states * scene.patches.len() as f64 * 4.0
+        })
+        .sum();
+    // The pieces the frames are solved on (`Bake::split`): one per `PIECE_CROSSINGS`
+    // crossings at most, within its budget of one per `LINES_PER_PIECE` lines (a gap's rim is
+    // cut finer than eight per patch).
+    let patches = scene.patches.len() as f64;
+    let crossings = static_hits + moving_hits / frames;
+    let pieces = (lines / LINES_PER_PIECE as f64)
+        .min(patches + crossings / PIECE_CROSSINGS)
+        .max(patches);
+    // The list, plus the patches' and the pieces' tallies, each of about the same size as the
+    // static crossings, plus the solvers, plus the direct light of patches and pieces.
+    let bytes = lines * 8.0
+        + static_hits * 8.0 * 3.0
+        + moving_hits * 12.0
+        + (patches + pieces) * 200.0
+        + direct * (1.0 + pieces / patches.max(1.0));
+    let cuts = auto.map_or(0.0, |a| {
+        a.budget.saturating_sub(scene.patches.len()) as f64 * 200.0
+    });
+    (bytes + cuts) as u64
+}

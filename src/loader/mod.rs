@@ -28,6 +28,13 @@ pub use animation::{Interpolation, Sampler};
 /// the light per bounce and the solve still converges in tens to a few hundred iterations.
 pub const MAX_REFLECTANCE: f64 = 0.999;
 
+/// Most frames a load gives by default ([`LoadOptions::max_frames`]; the limit of both front
+/// ends, [`crate::params::Limits`]).
+pub const MAX_FRAMES: usize = 10_000;
+
+/// Most patches a load gives by default ([`LoadOptions::max_patches`]).
+pub const MAX_PATCHES: usize = 2_000_000;
+
 /// What to load from a file, and the limits that keep a hostile file from exhausting memory.
 /// The same names are used by the CLI and the HTTP API.
 #[derive(Clone, Debug, PartialEq)]
@@ -70,8 +77,8 @@ impl Default for LoadOptions {
             start: None,
             end: None,
             patch_size: None,
-            max_frames: 100_000,
-            max_patches: 4_000_000,
+            max_frames: MAX_FRAMES,
+            max_patches: MAX_PATCHES,
             max_work: 200_000_000,
             max_reflectance: MAX_REFLECTANCE,
         }

@@ -28,11 +28,10 @@ use serde_json::json;
 
 pub use error::ApiError;
 use jobs::{Job, Jobs, Status, Work};
-use query::{CreateQuery, NoParameters, RefineQuery, StatsQuery, StrictQuery};
+use query::{NoParameters, RefineQuery, StatsQuery, StrictQuery};
 
-use crate::adaptive::Adaptive;
 use crate::loader;
-use crate::scene::Scene;
+use crate::params::{BakeRequest, Limits};
 use crate::solve::SolveParams;
 
 /// Server settings.
@@ -44,12 +43,8 @@ pub struct Config {
     pub max_running: usize,
     /// Memory one job may use (estimated before tracing), bytes.
     pub memory_budget: u64,
-    /// Most lines a job may ask for.
-    pub max_lines: u64,
-    /// Limits passed to the loader.
-    pub max_frames: usize,
-    /// Most patches a scene may have.
-    pub max_patches: usize,
+    /// What one job may ask for (lines, frames, patches): the command line's too.
+    pub limits: Limits,
     /// Where finished results are kept across restarts; `None` keeps them in memory only.
     pub data_dir: Option<std::path::PathBuf>,
     /// Iteration cap of each frame's solve (`SolveParams::max_iterations`): a frame that
@@ -63,9 +58,7 @@ impl Default for Config {
             max_body_bytes: 64 << 20,
             max_running: 1,
             memory_budget: 8 << 30,
-            max_lines: 100_000_000,
-            max_frames: 10_000,
-            max_patches: 2_000_000,
+            limits: Limits::default(),
             data_dir: None,
             max_iterations: SolveParams::default().max_iterations,
         }
@@ -166,59 +159,6 @@ pub async fn serve(
         .await
 }
 
-/// Memory a job will need, estimated from the scene before tracing: crossings per line from
-/// `2 A / A(W)` (static once, moving per frame), 8 and 12 bytes each, plus offsets and the
-/// tallies and direct light of the patches and of the pieces they are solved on.
-fn estimate_bytes(scene: &Scene, lines: u64) -> u64 {
-    let aw = scene.bounds.surface_area().max(f64::MIN_POSITIVE);
-    let r2 = scene.normalisation.radius.powi(2);
-    let (mut static_area, mut moving_area) = (0.0, 0.0);
-    for p in &scene.patches {
-        // Each traced triangle once (its front patch), in normalised units.
-        if p.side == crate::scene::Side::Front {
-            if p.object.is_some() {
-                moving_area += p.area / r2
-            } else {
-                static_area += p.area / r2
-            }
-        }
-    }
-    let frames = scene.frames.count as f64;
-    let lines = lines as f64;
-    let static_hits = lines * 2.0 * static_area / aw;
-    let moving_hits = lines * frames * 2.0 * moving_area / aw;
-    // The direct light of the punctual lights: 4 bytes per patch and state of each light, a
-    // state per frame when it or the geometry moves (an upper bound: repeated poses share).
-    let direct: f64 = scene
-        .lights
-        .iter()
-        .map(|l| {
-            let states = if l.moves() || !scene.objects.is_empty() {
-                frames
-            } else {
-                1.0
-            };
-            states * scene.patches.len() as f64 * 4.0
-        })
-        .sum();
-    // The pieces the frames are solved on (`Bake::split`): one per `PIECE_CROSSINGS`
-    // crossings at most, within its budget of one per `LINES_PER_PIECE` lines (a gap's rim is
-    // cut finer than eight per patch).
-    let patches = scene.patches.len() as f64;
-    let crossings = static_hits + moving_hits / frames;
-    let pieces = (lines / crate::bake::LINES_PER_PIECE as f64)
-        .min(patches + crossings / crate::bake::PIECE_CROSSINGS)
-        .max(patches);
-    // The list, plus the patches' and the pieces' tallies, each of about the same size as the
-    // static crossings, plus the solvers, plus the direct light of patches and pieces.
-    let bytes = lines * 8.0
-        + static_hits * 8.0 * 3.0
-        + moving_hits * 12.0
-        + (patches + pieces) * 200.0
-        + direct * (1.0 + pieces / patches.max(1.0));
-    bytes as u64
-}
-
 fn new_id() -> String {
     use rand::RngExt;
     let mut rng = rand::rng();
@@ -232,12 +172,13 @@ async fn healthz(_: StrictQuery<NoParameters>) -> Json<serde_json::Value> {
 
 async fn create_timeline(
     State(state): State<AppState>,
-    StrictQuery(query): StrictQuery<CreateQuery>,
+    StrictQuery(request): StrictQuery<BakeRequest>,
     headers: HeaderMap,
     body: Result<Bytes, BytesRejection>,
 ) -> Result<Response, ApiError> {
     let config = &state.0.config;
-    let (options, lines, sky, auto) = query.validate(config)?;
+    let settings = request.validate(&config.limits)?;
+    let (options, lines, sky) = (settings.load.clone(), settings.lines, settings.sky);
     let content_type = headers
         .get(header::CONTENT_TYPE)
         .and_then(|v| v.to_str().ok())
@@ -257,16 +198,8 @@ async fn create_timeline(
     let scene = tokio::task::spawn_blocking(move || loader::load(&body, &options))
         .await
         .map_err(|e| ApiError::Internal(format!("loader task: {e}")))??;
-    // At least the scene's own patches (a budget below them cuts nothing).
-    let auto = auto.map(|a| Adaptive {
-        budget: a.budget.max(scene.patches.len()),
-        ..a
-    });
-    // The patches `auto` may add take their share too.
-    let needed = estimate_bytes(&scene, lines.lines)
-        + auto.map_or(0, |a| {
-            (a.budget.saturating_sub(scene.patches.len()) * 200) as u64
-        });
+    let auto = settings.adaptive(scene.patches.len());
+    let needed = crate::bake::estimate_bytes(&scene, lines.lines, auto.as_ref());
     if needed > config.memory_budget {
         return Err(ApiError::Budget(format!(
             "the job would need about {:.1} GiB with {} lines, over the budget of {:.1} GiB: use fewer lines, \

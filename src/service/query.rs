@@ -3,23 +3,17 @@
 //! parameter (and the value, when it cannot be read).
 //!
 //! A struct reads each value from its text (with messages that quote it); its `validate`
-//! checks the values against each other and the server's limits. The rules the command line
-//! shares (the sky, start and end) are in [`crate::params`].
-
-use std::fmt::Display;
-use std::str::FromStr;
+//! checks the values against each other and the server's limits. `POST /v1/timelines` takes
+//! the command line's own request type, [`crate::params::BakeRequest`].
 
 use axum::extract::rejection::QueryRejection;
 use axum::extract::{FromRequestParts, Query};
 use axum::http::request::Parts;
-use serde::de::{DeserializeOwned, Error as _};
-use serde::{Deserialize, Deserializer};
+use serde::Deserialize;
+use serde::de::DeserializeOwned;
 
 use super::{ApiError, Config};
-use crate::adaptive::Adaptive;
-use crate::loader::LoadOptions;
-use crate::params::{self, PatchSize, Sky};
-use crate::timeline::{LineParams, Preset};
+use crate::params::{MIN_LINES, number, whole};
 
 /// axum's [`Query`] with the API's errors: a parameter `T` does not take, or a value it cannot
 /// read, is a 400 problem that names it.
@@ -63,149 +57,10 @@ fn describe(rejection: &QueryRejection) -> String {
     message
 }
 
-/// A finite number.
-fn number<'de, D: Deserializer<'de>>(d: D) -> Result<Option<f64>, D::Error> {
-    let text = String::deserialize(d)?;
-    match text.parse::<f64>() {
-        Ok(v) if v.is_finite() => Ok(Some(v)),
-        _ => Err(D::Error::custom(format!("{text:?} is not a finite number"))),
-    }
-}
-
-/// A whole number ≥ 0 of an integer type.
-fn whole<'de, D, T>(d: D) -> Result<Option<T>, D::Error>
-where
-    D: Deserializer<'de>,
-    T: FromStr,
-    T::Err: Display,
-{
-    let text = String::deserialize(d)?;
-    text.parse()
-        .map(Some)
-        .map_err(|e| D::Error::custom(format!("{text:?} is not a whole number ≥ 0 ({e})")))
-}
-
-/// A value read by its type's `FromStr`, whose errors quote it (a preset, a sky).
-fn parsed<'de, D, T>(d: D) -> Result<Option<T>, D::Error>
-where
-    D: Deserializer<'de>,
-    T: FromStr,
-    T::Err: Display,
-{
-    let text = String::deserialize(d)?;
-    text.parse().map(Some).map_err(D::Error::custom)
-}
-
 /// The query of a request that takes no parameters.
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 pub(super) struct NoParameters {}
-
-/// The query of `POST /v1/timelines`: what to load, how many lines, the sky.
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-pub(super) struct CreateQuery {
-    /// Frames per second of the timeline, in (0, 1000]; 24 by default.
-    #[serde(default, deserialize_with = "number")]
-    fps: Option<f64>,
-    /// Number of lines, from 1000 to the server's limit; exclusive with `preset`.
-    #[serde(default, deserialize_with = "whole")]
-    lines: Option<u64>,
-    /// Line budget by name; `default` when neither it nor `lines` is given.
-    #[serde(default, deserialize_with = "parsed")]
-    preset: Option<Preset>,
-    /// Seed of the lines; 1 by default.
-    #[serde(default, deserialize_with = "whole")]
-    seed: Option<u64>,
-    /// How patches are made: `auto`, `source` or the longest edge in scene units
-    /// ([`PatchSize`]); `auto` by default.
-    #[serde(default, deserialize_with = "parsed")]
-    patch_size: Option<PatchSize>,
-    /// The animation to play, by name or index; all by default.
-    animation: Option<String>,
-    /// The previews' camera: a camera node's name or index, or `auto`; the scene's first
-    /// camera by default.
-    camera: Option<String>,
-    /// Radiance of the sky; black by default.
-    #[serde(default, deserialize_with = "parsed")]
-    sky: Option<Sky>,
-    /// Time of the first frame, seconds.
-    #[serde(default, deserialize_with = "number")]
-    start: Option<f64>,
-    /// Time of the last frame, seconds.
-    #[serde(default, deserialize_with = "number")]
-    end: Option<f64>,
-    /// Highest diffuse reflectance, in (0, 1]; [`crate::loader::MAX_REFLECTANCE`] by default.
-    #[serde(default, deserialize_with = "number")]
-    max_reflectance: Option<f64>,
-    /// With `patch_size=auto`: most patches (cuts stop at it, merges bring a scene of more
-    /// triangles down to it where they can); one per 200 lines by default.
-    #[serde(default, deserialize_with = "whole")]
-    patch_budget: Option<u64>,
-}
-
-impl CreateQuery {
-    /// The load options, lines and sky asked for, checked against each other and `config`'s
-    /// limits.
-    pub(super) fn validate(
-        self,
-        config: &Config,
-    ) -> Result<(LoadOptions, LineParams, [f64; 3], Option<Adaptive>), ApiError> {
-        let fps = self.fps.unwrap_or(24.0);
-        if !(fps > 0.0 && fps <= 1000.0) {
-            return Err(ApiError::Parameter(format!(
-                "fps must be in (0, 1000], not {fps}"
-            )));
-        }
-        let max = config.max_lines;
-        let lines = match (self.lines, self.preset) {
-            (Some(_), Some(_)) => {
-                return Err(ApiError::Parameter("give lines or preset, not both".into()));
-            }
-            (Some(n), None) if (1_000..=max).contains(&n) => n,
-            (Some(n), None) => {
-                return Err(ApiError::Parameter(format!(
-                    "lines must be an integer in [1000, {max}], not {n}"
-                )));
-            }
-            (None, preset) => preset.unwrap_or(Preset::Default).lines(),
-        };
-        let patch_size = self.patch_size.unwrap_or_default();
-        let auto = match (patch_size, self.patch_budget) {
-            (PatchSize::Auto, budget) => Some(
-                Adaptive::for_lines(lines, 0)
-                    .with_budget(budget.map(|b| b.min(usize::MAX as u64) as usize))
-                    .within(config.max_patches),
-            ),
-            (_, None) => None,
-            (_, Some(_)) => {
-                return Err(ApiError::Parameter(
-                    "patch_budget applies to patch_size=auto only".into(),
-                ));
-            }
-        };
-        let options = LoadOptions {
-            fps,
-            animation: self.animation,
-            camera: self.camera,
-            start: self.start,
-            end: self.end,
-            patch_size: patch_size.length(),
-            max_frames: config.max_frames,
-            max_patches: config.max_patches,
-            max_reflectance: self
-                .max_reflectance
-                .unwrap_or(crate::loader::MAX_REFLECTANCE),
-            ..LoadOptions::default()
-        };
-        params::validate_load(&options)?;
-        let lines = LineParams {
-            lines,
-            seed: self.seed.unwrap_or(1),
-        };
-        Ok((options, lines, self.sky.unwrap_or_default().0, auto))
-    }
-}
 
 /// The query of `POST /v1/timelines/{id}/lines`.
 #[derive(Deserialize)]
@@ -219,10 +74,14 @@ pub(super) struct RefineQuery {
 impl RefineQuery {
     /// The lines to add, checked against `config`'s limit.
     pub(super) fn validate(self, config: &Config) -> Result<u64, ApiError> {
-        let max = config.max_lines;
+        let max = config.limits.max_lines;
         self.add
-            .filter(|n| (1_000..=max).contains(n))
-            .ok_or_else(|| ApiError::Parameter(format!("add must be an integer in [1000, {max}]")))
+            .filter(|n| (MIN_LINES..=max).contains(n))
+            .ok_or_else(|| {
+                ApiError::Parameter(format!(
+                    "add must be a whole number from {MIN_LINES} to {max}"
+                ))
+            })
     }
 }
 
@@ -311,6 +170,8 @@ impl PreviewQuery {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::params::{BakeRequest, Limits};
+    use crate::timeline::Preset;
 
     /// What [`StrictQuery`] answers for `query`: the value, or the problem's detail.
     fn read<T: DeserializeOwned>(query: &str) -> Result<T, String> {
@@ -364,14 +225,14 @@ mod tests {
                  such as 0.25",
             ),
         ] {
-            assert_eq!(read::<CreateQuery>(query).err().unwrap(), detail);
+            assert_eq!(read::<BakeRequest>(query).err().unwrap(), detail);
         }
-        let detail = read::<CreateQuery>("seed=-1").err().unwrap();
+        let detail = read::<BakeRequest>("seed=-1").err().unwrap();
         assert!(
             detail.starts_with("seed: \"-1\" is not a whole number"),
             "{detail}"
         );
-        let detail = read::<CreateQuery>("sky=1,x,2,3").err().unwrap();
+        let detail = read::<BakeRequest>("sky=1,x,2,3").err().unwrap();
         assert!(
             detail.starts_with("sky: \"1,x,2,3\" is not r,g,b"),
             "{detail}"
@@ -380,29 +241,41 @@ mod tests {
 
     #[test]
     fn a_create_query_is_checked_against_the_limits_and_the_shared_rules() {
-        let config = Config::default();
-        let create = |query: &str| read::<CreateQuery>(query).unwrap().validate(&config);
-        let (options, lines, sky, auto) =
-            create("fps=12&preset=draft&sky=1,0.5,0&start=0&end=1").unwrap();
+        let limits = Limits::default();
+        let create = |query: &str| read::<BakeRequest>(query).unwrap().validate(&limits);
+        let settings = create("fps=12&preset=draft&sky=1,0.5,0&start=0&end=1").unwrap();
         // Patches are cut where the light needs them unless asked otherwise.
-        assert_eq!(auto.map(|a| a.budget), Some(500));
+        assert_eq!(settings.adaptive(0).map(|a| a.budget), Some(500));
+        let load = &settings.load;
         assert_eq!(
-            (options.fps, options.start, options.end),
+            (load.fps, load.start, load.end),
             (12.0, Some(0.0), Some(1.0))
         );
-        assert_eq!((lines.lines, lines.seed), (Preset::Draft.lines(), 1));
-        assert_eq!(sky, [1.0, 0.5, 0.0]);
-        let (_, lines, sky, _) = create("").unwrap();
-        assert_eq!((lines.lines, sky), (Preset::Default.lines(), [0.0; 3]));
-        let (options, _, _, auto) = create("patch_size=auto&lines=200000").unwrap();
-        assert_eq!(auto.map(|a| a.budget), Some(1000));
-        assert!(options.patch_size.is_none());
-        let (options, _, _, auto) = create("patch_size=source").unwrap();
-        assert!(auto.is_none() && options.patch_size.is_none());
-        let (_, _, _, auto) = create("patch_size=auto&patch_budget=5000").unwrap();
-        assert_eq!(auto.map(|a| a.budget), Some(5000));
-        let (options, _, _, auto) = create("patch_size=0.5").unwrap();
-        assert!(auto.is_none() && options.patch_size == Some(0.5));
+        assert_eq!(
+            (settings.lines.lines, settings.lines.seed),
+            (Preset::Draft.lines(), 1)
+        );
+        assert_eq!(settings.sky, [1.0, 0.5, 0.0]);
+        let settings = create("").unwrap();
+        assert_eq!(
+            (settings.lines.lines, settings.sky),
+            (Preset::Default.lines(), [0.0; 3])
+        );
+        let settings = create("patch_size=auto&lines=200000").unwrap();
+        assert_eq!(settings.adaptive(0).map(|a| a.budget), Some(1000));
+        assert!(settings.load.patch_size.is_none());
+        let settings = create("patch_size=source").unwrap();
+        assert!(settings.adaptive(0).is_none() && settings.load.patch_size.is_none());
+        let settings = create("patch_size=auto&patch_budget=5000").unwrap();
+        assert_eq!(settings.adaptive(0).map(|a| a.budget), Some(5000));
+        // A budget below the scene's own patches: merges bring it down to it.
+        assert_eq!(settings.adaptive(9000).map(|a| a.budget), Some(5000));
+        assert_eq!(
+            create("").unwrap().adaptive(9000).map(|a| a.budget),
+            Some(9000)
+        );
+        let settings = create("patch_size=0.5").unwrap();
+        assert!(settings.adaptive(0).is_none() && settings.load.patch_size == Some(0.5));
         for (query, needle) in [
             ("start=2&end=1", "start (2 s) is after end (1 s)"),
             ("lines=5", "lines must be"),
@@ -413,9 +286,7 @@ mod tests {
                 "patch_budget applies to patch_size=auto",
             ),
         ] {
-            let Err(ApiError::Parameter(detail)) = create(query) else {
-                panic!("{query} accepted");
-            };
+            let detail = create(query).unwrap_err().to_string();
             assert!(detail.contains(needle), "{query}: {detail}");
         }
     }

@@ -30,13 +30,14 @@ pub struct LineParams {
 
 /// Named line budgets, chosen from the measured speed/accuracy trade (README, "Presets"): the
 /// same names in the CLI and the API.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum Preset {
     /// 100,000 lines: previews (the sample level's 25 frames in about 4 s; against the path
     /// tracer, 9.0% at points; the README's preset table).
     Draft,
-    /// 1,000,000 lines: everyday bakes (about 22 s for the level's 25 frames at 4.2% per patch,
+    /// 1,000,000 lines: everyday bakes, and what a bake asks for by default (about 22 s for the level's 25 frames at 4.2% per patch,
     /// 5.7% at points; the moving Cornell box at 1.0% per patch, 5.0% at points).
+    #[default]
     Default,
     /// 10,000,000 lines: final bakes (about 3.5 to 4 minutes for 25 frames; the moving Cornell
     /// box at 0.8% per patch, 4.4% at points).
