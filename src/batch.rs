@@ -34,6 +34,7 @@ use crate::control::{Control, TraceError};
 use crate::loader;
 use crate::output::{self, FrameSpec, ToneMap};
 use crate::params::{BakeSettings, PatchSize};
+use crate::progress::Progress;
 use crate::scene::Scene;
 use crate::solve::{FrameSolution, SolveParams};
 
@@ -606,6 +607,51 @@ pub fn bake_one(
             Outcome::Failed(format!("writing {}: {e}", dir.display()))
         }
     }
+}
+
+/// Bakes every scene of `scenes` into `out` ([`bake_one`]), one after the other, showing each
+/// stage and outcome on `progress`; once `control` is cancelled the scenes left are not baked.
+/// The failures, each `path: reason` (an interrupted scene among them).
+pub fn bake_all(
+    scenes: &[PathBuf],
+    out: &Path,
+    params: &BatchParams,
+    control: &Control,
+    progress: &Progress,
+) -> Vec<String> {
+    let mut failures = Vec::new();
+    for (k, path) in scenes.iter().enumerate() {
+        if control.is_cancelled() {
+            failures.push(format!("{}: not baked (interrupted)", path.display()));
+            continue;
+        }
+        let prefix = format!("[{}/{}]", k + 1, scenes.len());
+        let outcome = bake_one(path, out, params, control, &mut |line| {
+            progress.stage(&prefix, line)
+        });
+        match outcome {
+            Outcome::Baked(dir) => progress.line(&format!(
+                "{prefix} baked {} -> {}",
+                path.display(),
+                dir.display()
+            )),
+            Outcome::Skipped(dir) => {
+                progress.line(&format!("{prefix} up to date: {}", dir.display()))
+            }
+            Outcome::Failed(reason) => {
+                progress.line(&format!("{prefix} FAILED {}: {reason}", path.display()));
+                failures.push(format!("{}: {reason}", path.display()));
+            }
+            Outcome::Cancelled => {
+                progress.line(&format!(
+                    "{prefix} interrupted {}: nothing written",
+                    path.display()
+                ));
+                failures.push(format!("{}: interrupted", path.display()));
+            }
+        }
+    }
+    failures
 }
 
 #[cfg(test)]

@@ -1238,7 +1238,7 @@ pub fn load_sample(
     scenes: &std::path::Path,
     name: &str,
     options: &crate::loader::LoadOptions,
-) -> Result<Scene, String> {
+) -> Result<Scene, crate::loader::FileError> {
     crate::loader::load_file(&scenes.join(name), options)
 }
 
@@ -1288,7 +1288,7 @@ pub fn patch_points(
                 patch_size: size.length(),
                 ..crate::loader::LoadOptions::default()
             };
-            let scene = load_sample(scenes, name, &options)?;
+            let scene = load_sample(scenes, name, &options).map_err(|e| e.to_string())?;
             let auto = crate::adaptive::Adaptive::for_lines(bench.lines.0, scene.patches.len())
                 .with_budget(budget);
             let point = patch_point(

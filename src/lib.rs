@@ -50,6 +50,7 @@ pub mod lines;
 pub mod loader;
 pub mod output;
 pub mod params;
+pub mod progress;
 pub mod samples;
 pub mod scene;
 pub mod service;

@@ -3,6 +3,7 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use anyhow::Context as _;
 use clap::{Parser, Subcommand};
 use radiosity::loader::{self, LoadOptions};
 use radiosity::params::{BakeRequest, BakeSettings, Limits};
@@ -48,10 +49,8 @@ impl std::fmt::Display for Plan {
 }
 
 /// The bake a command asks for, checked as the service checks it.
-fn settings(request: BakeRequest) -> Result<BakeSettings, String> {
-    request
-        .validate(&Limits::default())
-        .map_err(|e| e.to_string())
+fn settings(request: BakeRequest) -> anyhow::Result<BakeSettings> {
+    Ok(request.validate(&Limits::default())?)
 }
 
 #[derive(Subcommand)]
@@ -219,8 +218,8 @@ fn main() -> ExitCode {
     let cli = Cli::try_parse().unwrap_or_else(|e| with_suggestion(e).exit());
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
-        Err(message) => {
-            eprintln!("error: {message}");
+        Err(error) => {
+            eprintln!("error: {error:#}");
             ExitCode::FAILURE
         }
     }
@@ -268,7 +267,7 @@ fn with_suggestion(mut error: clap::Error) -> clap::Error {
     error
 }
 
-fn run(cli: Cli) -> Result<(), String> {
+fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Bake {
             inputs,
@@ -336,7 +335,7 @@ fn run(cli: Cli) -> Result<(), String> {
             let summary = scene.summary();
             if json {
                 let report = serde_json::json!({"scene": summary, "bake": plan});
-                let text = serde_json::to_string_pretty(&report).map_err(|e| e.to_string())?;
+                let text = serde_json::to_string_pretty(&report)?;
                 println!("{text}");
             } else {
                 print!("{summary}");
@@ -352,9 +351,9 @@ fn run(cli: Cli) -> Result<(), String> {
             let settings = settings(request)?;
             let scene = loader::load_file(&file, &settings.load)?;
             let LineParams { lines, seed } = settings.lines;
-            let report = radiosity::bench::trace(&scene, lines, seed).map_err(|e| e.to_string())?;
+            let report = radiosity::bench::trace(&scene, lines, seed)?;
             if json {
-                let text = serde_json::to_string_pretty(&report).map_err(|e| e.to_string())?;
+                let text = serde_json::to_string_pretty(&report)?;
                 println!("{text}");
             } else {
                 print!("{report}");
@@ -412,9 +411,10 @@ fn run(cli: Cli) -> Result<(), String> {
                         w.reference
                     );
                 }
-            })?;
-            let json = serde_json::to_string_pretty(&points).map_err(|e| e.to_string())?;
-            std::fs::write(&out, json + "\n").map_err(|e| format!("{}: {e}", out.display()))?;
+            })
+            .map_err(anyhow::Error::msg)?;
+            let json = serde_json::to_string_pretty(&points)?;
+            std::fs::write(&out, json + "\n").with_context(|| out.display().to_string())?;
             Ok(())
         }
         Command::BenchAccuracy {
@@ -444,7 +444,7 @@ fn run(cli: Cli) -> Result<(), String> {
                 set.push((name.to_string(), load_scene(name, options)?));
             }
             if set.is_empty() {
-                return Err(format!("--only: no sample scene is named {only:?}"));
+                anyhow::bail!("--only: no sample scene is named {only:?}");
             }
             let reference = radiosity::bench::PathReference {
                 paths: reference_paths,
@@ -469,8 +469,7 @@ fn run(cli: Cli) -> Result<(), String> {
                     show(e.estimated_noise, 4),
                     show(e.emitter_error, 4)
                 );
-            })
-            .map_err(|e| e.to_string())?;
+            })?;
             // 60 frames: the samples' animations last 2 s. Not with --only or --gain-lines 0.
             let moving = LoadOptions {
                 fps: 29.5,
@@ -490,22 +489,17 @@ fn run(cli: Cli) -> Result<(), String> {
                         },
                     )
                     .ok()
-                })
-                .map_err(|e| e.to_string())?
+                })?
             };
             let report = serde_json::json!({ "points": points, "multiframe_gain": gain });
-            println!(
-                "{}",
-                serde_json::to_string_pretty(&report).map_err(|e| e.to_string())?
-            );
+            println!("{}", serde_json::to_string_pretty(&report)?);
             Ok(())
         }
         Command::Samples { out } => {
-            std::fs::create_dir_all(&out).map_err(|e| format!("{}: {e}", out.display()))?;
+            std::fs::create_dir_all(&out).with_context(|| out.display().to_string())?;
             for sample in radiosity::samples::all() {
                 let path = out.join(sample.file_name);
-                std::fs::write(&path, sample.gltf)
-                    .map_err(|e| format!("{}: {e}", path.display()))?;
+                std::fs::write(&path, sample.gltf).with_context(|| path.display().to_string())?;
                 println!("{}", path.display());
             }
             Ok(())
@@ -514,26 +508,21 @@ fn run(cli: Cli) -> Result<(), String> {
 }
 
 /// Runs the service until ctrl-c or SIGTERM.
-fn serve(addr: &str, config: radiosity::service::Config) -> Result<(), String> {
+fn serve(addr: &str, config: radiosity::service::Config) -> anyhow::Result<()> {
     // Colours for a terminal only: a log written to a file or a pipe stays plain text.
     tracing_subscriber::fmt()
         .with_target(false)
         .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stdout()))
         .init();
-    let runtime = tokio::runtime::Runtime::new().map_err(|e| e.to_string())?;
+    let runtime = tokio::runtime::Runtime::new()?;
     runtime.block_on(async {
         let listener = tokio::net::TcpListener::bind(addr)
             .await
-            .map_err(|e| format!("{addr}: {e}"))?;
-        tracing::info!(
-            "listening on {}",
-            listener.local_addr().map_err(|e| e.to_string())?
-        );
-        let state = radiosity::service::AppState::new(config)
-            .map_err(|e| format!("data directory: {e}"))?;
-        radiosity::service::serve(listener, state, shutdown_signal())
-            .await
-            .map_err(|e| e.to_string())
+            .with_context(|| addr.to_string())?;
+        tracing::info!("listening on {}", listener.local_addr()?);
+        let state = radiosity::service::AppState::new(config).context("the data directory")?;
+        radiosity::service::serve(listener, state, shutdown_signal()).await?;
+        Ok(())
     })
 }
 
@@ -604,136 +593,29 @@ fn parse_budget_gib(s: &str) -> Result<f64, String> {
         .ok_or_else(|| format!("{s:?} is not a number of GiB above 0 and at most 2^30"))
 }
 
-/// Bakes every scene, logging progress, and fails if any scene failed or was cancelled.
+/// Bakes every scene, logging progress (a bar on a terminal), and fails if any scene failed or
+/// was cancelled; Ctrl-C cancels.
 fn bake(
     inputs: &[PathBuf],
     out: &std::path::Path,
     params: &radiosity::batch::BatchParams,
-) -> Result<(), String> {
-    use radiosity::batch::Outcome;
-    let scenes = radiosity::batch::scenes(inputs).map_err(|e| e.to_string())?;
+) -> anyhow::Result<()> {
+    let scenes = radiosity::batch::scenes(inputs).context("listing the inputs")?;
     if scenes.is_empty() {
-        return Err("no .glb or .gltf scene in the inputs".into());
+        anyhow::bail!("no .glb or .gltf scene in the inputs");
     }
     let control = std::sync::Arc::new(radiosity::control::Control::default());
     let handler = control.clone();
-    ctrlc::set_handler(move || handler.cancel()).map_err(|e| format!("Ctrl-C handler: {e}"))?;
-    let progress = Progress::new(control.clone());
-    let mut failures = Vec::new();
-    for (k, path) in scenes.iter().enumerate() {
-        if control.is_cancelled() {
-            failures.push(format!("{}: not baked (interrupted)", path.display()));
-            continue;
-        }
-        let prefix = format!("[{}/{}]", k + 1, scenes.len());
-        let outcome = radiosity::batch::bake_one(path, out, params, &control, &mut |line| {
-            progress.stage(&prefix, line)
-        });
-        match outcome {
-            Outcome::Baked(dir) => progress.line(&format!(
-                "{prefix} baked {} -> {}",
-                path.display(),
-                dir.display()
-            )),
-            Outcome::Skipped(dir) => {
-                progress.line(&format!("{prefix} up to date: {}", dir.display()))
-            }
-            Outcome::Failed(reason) => {
-                progress.line(&format!("{prefix} FAILED {}: {reason}", path.display()));
-                failures.push(format!("{}: {reason}", path.display()));
-            }
-            Outcome::Cancelled => {
-                progress.line(&format!(
-                    "{prefix} interrupted {}: nothing written",
-                    path.display()
-                ));
-                failures.push(format!("{}: interrupted", path.display()));
-            }
-        }
-    }
+    ctrlc::set_handler(move || handler.cancel()).context("the Ctrl-C handler")?;
+    let progress = radiosity::progress::Progress::new(control.clone());
+    let failures = radiosity::batch::bake_all(&scenes, out, params, &control, &progress);
     progress.finish();
-    if failures.is_empty() {
-        Ok(())
-    } else {
-        Err(format!(
-            "{} of {} scenes failed:\n  {}",
-            failures.len(),
-            scenes.len(),
-            failures.join("\n  ")
-        ))
-    }
-}
-
-/// Progress of a batch: on a terminal, a bar per stage with its ETA (indicatif), following the
-/// stage's [`radiosity::control::Control`]; otherwise (CI logs) one plain line per stage.
-struct Progress {
-    bar: Option<indicatif::ProgressBar>,
-    ticker: Option<(
-        std::sync::Arc<std::sync::atomic::AtomicBool>,
-        std::thread::JoinHandle<()>,
-    )>,
-}
-
-impl Progress {
-    /// Resolution of the bar: the stage's fraction in thousandths.
-    const STEPS: u64 = 1000;
-
-    fn new(control: std::sync::Arc<radiosity::control::Control>) -> Self {
-        use std::io::IsTerminal;
-        if !std::io::stderr().is_terminal() {
-            return Self {
-                bar: None,
-                ticker: None,
-            };
-        }
-        let bar = indicatif::ProgressBar::new(Self::STEPS);
-        if let Ok(style) = indicatif::ProgressStyle::with_template(
-            "{msg:64!} [{bar:30}] {percent:>3}% {elapsed:>4} ETA {eta:>4}",
-        ) {
-            bar.set_style(style.progress_chars("=> "));
-        }
-        let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
-        let ticker = {
-            let (bar, stop) = (bar.clone(), stop.clone());
-            std::thread::spawn(move || {
-                while !stop.load(std::sync::atomic::Ordering::Relaxed) {
-                    bar.set_position((control.fraction() * Self::STEPS as f64) as u64);
-                    std::thread::sleep(std::time::Duration::from_millis(100));
-                }
-            })
-        };
-        Self {
-            bar: Some(bar),
-            ticker: Some((stop, ticker)),
-        }
-    }
-
-    /// A stage starts.
-    fn stage(&self, prefix: &str, line: &str) {
-        match &self.bar {
-            Some(bar) => {
-                bar.reset();
-                bar.set_message(format!("{prefix} {line}"));
-            }
-            None => eprintln!("{prefix} {line}"),
-        }
-    }
-
-    /// A line that stays (a scene's outcome).
-    fn line(&self, line: &str) {
-        match &self.bar {
-            Some(bar) => bar.println(line),
-            None => eprintln!("{line}"),
-        }
-    }
-
-    fn finish(self) {
-        if let Some((stop, ticker)) = self.ticker {
-            stop.store(true, std::sync::atomic::Ordering::Relaxed);
-            let _ = ticker.join();
-        }
-        if let Some(bar) = self.bar {
-            bar.finish_and_clear();
-        }
-    }
+    anyhow::ensure!(
+        failures.is_empty(),
+        "{} of {} scenes failed:\n  {}",
+        failures.len(),
+        scenes.len(),
+        failures.join("\n  ")
+    );
+    Ok(())
 }

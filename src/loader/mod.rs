@@ -182,13 +182,41 @@ impl LoadError {
     }
 }
 
+/// A file that could not be read or loaded ([`load_file`]), named.
+#[derive(Debug, thiserror::Error)]
+pub enum FileError {
+    /// The file cannot be read.
+    #[error("{}: {reason}", path.display())]
+    Read {
+        /// The file.
+        path: std::path::PathBuf,
+        /// Why.
+        reason: std::io::Error,
+    },
+    /// Its scene cannot be loaded.
+    #[error("{}: {reason}", path.display())]
+    Load {
+        /// The file.
+        path: std::path::PathBuf,
+        /// Why.
+        reason: LoadError,
+    },
+}
+
 /// The scene of the file at `path` ([`load`]); the error, reading or loading, names the file.
 ///
 /// # Errors
 /// The file cannot be read, or its scene loaded.
-pub fn load_file(path: &std::path::Path, options: &LoadOptions) -> Result<Scene, String> {
-    let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
-    load(&bytes, options).map_err(|e| format!("{}: {e}", path.display()))
+pub fn load_file(path: &std::path::Path, options: &LoadOptions) -> Result<Scene, FileError> {
+    let path_buf = || path.to_path_buf();
+    let bytes = std::fs::read(path).map_err(|reason| FileError::Read {
+        path: path_buf(),
+        reason,
+    })?;
+    load(&bytes, options).map_err(|reason| FileError::Load {
+        path: path_buf(),
+        reason,
+    })
 }
 
 /// Loads a `.glb` or `.gltf` (with embedded data) from memory.
