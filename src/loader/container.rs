@@ -228,6 +228,11 @@ fn precheck(root: &gltf::json::Root) -> Result<(), LoadError> {
 
 /// Splits a GLB file into its JSON chunk and optional binary chunk (glTF 2.0 §4.4), checking
 /// every length against the data actually present.
+///
+/// Not the gltf crate's `Glb::from_slice` (which writes the baked files, `output::glb`): it
+/// subtracts 12 from the header's declared length unchecked (a header declaring fewer than 12
+/// bytes overflows: a panic where overflow is checked), reads chunks past the declared end, and
+/// its messages name no chunk ("could not completely read the object").
 fn split_glb(bytes: &[u8]) -> Result<(&[u8], Option<&[u8]>), LoadError> {
     let bad = |reason: &str| LoadError::Container(format!("GLB: {reason}"));
     let word = |at: usize| -> Option<u32> {

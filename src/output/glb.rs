@@ -192,26 +192,31 @@ pub fn frame_glb(
     glb(&document, &buffers.bin)
 }
 
-/// A GLB container: 12-byte header, the JSON chunk padded with spaces, the BIN chunk (if any)
-/// padded with zeros.
+/// A GLB container (the gltf crate's [`gltf::binary::Glb`]): 12-byte header, the JSON chunk
+/// padded with spaces, the BIN chunk (if any) padded with zeros.
 fn glb(document: &Value, bin: &[u8]) -> Result<Vec<u8>, OutputError> {
-    let mut json = document.to_string().into_bytes();
-    while !json.len().is_multiple_of(4) {
-        json.push(b' ');
-    }
-    let total = 12 + 8 + json.len() + if bin.is_empty() { 0 } else { 8 + bin.len() };
-    let total = u32::try_from(total).map_err(|_| OutputError::TooLarge)?;
-    let mut out = Vec::with_capacity(total as usize);
-    out.extend_from_slice(b"glTF");
-    out.extend_from_slice(&2u32.to_le_bytes());
-    out.extend_from_slice(&total.to_le_bytes());
-    out.extend_from_slice(&(json.len() as u32).to_le_bytes());
-    out.extend_from_slice(b"JSON");
-    out.extend_from_slice(&json);
-    if !bin.is_empty() {
-        out.extend_from_slice(&(bin.len() as u32).to_le_bytes());
-        out.extend_from_slice(b"BIN\0");
-        out.extend_from_slice(bin);
-    }
-    Ok(out)
+    let json = document.to_string().into_bytes();
+    let padded = |n: usize| n.div_ceil(4) * 4;
+    // The crate writes lengths as u32 without a check: GLB's limit is checked here.
+    let total = 12
+        + 8
+        + padded(json.len())
+        + if bin.is_empty() {
+            0
+        } else {
+            8 + padded(bin.len())
+        };
+    let length = u32::try_from(total).map_err(|_| OutputError::TooLarge)?;
+    let container = gltf::binary::Glb {
+        header: gltf::binary::Header {
+            magic: *b"glTF",
+            version: 2,
+            length,
+        },
+        json: json.into(),
+        bin: (!bin.is_empty()).then(|| bin.into()),
+    };
+    container
+        .to_vec()
+        .map_err(|e| OutputError::Container(e.to_string()))
 }

@@ -29,6 +29,9 @@ pub enum OutputError {
     /// GLB stores its length in 32 bits.
     #[error("the frame's glTF would be larger than GLB's 4 GiB limit; bake fewer patches")]
     TooLarge,
+    /// The GLB container could not be written (it is written to memory: not expected).
+    #[error("writing the GLB container: {0}")]
+    Container(String),
     /// The image encoder failed.
     #[error("encoding an image: {0}")]
     Image(#[from] image::ImageError),
