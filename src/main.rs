@@ -58,160 +58,188 @@ enum Command {
     /// Bake scenes (files, or every .glb/.gltf of a directory) into OUT/<scene>/: radiance.bin,
     /// summary.json, timings.json. Unchanged scenes are skipped; one failure does not stop the
     /// others; the exit status is non-zero if any failed.
-    Bake {
-        /// Scenes or directories of scenes.
-        #[arg(required = true)]
-        inputs: Vec<PathBuf>,
-        /// Output directory.
-        #[arg(long)]
-        out: PathBuf,
-        #[command(flatten)]
-        request: BakeRequest,
-        /// Bake even scenes whose outputs are up to date.
-        #[arg(long)]
-        force: bool,
-        /// Frames written as baked glTF (baked/frame_NNNN.glb): all, none, or a list such as
-        /// 0,10-20,middle,last.
-        #[arg(long, default_value = "all")]
-        glb_frames: radiosity::output::FrameSpec,
-        /// Frames rendered as PNG previews (preview/frame_NNNN.png), same syntax.
-        #[arg(long, default_value = "first,middle,last")]
-        preview_frames: radiosity::output::FrameSpec,
-        /// Size of the PNG previews, WIDTHxHEIGHT (the GIF is half that).
-        #[arg(long, default_value = "640x480", value_parser = parse_size)]
-        preview_size: (u32, u32),
-        /// Do not write preview.gif.
-        #[arg(long)]
-        no_gif: bool,
-        /// Exposure of the previews and of the baked glTF's vertex colours (radiance is
-        /// multiplied by it before the tone curve); by default the one that maps the lit
-        /// surfaces' log-average to middle grey (summary.json records it).
-        #[arg(long, value_parser = parse_exposure, allow_negative_numbers = true)]
-        exposure: Option<f64>,
-        /// How previews shade the patches: smooth (the baked glTF's per-vertex radiance, what
-        /// an engine shows) or flat (one colour per patch, to inspect them).
-        #[arg(long, default_value = "smooth")]
-        preview_shading: radiosity::output::Shading,
-    },
+    Bake(BakeArgs),
     /// Run the HTTP service (see api/ and the README).
-    Serve {
-        /// Address to bind.
-        #[arg(long, default_value = "127.0.0.1:8080")]
-        addr: String,
-        /// Jobs traced or solved at once; the others wait `queued`.
-        #[arg(long, default_value_t = 1)]
-        max_running: usize,
-        /// Largest accepted scene, MiB (1 to 1,048,576).
-        #[arg(long, default_value_t = 64, value_parser = parse_body_mib)]
-        max_body_mib: usize,
-        /// Memory budget of one job, GiB (estimated before tracing; above 0).
-        #[arg(long, default_value_t = 8.0, value_parser = parse_budget_gib)]
-        memory_budget_gib: f64,
-        /// Where finished results are kept across restarts.
-        #[arg(long, default_value = "./data")]
-        data_dir: PathBuf,
-    },
+    Serve(ServeArgs),
     /// Print a summary of a glTF scene: triangles, patches, static and moving objects, frames,
     /// emitters, warnings; and what a bake with the same options would take (lines, patches,
     /// estimated memory), checked as `bake` checks them.
-    Scene {
-        /// A .glb, or a .gltf with embedded (data:) buffers.
-        file: PathBuf,
-        #[command(flatten)]
-        request: BakeRequest,
-        /// Print the summary as JSON.
-        #[arg(long)]
-        json: bool,
-    },
+    Scene(SceneArgs),
     /// Measure tracing on a scene: the multiframe intersection list against tracing every frame
     /// independently (throughput, bytes per crossing, time and memory ratios).
-    Bench {
-        /// A .glb, or a .gltf with embedded (data:) buffers.
-        file: PathBuf,
-        #[command(flatten)]
-        request: BakeRequest,
-        /// Print the report as JSON.
-        #[arg(long)]
-        json: bool,
-    },
+    Bench(BenchArgs),
     /// Measure the speed/accuracy trade on the sample scenes against physics: error against
     /// lines and seconds (bakes made as the bake command makes them: patches, pieces, every
     /// frame), error-bar coverage, and the multiframe gain at equal error.
-    BenchAccuracy {
-        /// Directory of the sample scenes.
-        #[arg(long, default_value = "scenes")]
-        scenes: PathBuf,
-        /// Line budgets to sweep, comma-separated.
-        #[arg(
-            long,
-            value_delimiter = ',',
-            default_value = "30000,100000,300000,1000000"
-        )]
-        budgets: Vec<u64>,
-        /// How patches are made: auto (the default), source, or a length.
-        #[arg(long, default_value = "auto")]
-        patch_size: radiosity::params::PatchSize,
-        /// Paths of the path-traced reference per measured frame, over all of a bake's patches
-        /// (at least 64 per patch), for the scenes without a closed form.
-        #[arg(long, default_value_t = 4_000_000)]
-        reference_paths: usize,
-        /// Frames measured against the path tracer, spread over the timeline from frame 0.
-        #[arg(long, default_value_t = 3)]
-        reference_frames: usize,
-        /// Measure only this scene (a file name in --scenes).
-        #[arg(long)]
-        only: Option<String>,
-        /// Frames per second for the animated scenes.
-        #[arg(long, default_value_t = 12.0)]
-        fps: f64,
-        /// Lines for the multiframe gain measurement (0: not measured; nor with --only).
-        #[arg(long, default_value_t = 100_000)]
-        gain_lines: u64,
-        /// Scene of the multiframe gain measurement (60 frames over its 2 s animation).
-        #[arg(long, default_value = "level.gltf")]
-        gain_scene: String,
-    },
+    BenchAccuracy(BenchAccuracyArgs),
     /// Measure how patches are made against a path-traced reference: per-patch error, the
     /// error at points (what a lightmap shows), bias, error-bar coverage, patches and seconds
     /// of the source's triangles, uniform sizes and auto, on the Cornell box, the panel room,
     /// the level and the level lit by lamps (README, "Against physics").
-    BenchPatches {
-        /// Directory of the sample scenes.
-        #[arg(long, default_value = "scenes")]
-        scenes: PathBuf,
-        /// Lines of every bake.
-        #[arg(long, default_value_t = 1_000_000)]
-        lines: u64,
-        /// Paths of each bake's reference, over all its patches (at least 64 per patch).
-        #[arg(long, default_value_t = 8_000_000)]
-        reference_paths: usize,
-        /// Where to write the points as JSON.
-        #[arg(long, default_value = "docs/patches.json")]
-        out: PathBuf,
-        /// Only this scene (file name).
-        #[arg(long)]
-        only: Option<String>,
-        /// Only these ways of making patches (auto, source, lengths), comma-separated.
-        #[arg(long, value_delimiter = ',')]
-        sizes: Vec<radiosity::params::PatchSize>,
-        /// With auto: the patch budget (default: one per 200 lines).
-        #[arg(long)]
-        patch_budget: Option<usize>,
-        /// Seed of the bakes' lines (the reference's paths take another from it): repeat
-        /// with other seeds to see how much the figures themselves vary.
-        #[arg(long, default_value_t = 1)]
-        seed: u64,
-        /// Solve the patches whole rather than on their pieces (as bakes did before pieces):
-        /// to see what the pieces change.
-        #[arg(long)]
-        whole: bool,
-    },
+    BenchPatches(BenchPatchesArgs),
     /// Write the sample scenes (deterministic) into a directory.
-    Samples {
-        /// Output directory.
-        #[arg(long, default_value = "scenes")]
-        out: PathBuf,
-    },
+    Samples(SamplesArgs),
+}
+
+/// The options of `radiosity bake`.
+#[derive(clap::Args)]
+struct BakeArgs {
+    /// Scenes or directories of scenes.
+    #[arg(required = true)]
+    inputs: Vec<PathBuf>,
+    /// Output directory.
+    #[arg(long)]
+    out: PathBuf,
+    #[command(flatten)]
+    request: BakeRequest,
+    /// Bake even scenes whose outputs are up to date.
+    #[arg(long)]
+    force: bool,
+    /// Frames written as baked glTF (baked/frame_NNNN.glb): all, none, or a list such as
+    /// 0,10-20,middle,last.
+    #[arg(long, default_value = "all")]
+    glb_frames: radiosity::output::FrameSpec,
+    /// Frames rendered as PNG previews (preview/frame_NNNN.png), same syntax.
+    #[arg(long, default_value = "first,middle,last")]
+    preview_frames: radiosity::output::FrameSpec,
+    /// Size of the PNG previews, WIDTHxHEIGHT (the GIF is half that).
+    #[arg(long, default_value = "640x480", value_parser = parse_size)]
+    preview_size: (u32, u32),
+    /// Do not write preview.gif.
+    #[arg(long)]
+    no_gif: bool,
+    /// Exposure of the previews and of the baked glTF's vertex colours (radiance is
+    /// multiplied by it before the tone curve); by default the one that maps the lit
+    /// surfaces' log-average to middle grey (summary.json records it).
+    #[arg(long, value_parser = parse_exposure, allow_negative_numbers = true)]
+    exposure: Option<f64>,
+    /// How previews shade the patches: smooth (the baked glTF's per-vertex radiance, what
+    /// an engine shows) or flat (one colour per patch, to inspect them).
+    #[arg(long, default_value = "smooth")]
+    preview_shading: radiosity::output::Shading,
+}
+
+/// The options of `radiosity serve`.
+#[derive(clap::Args)]
+struct ServeArgs {
+    /// Address to bind.
+    #[arg(long, default_value = "127.0.0.1:8080")]
+    addr: String,
+    /// Jobs traced or solved at once; the others wait `queued`.
+    #[arg(long, default_value_t = 1)]
+    max_running: usize,
+    /// Largest accepted scene, MiB (1 to 1,048,576).
+    #[arg(long, default_value_t = 64, value_parser = parse_body_mib)]
+    max_body_mib: usize,
+    /// Memory budget of one job, GiB (estimated before tracing; above 0).
+    #[arg(long, default_value_t = 8.0, value_parser = parse_budget_gib)]
+    memory_budget_gib: f64,
+    /// Where finished results are kept across restarts.
+    #[arg(long, default_value = "./data")]
+    data_dir: PathBuf,
+}
+
+/// The options of `radiosity scene`.
+#[derive(clap::Args)]
+struct SceneArgs {
+    /// A .glb, or a .gltf with embedded (data:) buffers.
+    file: PathBuf,
+    #[command(flatten)]
+    request: BakeRequest,
+    /// Print the summary as JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+/// The options of `radiosity bench`.
+#[derive(clap::Args)]
+struct BenchArgs {
+    /// A .glb, or a .gltf with embedded (data:) buffers.
+    file: PathBuf,
+    #[command(flatten)]
+    request: BakeRequest,
+    /// Print the report as JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+/// The options of `radiosity bench-accuracy`.
+#[derive(clap::Args)]
+struct BenchAccuracyArgs {
+    /// Directory of the sample scenes.
+    #[arg(long, default_value = "scenes")]
+    scenes: PathBuf,
+    /// Line budgets to sweep, comma-separated.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "30000,100000,300000,1000000"
+    )]
+    budgets: Vec<u64>,
+    /// How patches are made: auto (the default), source, or a length.
+    #[arg(long, default_value = "auto")]
+    patch_size: radiosity::params::PatchSize,
+    /// Paths of the path-traced reference per measured frame, over all of a bake's patches
+    /// (at least 64 per patch), for the scenes without a closed form.
+    #[arg(long, default_value_t = 4_000_000)]
+    reference_paths: usize,
+    /// Frames measured against the path tracer, spread over the timeline from frame 0.
+    #[arg(long, default_value_t = 3)]
+    reference_frames: usize,
+    /// Measure only this scene (a file name in --scenes).
+    #[arg(long)]
+    only: Option<String>,
+    /// Frames per second for the animated scenes.
+    #[arg(long, default_value_t = 12.0)]
+    fps: f64,
+    /// Lines for the multiframe gain measurement (0: not measured; nor with --only).
+    #[arg(long, default_value_t = 100_000)]
+    gain_lines: u64,
+    /// Scene of the multiframe gain measurement (60 frames over its 2 s animation).
+    #[arg(long, default_value = "level.gltf")]
+    gain_scene: String,
+}
+
+/// The options of `radiosity bench-patches`.
+#[derive(clap::Args)]
+struct BenchPatchesArgs {
+    /// Directory of the sample scenes.
+    #[arg(long, default_value = "scenes")]
+    scenes: PathBuf,
+    /// Lines of every bake.
+    #[arg(long, default_value_t = 1_000_000)]
+    lines: u64,
+    /// Paths of each bake's reference, over all its patches (at least 64 per patch).
+    #[arg(long, default_value_t = 8_000_000)]
+    reference_paths: usize,
+    /// Where to write the points as JSON.
+    #[arg(long, default_value = "docs/patches.json")]
+    out: PathBuf,
+    /// Only this scene (file name).
+    #[arg(long)]
+    only: Option<String>,
+    /// Only these ways of making patches (auto, source, lengths), comma-separated.
+    #[arg(long, value_delimiter = ',')]
+    sizes: Vec<radiosity::params::PatchSize>,
+    /// With auto: the patch budget (default: one per 200 lines).
+    #[arg(long)]
+    patch_budget: Option<usize>,
+    /// Seed of the bakes' lines (the reference's paths take another from it): repeat
+    /// with other seeds to see how much the figures themselves vary.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Solve the patches whole rather than on their pieces (as bakes did before pieces):
+    /// to see what the pieces change.
+    #[arg(long)]
+    whole: bool,
+}
+
+/// The options of `radiosity samples`.
+#[derive(clap::Args)]
+struct SamplesArgs {
+    /// Output directory.
+    #[arg(long, default_value = "scenes")]
+    out: PathBuf,
 }
 
 fn main() -> ExitCode {
@@ -269,7 +297,19 @@ fn with_suggestion(mut error: clap::Error) -> clap::Error {
 
 fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
-        Command::Bake {
+        Command::Bake(args) => args.run(),
+        Command::Serve(args) => args.run(),
+        Command::Scene(args) => args.run(),
+        Command::Bench(args) => args.run(),
+        Command::BenchAccuracy(args) => args.run(),
+        Command::BenchPatches(args) => args.run(),
+        Command::Samples(args) => args.run(),
+    }
+}
+
+impl BakeArgs {
+    fn run(self) -> anyhow::Result<()> {
+        let Self {
             inputs,
             out,
             request,
@@ -280,144 +320,103 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             no_gif,
             exposure,
             preview_shading,
-        } => {
-            let params = radiosity::batch::BatchParams {
-                settings: settings(request)?,
-                outputs: radiosity::batch::Outputs {
-                    glb_frames,
-                    preview_frames,
-                    preview_size,
-                    gif: !no_gif,
-                    exposure,
-                    shading: preview_shading,
-                },
-                force,
-                max_iterations: radiosity::solve::SolveParams::default().max_iterations,
-            };
-            bake(&inputs, &out, &params)
-        }
-        Command::Serve {
+        } = self;
+        let params = radiosity::batch::BatchParams {
+            settings: settings(request)?,
+            outputs: radiosity::batch::Outputs {
+                glb_frames,
+                preview_frames,
+                preview_size,
+                gif: !no_gif,
+                exposure,
+                shading: preview_shading,
+            },
+            force,
+            max_iterations: radiosity::solve::SolveParams::default().max_iterations,
+        };
+        bake(&inputs, &out, &params)
+    }
+}
+
+impl ServeArgs {
+    fn run(self) -> anyhow::Result<()> {
+        let Self {
             addr,
             max_running,
             max_body_mib,
             memory_budget_gib,
             data_dir,
-        } => {
-            let config = radiosity::service::Config {
-                data_dir: Some(data_dir),
-                max_running,
-                max_body_bytes: max_body_mib << 20,
-                memory_budget: (memory_budget_gib * f64::from(1u32 << 30)) as u64,
-                ..radiosity::service::Config::default()
-            };
-            serve(&addr, config)
-        }
-        Command::Scene {
+        } = self;
+        let config = radiosity::service::Config {
+            data_dir: Some(data_dir),
+            max_running,
+            max_body_bytes: max_body_mib << 20,
+            memory_budget: (memory_budget_gib * f64::from(1u32 << 30)) as u64,
+            ..radiosity::service::Config::default()
+        };
+        serve(&addr, config)
+    }
+}
+
+impl SceneArgs {
+    fn run(self) -> anyhow::Result<()> {
+        let Self {
             file,
             request,
             json,
-        } => {
-            let settings = settings(request)?;
-            let scene = loader::load_file(&file, &settings.load)?;
-            let auto = settings.adaptive(scene.patches.len());
-            let plan = Plan {
-                lines: settings.lines.lines,
-                seed: settings.lines.seed,
-                patch_size: settings.patch_size,
-                patch_budget: auto.map(|a| a.budget),
-                sky: settings.sky,
-                estimated_bytes: radiosity::bake::estimate_bytes(
-                    &scene,
-                    settings.lines.lines,
-                    auto.as_ref(),
-                ),
-            };
-            let summary = scene.summary();
-            if json {
-                let report = serde_json::json!({"scene": summary, "bake": plan});
-                let text = serde_json::to_string_pretty(&report)?;
-                println!("{text}");
-            } else {
-                print!("{summary}");
-                println!("{plan}");
-            }
-            Ok(())
+        } = self;
+        let settings = settings(request)?;
+        let scene = loader::load_file(&file, &settings.load)?;
+        let auto = settings.adaptive(scene.patches.len());
+        let plan = Plan {
+            lines: settings.lines.lines,
+            seed: settings.lines.seed,
+            patch_size: settings.patch_size,
+            patch_budget: auto.map(|a| a.budget),
+            sky: settings.sky,
+            estimated_bytes: radiosity::bake::estimate_bytes(
+                &scene,
+                settings.lines.lines,
+                auto.as_ref(),
+            ),
+        };
+        let summary = scene.summary();
+        if json {
+            let report = serde_json::json!({"scene": summary, "bake": plan});
+            let text = serde_json::to_string_pretty(&report)?;
+            println!("{text}");
+        } else {
+            print!("{summary}");
+            println!("{plan}");
         }
-        Command::Bench {
+        Ok(())
+    }
+}
+
+impl BenchArgs {
+    fn run(self) -> anyhow::Result<()> {
+        let Self {
             file,
             request,
             json,
-        } => {
-            let settings = settings(request)?;
-            let scene = loader::load_file(&file, &settings.load)?;
-            let LineParams { lines, seed } = settings.lines;
-            let report = radiosity::bench::trace(&scene, lines, seed)?;
-            if json {
-                let text = serde_json::to_string_pretty(&report)?;
-                println!("{text}");
-            } else {
-                print!("{report}");
-            }
-            Ok(())
+        } = self;
+        let settings = settings(request)?;
+        let scene = loader::load_file(&file, &settings.load)?;
+        let LineParams { lines, seed } = settings.lines;
+        let report = radiosity::bench::trace(&scene, lines, seed)?;
+        if json {
+            let text = serde_json::to_string_pretty(&report)?;
+            println!("{text}");
+        } else {
+            print!("{report}");
         }
-        Command::BenchPatches {
-            scenes,
-            lines,
-            reference_paths,
-            out,
-            only,
-            sizes: chosen,
-            patch_budget,
-            seed,
-            whole,
-        } => {
-            println!(
-                "scene\tpatch_size\tpatches\tseconds\tpatch error\tpatch L2\tpoint error\t\
-                 resolved to\treference noise\tbias\testimated noise\tcoverage"
-            );
-            let bench = radiosity::bench::PatchBench {
-                lines: (lines, seed),
-                reference_paths,
-                only,
-                sizes: chosen,
-                patch_budget,
-                whole,
-            };
-            let points = radiosity::bench::patch_points(&scenes, &bench, |p| {
-                println!(
-                    "{}\t{}\t{}\t{:.2}\t{:.4}\t{:.4}\t{:.4}\t{:.4}\t{:.4}\t{:+.4}\t{:.4}\t{:.3}",
-                    p.scene,
-                    p.patch_size,
-                    p.patches,
-                    p.seconds,
-                    p.patch_error,
-                    p.patch_l2_error,
-                    p.point_error,
-                    p.point_resolution,
-                    p.reference_noise,
-                    p.bias,
-                    p.estimated_noise,
-                    p.coverage
-                );
-                for w in &p.worst {
-                    println!(
-                        "  patch {} {} area {:.4}: {:.0}% of the error, {:.4} ± {:.4} against {:.4}",
-                        w.patch,
-                        w.material,
-                        w.area,
-                        100.0 * w.share,
-                        w.baked,
-                        w.sigma,
-                        w.reference
-                    );
-                }
-            })
-            .map_err(anyhow::Error::msg)?;
-            let json = serde_json::to_string_pretty(&points)?;
-            std::fs::write(&out, json + "\n").with_context(|| out.display().to_string())?;
-            Ok(())
-        }
-        Command::BenchAccuracy {
+        Ok(())
+    }
+}
+
+impl BenchAccuracyArgs {
+    fn run(self) -> anyhow::Result<()> {
+        let Self {
             scenes,
             budgets,
             patch_size,
@@ -427,83 +426,147 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             fps,
             gain_lines,
             gain_scene,
-        } => {
-            let load_scene = |name: &str, options: LoadOptions| {
-                radiosity::bench::load_sample(&scenes, name, &options)
-            };
-            let mut set = Vec::new();
-            for name in radiosity::bench::ACCURACY_SCENES {
-                if only.as_ref().is_some_and(|o| o != name) {
-                    continue;
-                }
-                let options = LoadOptions {
-                    fps,
-                    patch_size: patch_size.length(),
-                    ..LoadOptions::default()
-                };
-                set.push((name.to_string(), load_scene(name, options)?));
+        } = self;
+        let load_scene = |name: &str, options: LoadOptions| {
+            radiosity::bench::load_sample(&scenes, name, &options)
+        };
+        let mut set = Vec::new();
+        for name in radiosity::bench::ACCURACY_SCENES {
+            if only.as_ref().is_some_and(|o| o != name) {
+                continue;
             }
-            if set.is_empty() {
-                anyhow::bail!("--only: no sample scene is named {only:?}");
-            }
-            let reference = radiosity::bench::PathReference {
-                paths: reference_paths,
-                frames: reference_frames,
-            };
-            let points = radiosity::bench::accuracy(&set, &budgets, patch_size, reference, |p| {
-                let show = |x: Option<f64>, digits: usize| {
-                    x.map_or_else(|| "-".to_string(), |x| format!("{x:.digits$}"))
-                };
-                let e = &p.error;
-                eprintln!(
-                    "{:<22} {:>9} lines {:>6} patches {:>8.3} s  per-patch {}  at points {} (resolved to {})  coverage {}  median |z| {}  estimated {}  emitters {}",
-                    p.scene,
-                    p.lines,
-                    p.patches,
-                    p.seconds,
-                    show(e.lit_error, 4),
-                    show(e.point_error, 4),
-                    show(e.point_resolution, 4),
-                    show(e.coverage, 3),
-                    show(e.median_z, 2),
-                    show(e.estimated_noise, 4),
-                    show(e.emitter_error, 4)
-                );
-            })?;
-            // 60 frames: the samples' animations last 2 s. Not with --only or --gain-lines 0.
-            let moving = LoadOptions {
-                fps: 29.5,
+            let options = LoadOptions {
+                fps,
+                patch_size: patch_size.length(),
                 ..LoadOptions::default()
             };
-            let gain = if only.is_some() || gain_lines == 0 {
-                None
-            } else {
-                let scene = load_scene(&gain_scene, moving.clone())?;
-                radiosity::bench::multiframe_gain(&scene, gain_lines, |t| {
-                    load_scene(
-                        &gain_scene,
-                        LoadOptions {
-                            start: Some(t),
-                            end: Some(t),
-                            ..moving.clone()
-                        },
-                    )
-                    .ok()
-                })?
+            set.push((name.to_string(), load_scene(name, options)?));
+        }
+        if set.is_empty() {
+            anyhow::bail!("--only: no sample scene is named {only:?}");
+        }
+        let reference = radiosity::bench::PathReference {
+            paths: reference_paths,
+            frames: reference_frames,
+        };
+        let points = radiosity::bench::accuracy(&set, &budgets, patch_size, reference, |p| {
+            let show = |x: Option<f64>, digits: usize| {
+                x.map_or_else(|| "-".to_string(), |x| format!("{x:.digits$}"))
             };
-            let report = serde_json::json!({ "points": points, "multiframe_gain": gain });
-            println!("{}", serde_json::to_string_pretty(&report)?);
-            Ok(())
-        }
-        Command::Samples { out } => {
-            std::fs::create_dir_all(&out).with_context(|| out.display().to_string())?;
-            for sample in radiosity::samples::all() {
-                let path = out.join(sample.file_name);
-                std::fs::write(&path, sample.gltf).with_context(|| path.display().to_string())?;
-                println!("{}", path.display());
+            let e = &p.error;
+            eprintln!(
+                "{:<22} {:>9} lines {:>6} patches {:>8.3} s  per-patch {}  at points {} (resolved to {})  coverage {}  median |z| {}  estimated {}  emitters {}",
+                p.scene,
+                p.lines,
+                p.patches,
+                p.seconds,
+                show(e.lit_error, 4),
+                show(e.point_error, 4),
+                show(e.point_resolution, 4),
+                show(e.coverage, 3),
+                show(e.median_z, 2),
+                show(e.estimated_noise, 4),
+                show(e.emitter_error, 4)
+            );
+        })?;
+        // 60 frames: the samples' animations last 2 s. Not with --only or --gain-lines 0.
+        let moving = LoadOptions {
+            fps: 29.5,
+            ..LoadOptions::default()
+        };
+        let gain = if only.is_some() || gain_lines == 0 {
+            None
+        } else {
+            let scene = load_scene(&gain_scene, moving.clone())?;
+            radiosity::bench::multiframe_gain(&scene, gain_lines, |t| {
+                load_scene(
+                    &gain_scene,
+                    LoadOptions {
+                        start: Some(t),
+                        end: Some(t),
+                        ..moving.clone()
+                    },
+                )
+                .ok()
+            })?
+        };
+        let report = serde_json::json!({ "points": points, "multiframe_gain": gain });
+        println!("{}", serde_json::to_string_pretty(&report)?);
+        Ok(())
+    }
+}
+
+impl BenchPatchesArgs {
+    fn run(self) -> anyhow::Result<()> {
+        let Self {
+            scenes,
+            lines,
+            reference_paths,
+            out,
+            only,
+            sizes: chosen,
+            patch_budget,
+            seed,
+            whole,
+        } = self;
+        println!(
+            "scene\tpatch_size\tpatches\tseconds\tpatch error\tpatch L2\tpoint error\t\
+             resolved to\treference noise\tbias\testimated noise\tcoverage"
+        );
+        let bench = radiosity::bench::PatchBench {
+            lines: (lines, seed),
+            reference_paths,
+            only,
+            sizes: chosen,
+            patch_budget,
+            whole,
+        };
+        let points = radiosity::bench::patch_points(&scenes, &bench, |p| {
+            println!(
+                "{}\t{}\t{}\t{:.2}\t{:.4}\t{:.4}\t{:.4}\t{:.4}\t{:.4}\t{:+.4}\t{:.4}\t{:.3}",
+                p.scene,
+                p.patch_size,
+                p.patches,
+                p.seconds,
+                p.patch_error,
+                p.patch_l2_error,
+                p.point_error,
+                p.point_resolution,
+                p.reference_noise,
+                p.bias,
+                p.estimated_noise,
+                p.coverage
+            );
+            for w in &p.worst {
+                println!(
+                    "  patch {} {} area {:.4}: {:.0}% of the error, {:.4} ± {:.4} against {:.4}",
+                    w.patch,
+                    w.material,
+                    w.area,
+                    100.0 * w.share,
+                    w.baked,
+                    w.sigma,
+                    w.reference
+                );
             }
-            Ok(())
+        })
+        .map_err(anyhow::Error::msg)?;
+        let json = serde_json::to_string_pretty(&points)?;
+        std::fs::write(&out, json + "\n").with_context(|| out.display().to_string())?;
+        Ok(())
+    }
+}
+
+impl SamplesArgs {
+    fn run(self) -> anyhow::Result<()> {
+        let Self { out } = self;
+        std::fs::create_dir_all(&out).with_context(|| out.display().to_string())?;
+        for sample in radiosity::samples::all() {
+            let path = out.join(sample.file_name);
+            std::fs::write(&path, sample.gltf).with_context(|| path.display().to_string())?;
+            println!("{}", path.display());
         }
+        Ok(())
     }
 }
 
