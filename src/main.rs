@@ -377,7 +377,7 @@ impl SceneArgs {
             estimated_bytes: radiosity::bake::estimate_bytes(
                 &scene,
                 settings.lines.lines,
-                auto.as_ref(),
+                auto.map(|a| a.budget),
             ),
         };
         let summary = scene.summary();

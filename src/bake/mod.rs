@@ -1249,11 +1249,11 @@ pub fn unsampled_warning(scene: &Scene, frames: &[Arc<FrameSolution>]) -> Option
 
 /// Memory a job will need, estimated from the scene before tracing: crossings per line from
 /// `2 A / A(W)` (static once, moving per frame), 8 and 12 bytes each, plus offsets and the
-/// tallies and direct light of the patches and of the pieces they are solved on, and with
-/// `auto` the patches its cuts may add. The service refuses a job over its memory budget from
-/// it; `radiosity scene` reports it.
+/// tallies and direct light of the patches and of the pieces they are solved on, and the
+/// patches adaptive cuts may add up to `budget` (their most patches, if they are made). The
+/// service refuses a job over its memory budget from it; `radiosity scene` reports it.
 #[must_use]
-pub fn estimate_bytes(scene: &Scene, lines: u64, auto: Option<&crate::adaptive::Adaptive>) -> u64 {
+pub fn estimate_bytes(scene: &Scene, lines: u64, budget: Option<usize>) -> u64 {
     let aw = scene.bounds.surface_area().max(f64::MIN_POSITIVE);
     let r2 = scene.normalisation.radius.powi(2);
     let (mut static_area, mut moving_area) = (0.0, 0.0);
@@ -1300,8 +1300,8 @@ pub fn estimate_bytes(scene: &Scene, lines: u64, auto: Option<&crate::adaptive::
         + moving_hits * 12.0
         + (patches + pieces) * 200.0
         + direct * (1.0 + pieces / patches.max(1.0));
-    let cuts = auto.map_or(0.0, |a| {
-        a.budget.saturating_sub(scene.patches.len()) as f64 * 200.0
+    let cuts = budget.map_or(0.0, |b| {
+        b.saturating_sub(scene.patches.len()) as f64 * 200.0
     });
     (bytes + cuts) as u64
 }

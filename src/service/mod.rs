@@ -199,7 +199,7 @@ async fn create_timeline(
         .await
         .map_err(|e| ApiError::Internal(format!("loader task: {e}")))??;
     let auto = settings.adaptive(scene.patches.len());
-    let needed = crate::bake::estimate_bytes(&scene, lines.lines, auto.as_ref());
+    let needed = crate::bake::estimate_bytes(&scene, lines.lines, auto.map(|a| a.budget));
     if needed > config.memory_budget {
         return Err(ApiError::Budget(format!(
             "the job would need about {:.1} GiB with {} lines, over the budget of {:.1} GiB: use fewer lines, \
