@@ -131,3 +131,151 @@ async fn every_route_takes_the_query_parameters_the_openapi_document_lists() {
     }
     assert!(routes >= 14, "{routes} routes documented");
 }
+
+/// The schema `schema` points to in `document` (following `$ref`).
+fn resolve<'a>(document: &'a Value, schema: &'a Value) -> &'a Value {
+    match schema["$ref"].as_str() {
+        Some(reference) => {
+            let path = reference.trim_start_matches("#/");
+            (path.split('/')).fold(document, |node, key| &node[key])
+        }
+        None => schema,
+    }
+}
+
+/// Every field of `value` that `schema` does not document, and every field it requires that
+/// `value` lacks, as `where: field`, through nested objects and arrays.
+fn undocumented(document: &Value, schema: &Value, value: &Value, at: &str) -> Vec<String> {
+    let schema = resolve(document, schema);
+    let mut found = Vec::new();
+    match value {
+        Value::Object(fields) => {
+            let Some(properties) = schema["properties"].as_object() else {
+                return found;
+            };
+            for (name, field) in fields {
+                match properties.get(name) {
+                    Some(inner) => {
+                        let at = format!("{at}.{name}");
+                        found.extend(undocumented(document, inner, field, &at));
+                    }
+                    None => found.push(format!("{at}: {name} (not documented)")),
+                }
+            }
+            for name in schema["required"].as_array().into_iter().flatten() {
+                let name = name.as_str().unwrap();
+                if !fields.contains_key(name) {
+                    found.push(format!("{at}: {name} (required, missing)"));
+                }
+            }
+        }
+        Value::Array(items) if schema["items"].is_object() => {
+            for (k, item) in items.iter().enumerate() {
+                let at = format!("{at}[{k}]");
+                found.extend(undocumented(document, &schema["items"], item, &at));
+            }
+        }
+        _ => {}
+    }
+    found
+}
+
+#[tokio::test]
+async fn every_json_answer_has_the_fields_the_openapi_document_gives_it() {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("api/openapi.json");
+    let document: Value = serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
+    let state = AppState::new(Config::default()).unwrap();
+    let send = |method: Method, uri: String, body: Option<(&'static str, Vec<u8>)>| {
+        let router = app(state.clone());
+        async move {
+            let mut request = Request::builder().method(method).uri(uri);
+            let body = match body {
+                Some((kind, bytes)) => {
+                    request = request.header(header::CONTENT_TYPE, kind);
+                    Body::from(bytes)
+                }
+                None => Body::empty(),
+            };
+            let response = router.oneshot(request.body(body).unwrap()).await.unwrap();
+            let status = response.status();
+            let bytes = axum::body::to_bytes(response.into_body(), usize::MAX)
+                .await
+                .unwrap();
+            (
+                status,
+                serde_json::from_slice::<Value>(&bytes).unwrap_or(Value::Null),
+            )
+        }
+    };
+    let schema = |path: &str, method: &str, status: &str| {
+        document["paths"][path][method]["responses"][status]["content"]["application/json"]
+            ["schema"]
+            .clone()
+    };
+    let mut checked = Vec::new();
+    let mut check = |name: &str, schema: Value, value: &Value| {
+        assert!(!schema.is_null(), "{name}: no schema documented");
+        let wrong = undocumented(&document, &schema, value, name);
+        assert!(wrong.is_empty(), "{wrong:#?}\n{value:#}");
+        checked.push(name.to_string());
+    };
+    let scene = Some(("model/gltf+json", furnace()));
+    let (status, created) = send(Method::POST, "/v1/timelines?preset=draft".into(), scene).await;
+    assert_eq!(status, StatusCode::ACCEPTED, "{created}");
+    check("created", schema("/v1/timelines", "post", "202"), &created);
+    let id = created["id"].as_str().unwrap().to_string();
+    let timeline = format!("/v1/timelines/{id}");
+    let started = std::time::Instant::now();
+    let status = loop {
+        let (_, status) = send(Method::GET, timeline.clone(), None).await;
+        if status["status"] == "done" || started.elapsed().as_secs() > 120 {
+            break status;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+    };
+    assert_eq!(status["status"], "done", "{status}");
+    check(
+        "status",
+        schema("/v1/timelines/{id}", "get", "200"),
+        &status,
+    );
+    for (name, path, template) in [
+        ("list", "/v1/timelines".to_string(), "/v1/timelines"),
+        (
+            "patches",
+            format!("{timeline}/patches"),
+            "/v1/timelines/{id}/patches",
+        ),
+        (
+            "frame",
+            format!("{timeline}/frames/0"),
+            "/v1/timelines/{id}/frames/{frame}",
+        ),
+        (
+            "stats",
+            format!("{timeline}/stats"),
+            "/v1/timelines/{id}/stats",
+        ),
+        ("health", "/healthz".to_string(), "/healthz"),
+    ] {
+        let (status, value) = send(Method::GET, path, None).await;
+        assert_eq!(status, StatusCode::OK, "{name}: {value}");
+        check(name, schema(template, "get", "200"), &value);
+    }
+    let relight =
+        serde_json::json!({"materials": [{"material": 0, "reflectance": [0.5, 0.5, 0.5]}]});
+    let body = Some(("application/json", relight.to_string().into_bytes()));
+    let path = format!("{timeline}/materials");
+    let (status, rerun) = send(Method::POST, path, body).await;
+    assert_eq!(status, StatusCode::ACCEPTED, "{rerun}");
+    check(
+        "relight",
+        schema("/v1/timelines/{id}/materials", "post", "202"),
+        &rerun,
+    );
+    let (status, problem) = send(Method::GET, format!("{timeline}/frames/99"), None).await;
+    assert!(status.is_client_error(), "{problem}");
+    let problem_schema = document["components"]["schemas"]["Problem"].clone();
+    check("problem", problem_schema, &problem);
+    assert_eq!(checked.len(), 9, "{checked:?}");
+}
