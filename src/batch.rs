@@ -406,79 +406,147 @@ pub fn bake_one(
         Err(e) => return Outcome::Failed(format!("{}: {e}", path.display())),
     };
     let hash = content_hash(&bytes, params);
-    if !params.force
-        && dir.join("radiance.bin").exists()
+    if !params.force && up_to_date(&dir, &hash) {
+        return Outcome::Skipped(dir);
+    }
+    let mut log = |line: String| log(&format!("{name}: {line}"));
+    let baked = bake_scene(&bytes, params, control, &mut log);
+    match baked.and_then(|baked| write_scene(&dir, (&name, hash), baked, params, control, &mut log))
+    {
+        Ok(()) => Outcome::Baked(dir),
+        Err(Stop::Cancelled) => Outcome::Cancelled,
+        Err(Stop::Failed(reason)) => Outcome::Failed(reason),
+    }
+}
+
+/// Whether `dir` holds a finished bake whose content hash is `hash`.
+fn up_to_date(dir: &Path, hash: &str) -> bool {
+    dir.join("radiance.bin").exists()
         && std::fs::read(dir.join("summary.json"))
             .ok()
             .and_then(|s| serde_json::from_slice::<serde_json::Value>(&s).ok())
-            .is_some_and(|s| s["content_hash"] == hash.as_str())
-    {
-        return Outcome::Skipped(dir);
+            .is_some_and(|s| s["content_hash"] == hash)
+}
+
+/// Why a scene's bake stopped before its outputs were written.
+enum Stop {
+    Cancelled,
+    Failed(String),
+}
+
+impl From<TraceError> for Stop {
+    fn from(e: TraceError) -> Self {
+        match e {
+            TraceError::Cancelled => Self::Cancelled,
+            e => Self::Failed(e.to_string()),
+        }
     }
-    let started = Instant::now();
-    control.start_stage(0);
-    log(&format!("{name}: loading"));
-    let scene = match loader::load(&bytes, &params.settings.load) {
-        Ok(s) => s,
-        Err(e) => return Outcome::Failed(e.to_string()),
+}
+
+/// The seconds each stage of a bake took (`timings.json`).
+#[derive(Default, Serialize)]
+struct Timings {
+    adapt: f64,
+    adapt_rounds: Vec<f64>,
+    load: f64,
+    outputs: f64,
+    solve: f64,
+    split: f64,
+    trace: f64,
+}
+
+/// A scene baked, before its outputs are written.
+struct Baked {
+    bake: Bake,
+    /// Every frame's solution.
+    frames: Vec<std::sync::Arc<FrameSolution>>,
+    /// `auto`'s rounds (none without it).
+    rounds: Vec<crate::adaptive::Round>,
+    /// The pieces the frames were solved on.
+    pieces: usize,
+    timings: Timings,
+}
+
+/// Loads the scene of `bytes`, traces it, cuts its patches (`auto`), splits them into pieces
+/// and solves every frame, stage by stage on `control`, each stage named on `log`.
+fn bake_scene(
+    bytes: &[u8],
+    params: &BatchParams,
+    control: &Control,
+    log: &mut dyn FnMut(String),
+) -> Result<Baked, Stop> {
+    let settings = &params.settings;
+    let mut timings = Timings::default();
+    let mut started = Instant::now();
+    let mut lap = || {
+        std::mem::replace(&mut started, Instant::now())
+            .elapsed()
+            .as_secs_f64()
     };
-    let load_seconds = started.elapsed().as_secs_f64();
-    log(&format!(
-        "{name}: tracing {} lines through {} frame{}, {} patches",
-        params.settings.lines.lines,
-        scene.frames.count,
-        if scene.frames.count == 1 { "" } else { "s" },
+    control.start_stage(0);
+    log("loading".into());
+    let scene = loader::load(bytes, &settings.load).map_err(|e| Stop::Failed(e.to_string()))?;
+    timings.load = lap();
+    let frames = scene.frames.count;
+    log(format!(
+        "tracing {} lines through {frames} frame{}, {} patches",
+        settings.lines.lines,
+        if frames == 1 { "" } else { "s" },
         scene.patches.len()
     ));
-    let started = Instant::now();
-    let mut bake = match Bake::trace_with(scene, &params.settings.lines, control) {
-        Ok(b) => b,
-        Err(TraceError::Cancelled) => return Outcome::Cancelled,
-        Err(e) => return Outcome::Failed(e.to_string()),
-    };
-    let trace_seconds = started.elapsed().as_secs_f64();
+    let mut bake = Bake::trace_with(scene, &settings.lines, control)?;
+    timings.trace = lap();
     let solve = SolveParams {
-        sky: params.settings.sky,
+        sky: settings.sky,
         max_iterations: params.max_iterations,
         ..SolveParams::default()
     };
-    let started = Instant::now();
-    let rounds = if let Some(auto) = params.settings.adaptive(bake.scene.patches.len()) {
-        log(&format!(
-            "{name}: cutting patches where the light needs them (at most {})",
-            auto.budget
-        ));
-        match adaptive::adapt(&mut bake, &auto, &solve, control) {
-            Ok(rounds) => rounds,
-            Err(TraceError::Cancelled) => return Outcome::Cancelled,
-            Err(e) => return Outcome::Failed(e.to_string()),
+    let rounds = match settings.adaptive(bake.scene.patches.len()) {
+        Some(auto) => {
+            let most = auto.budget;
+            log(format!(
+                "cutting patches where the light needs them (at most {most})"
+            ));
+            adaptive::adapt(&mut bake, &auto, &solve, control)?
         }
-    } else {
-        Vec::new()
+        None => Vec::new(),
     };
-    let adapt_seconds = started.elapsed().as_secs_f64();
+    timings.adapt = lap();
+    timings.adapt_rounds = rounds.iter().map(|r| r.seconds).collect();
     // The frames are solved on finer pieces of the patches ([`Bake::split`]).
-    let started = Instant::now();
-    let pieces = match bake.split(&solve, control) {
-        Ok(pieces) => pieces,
-        Err(TraceError::Cancelled) => return Outcome::Cancelled,
-        Err(e) => return Outcome::Failed(e.to_string()),
-    };
-    let split_seconds = started.elapsed().as_secs_f64();
-    let round_seconds: Vec<f64> = rounds.iter().map(|r| r.seconds).collect();
+    let pieces = bake.split(&solve, control)?;
+    timings.split = lap();
     control.start_stage(0);
     let count = bake.scene.frames.count;
-    let plural = if count == 1 { "" } else { "s" };
-    log(&format!("{name}: solving {count} frame{plural}"));
-    let started = Instant::now();
+    log(format!(
+        "solving {count} frame{}",
+        if count == 1 { "" } else { "s" }
+    ));
+    let frames = solve_all(&bake, &solve, control)?;
+    timings.solve = lap();
+    Ok(Baked {
+        bake,
+        frames,
+        rounds,
+        pieces,
+        timings,
+    })
+}
+
+/// Every frame of `bake` solved ([`Bake::solve_frames`]), each distinct one a unit of
+/// `control`'s stage; the first that does not converge fails the bake.
+fn solve_all(
+    bake: &Bake,
+    solve: &SolveParams,
+    control: &Control,
+) -> Result<Vec<std::sync::Arc<FrameSolution>>, Stop> {
     let (mut frames, mut failed) = (Vec::with_capacity(bake.scene.frames.count), None);
     let power = bake.light_power();
-    let solving = (&bake.scene.materials[..], &power[..], &solve);
-    // Each distinct frame solved is one unit of the stage's work.
+    let solving = (&bake.scene.materials[..], &power[..], solve);
     control.add_work(bake.solve_runs().iter().map(Vec::len).sum::<usize>() as u64);
     let progress = |n: usize| control.advance(n as u64);
     bake.solve_frames(solving, (usize::MAX, control), &progress, |f, s| {
-        if let Err(e) = s.ensure_converged(f, &solve) {
+        if let Err(e) = s.ensure_converged(f, solve) {
             failed = Some(e);
             return ControlFlow::Break(());
         }
@@ -486,19 +554,60 @@ pub fn bake_one(
         ControlFlow::Continue(())
     });
     if control.is_cancelled() {
-        return Outcome::Cancelled;
+        return Err(Stop::Cancelled);
     }
-    if let Some(e) = failed {
-        return Outcome::Failed(e.to_string());
+    match failed {
+        Some(e) => Err(Stop::Failed(e.to_string())),
+        None => Ok(frames),
     }
-    let solve_seconds = started.elapsed().as_secs_f64();
+}
+
+/// The warnings for frames `outputs` asks for past the timeline's `count`.
+fn past_end_warnings(outputs: &Outputs, count: usize) -> Vec<String> {
+    let asked = [
+        ("--glb-frames", &outputs.glb_frames),
+        ("--preview-frames", &outputs.preview_frames),
+    ];
+    let has = match count {
+        1 => "frame 0 only".to_string(),
+        _ => format!("frames 0 to {}", count.saturating_sub(1)),
+    };
+    (asked.into_iter())
+        .filter(|(_, spec)| !spec.past_end(count).is_empty())
+        .map(|(option, spec)| {
+            format!(
+                "{option} {spec}: the timeline has {has}; the frames asked past them are left out"
+            )
+        })
+        .collect()
+}
+
+/// Writes `baked`'s outputs into a staging directory beside `dir` and swaps it in whole:
+/// `radiance.bin`, `patches.json`, the baked glTF and previews, `summary.json` (with `name`
+/// and the content `hash`) and `timings.json`. Nothing of it is left if it fails or is
+/// cancelled.
+fn write_scene(
+    dir: &Path,
+    (name, hash): (&str, String),
+    baked: Baked,
+    params: &BatchParams,
+    control: &Control,
+    log: &mut dyn FnMut(String),
+) -> Result<(), Stop> {
+    let Baked {
+        bake,
+        frames,
+        rounds,
+        pieces,
+        mut timings,
+    } = baked;
     let scene = bake.shown();
     let times: Vec<f64> = (0..scene.frames.count)
         .map(|f| scene.frames.time(f))
         .collect();
-    log(&format!("{name}: writing outputs"));
+    log("writing outputs".into());
     let started = Instant::now();
-    let staging = hidden(&dir, "partial");
+    let staging = hidden(dir, "partial");
     let tone = match params.outputs.exposure {
         Some(exposure) => ToneMap { exposure },
         None => ToneMap::for_timeline(scene, &frames),
@@ -514,41 +623,24 @@ pub fn bake_one(
         std::fs::write(staging.join("patches.json"), table).map_err(io)?;
         write_outputs(&staging, scene, &frames, &params.outputs, &tone, control)
     })();
-    let gif = match written {
-        Ok(gif) => gif,
-        Err(e) => {
-            let _ = std::fs::remove_dir_all(&staging);
-            return if control.is_cancelled() {
-                Outcome::Cancelled
-            } else {
-                Outcome::Failed(e)
-            };
+    let gif = written.map_err(|e| {
+        let _ = std::fs::remove_dir_all(&staging);
+        if control.is_cancelled() {
+            Stop::Cancelled
+        } else {
+            Stop::Failed(e)
         }
-    };
+    })?;
     let count = frames.len();
     let mut found = bake.findings(&frames);
-    let asked = [
-        ("--glb-frames", &params.outputs.glb_frames),
-        ("--preview-frames", &params.outputs.preview_frames),
-    ];
-    for (option, spec) in asked {
-        if !spec.past_end(count).is_empty() {
-            let has = match count {
-                1 => "frame 0 only".to_string(),
-                _ => format!("frames 0 to {}", count - 1),
-            };
-            found.push(format!(
-                "{option} {spec}: the timeline has {has}; the frames asked past them are left out"
-            ));
-        }
-    }
+    found.extend(past_end_warnings(&params.outputs, count));
     for w in &found {
-        log(&format!("{name}: warning: {w}"));
+        log(format!("warning: {w}"));
     }
     let warnings: Vec<String> = scene.warnings.iter().cloned().chain(found).collect();
-    let information = bake.information(0).report(false);
+    let settings = &params.settings;
     let summary = Summary {
-        scene: &name,
+        scene: name,
         content_hash: hash,
         frames: count,
         frame_times: times,
@@ -560,12 +652,12 @@ pub fn bake_one(
             factor: bake.list().dense().1,
             lines: bake.list().dense_lines(),
         },
-        seed: params.settings.lines.seed,
-        fps: params.settings.load.fps,
-        patch_size: params.settings.patch_size,
+        seed: settings.lines.seed,
+        fps: settings.load.fps,
+        patch_size: settings.patch_size,
         adaptive: rounds,
-        animation: params.settings.load.animation.as_deref(),
-        sky: params.settings.sky,
+        animation: settings.load.animation.as_deref(),
+        sky: settings.sky,
         worst_residual: frames.iter().map(|f| f.residual).fold(0.0, f64::max),
         iterations: frames.iter().map(|f| f.iterations).collect(),
         converged: frames.iter().all(|f| f.converged),
@@ -584,29 +676,19 @@ pub fn bake_one(
         preview_frames: params.outputs.preview_frames.frames(count),
         gif_frames: gif,
         warnings: &warnings,
-        information,
+        information: bake.information(0).report(false),
     };
-    let timings = serde_json::json!({
-        "load": load_seconds,
-        "trace": trace_seconds,
-        "adapt": adapt_seconds,
-        "adapt_rounds": round_seconds,
-        "split": split_seconds,
-        "solve": solve_seconds,
-        "outputs": started.elapsed().as_secs_f64(),
-    });
+    timings.outputs = started.elapsed().as_secs_f64();
     let finished = serde_json::to_vec_pretty(&summary)
         .map_err(std::io::Error::other)
         .and_then(|json| std::fs::write(staging.join("summary.json"), json))
-        .and_then(|()| std::fs::write(staging.join("timings.json"), timings.to_string()))
-        .and_then(|()| swap_in(&staging, &dir));
-    match finished {
-        Ok(()) => Outcome::Baked(dir),
-        Err(e) => {
-            let _ = std::fs::remove_dir_all(&staging);
-            Outcome::Failed(format!("writing {}: {e}", dir.display()))
-        }
-    }
+        .and_then(|()| serde_json::to_vec(&timings).map_err(std::io::Error::other))
+        .and_then(|json| std::fs::write(staging.join("timings.json"), json))
+        .and_then(|()| swap_in(&staging, dir));
+    finished.map_err(|e| {
+        let _ = std::fs::remove_dir_all(&staging);
+        Stop::Failed(format!("writing {}: {e}", dir.display()))
+    })
 }
 
 /// Bakes every scene of `scenes` into `out` ([`bake_one`]), one after the other, showing each
