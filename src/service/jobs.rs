@@ -7,6 +7,7 @@ use std::sync::{Arc, Mutex, PoisonError, RwLock};
 use std::time::Instant;
 
 use serde::Serialize;
+use serde_json::json;
 use tokio::sync::{Semaphore, watch};
 
 use super::store::{Record, Store};
@@ -117,7 +118,7 @@ pub struct Job {
     /// Largest reflectance the scene was loaded with; relighting may not go above it.
     pub max_reflectance: f64,
     /// Status, error, timings.
-    pub state: Mutex<JobState>,
+    state: Mutex<JobState>,
     /// Progress and cancellation of the tracing.
     pub control: Control,
     /// Frames of the current version solved so far (they are solved in order).
@@ -362,6 +363,13 @@ impl Job {
     #[must_use]
     pub fn with_auto(self, auto: Option<Adaptive>) -> Self {
         Self { auto, ..self }
+    }
+
+    /// Records the seconds its scene took to load (its `timings`).
+    pub fn loaded_in(&self, seconds: f64) {
+        if let Ok(mut s) = self.state.lock() {
+            s.timings.load = seconds;
+        }
     }
 
     /// The patch table, as served.
@@ -705,9 +713,90 @@ impl Jobs {
     }
 }
 
+/// The seconds left of a stage that has done `done` of `total` like steps, the last ending
+/// `at` seconds into it, now `now` seconds in: the steps left at the rate so far, counted down
+/// while the next step takes longer than that, never below what the steps after it need. It
+/// never climbs while a step stalls (the rate over the elapsed time did, at every poll).
+pub(super) fn seconds_left((done, total): (usize, usize), at: f64, now: f64) -> f64 {
+    let rate = at / done.max(1) as f64;
+    let left = total.saturating_sub(done) as f64;
+    (at + left * rate - now).max((left - 1.0).max(0.0) * rate)
+}
+
+impl Job {
+    /// Its status document (`GET /v1/timelines/{id}`, the events stream).
+    #[must_use]
+    pub fn status_document(&self) -> serde_json::Value {
+        let job = self;
+        let (status, error, timings, memory, (stage_seconds, last_frame)) = match job.state.lock() {
+            Ok(s) => (
+                s.status,
+                s.error.clone(),
+                s.timings,
+                s.memory,
+                (s.stage_started.elapsed().as_secs_f64(), s.last_frame),
+            ),
+            Err(_) => (
+                Status::Failed,
+                Some("state unavailable".into()),
+                Default::default(),
+                None,
+                (0.0, None),
+            ),
+        };
+        let frames = job.frame_times.len();
+        let solved = job.frames_solved.load(Ordering::Acquire);
+        let fraction = job.control.fraction();
+        // The control counts the work of the first trace and of every refinement since, in
+        // proportion to their lines; a job read back from disk has traced all of its own.
+        let lines_total = job.lines_total.load(Ordering::Acquire);
+        let lines_traced = match status {
+            Status::Done => lines_total,
+            _ => (fraction * lines_total as f64).round() as u64,
+        };
+        let eta = match status {
+            Status::Tracing if fraction > 0.0 => Some(stage_seconds * (1.0 - fraction) / fraction),
+            Status::Solving if solved > 0 => {
+                last_frame.map(|at| seconds_left((solved, frames), at, stage_seconds))
+            }
+            _ => None,
+        };
+        // The solves' iterations per frame, for the frames solved for the current version.
+        let version = job.version();
+        let iterations: Vec<Option<usize>> = (job.frames().iter())
+            .map(|r| {
+                r.as_ref()
+                    .filter(|(v, _)| *v == version)
+                    .map(|(_, s)| s.iterations)
+            })
+            .collect();
+        let mut doc = json!({
+            "id": job.id,
+            "status": status,
+            "progress": {
+                "lines_traced": lines_traced,
+                "lines_total": lines_total,
+                "frames_solved": solved,
+                "frames_total": frames,
+                "eta_seconds": eta,
+            },
+            "frames": frames,
+            "patches": job.patches.load(Ordering::Acquire),
+            "iterations": iterations,
+            "timings": timings,
+            "memory": memory.map(|(hits, bytes)| json!({"hits": hits, "bytes": bytes})),
+            "warnings": job.warnings(),
+        });
+        if let Some(error) = error {
+            doc["error"] = json!(error);
+        }
+        doc
+    }
+}
+
 #[cfg(test)]
 mod tests {
-    use super::Status;
+    use super::{Status, seconds_left};
 
     #[test]
     fn a_status_reads_in_messages_as_in_documents() {
@@ -724,5 +813,21 @@ mod tests {
                 serde_json::Value::String(status.to_string())
             );
         }
+    }
+
+    #[test]
+    fn the_eta_counts_down_and_holds_while_a_frame_stalls() {
+        // 5 of 10 frames in 10 s, the last at 10 s: 2 s a frame, 10 s left.
+        assert_eq!(seconds_left((5, 10), 10.0, 10.0), 10.0);
+        assert_eq!(seconds_left((5, 10), 10.0, 11.0), 9.0);
+        // Stalled on the sixth frame: it holds at what the four after it need, never climbs.
+        let polls: Vec<f64> = (10..60)
+            .map(|now| seconds_left((5, 10), 10.0, f64::from(now)))
+            .collect();
+        assert!(polls.windows(2).all(|w| w[1] <= w[0]), "{polls:?}");
+        assert_eq!(polls.last(), Some(&8.0));
+        // The last frame: down to 0, not below.
+        assert_eq!(seconds_left((9, 10), 18.0, 100.0), 0.0);
+        assert_eq!(seconds_left((10, 10), 20.0, 21.0), 0.0);
     }
 }

@@ -32,6 +32,7 @@ use query::{NoParameters, RefineQuery, StatsQuery, StrictQuery};
 
 use crate::loader;
 use crate::params::{BakeRequest, Limits};
+use crate::scene::Scene;
 use crate::solve::SolveParams;
 
 /// Server settings.
@@ -179,16 +180,7 @@ async fn create_timeline(
     let config = &state.0.config;
     let settings = request.validate(&config.limits)?;
     let (options, lines, sky) = (settings.load.clone(), settings.lines, settings.sky);
-    let content_type = headers
-        .get(header::CONTENT_TYPE)
-        .and_then(|v| v.to_str().ok())
-        .unwrap_or("");
-    let media = content_type.split(';').next().unwrap_or("").trim();
-    if media != "model/gltf-binary" && media != "model/gltf+json" {
-        return Err(ApiError::ContentType(format!(
-            "content type {content_type:?}: send model/gltf-binary (.glb) or model/gltf+json (.gltf)"
-        )));
-    }
+    gltf_media(&headers)?;
     let body = body.map_err(|e| match e.status() {
         StatusCode::PAYLOAD_TOO_LARGE => ApiError::TooLarge(config.max_body_bytes),
         _ => ApiError::Parameter(format!("the body could not be read: {e}")),
@@ -199,16 +191,7 @@ async fn create_timeline(
         .await
         .map_err(|e| ApiError::Internal(format!("loader task: {e}")))??;
     let auto = settings.adaptive(scene.patches.len());
-    let needed = crate::bake::estimate_bytes(&scene, lines.lines, auto.map(|a| a.budget));
-    if needed > config.memory_budget {
-        return Err(ApiError::Budget(format!(
-            "the job would need about {:.1} GiB with {} lines, over the budget of {:.1} GiB: use fewer lines, \
-             fewer frames or a larger patch_size",
-            needed as f64 / f64::from(1 << 30),
-            lines.lines,
-            config.memory_budget as f64 / f64::from(1 << 30)
-        )));
-    }
+    within_budget(config, &scene, lines.lines, auto.map(|a| a.budget))?;
     let id = new_id();
     let table = crate::output::patch_table(&scene);
     let solve = SolveParams {
@@ -228,9 +211,7 @@ async fn create_timeline(
         )
         .with_auto(auto),
     );
-    if let Ok(mut s) = job.state.lock() {
-        s.timings.load = started.elapsed().as_secs_f64();
-    }
+    job.loaded_in(started.elapsed().as_secs_f64());
     let body = json!({
         "id": id,
         "status": job.status(),
@@ -248,6 +229,43 @@ async fn create_timeline(
         .into_response())
 }
 
+/// Refuses a body that is not glTF by its content type.
+fn gltf_media(headers: &HeaderMap) -> Result<(), ApiError> {
+    let content_type = headers
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("");
+    let media = content_type.split(';').next().unwrap_or("").trim();
+    if media == "model/gltf-binary" || media == "model/gltf+json" {
+        Ok(())
+    } else {
+        Err(ApiError::ContentType(format!(
+            "content type {content_type:?}: send model/gltf-binary (.glb) or model/gltf+json (.gltf)"
+        )))
+    }
+}
+
+/// Refuses a job whose memory, estimated before tracing ([`crate::bake::estimate_bytes`]),
+/// is over `config`'s budget.
+fn within_budget(
+    config: &Config,
+    scene: &Scene,
+    lines: u64,
+    budget: Option<usize>,
+) -> Result<(), ApiError> {
+    let needed = crate::bake::estimate_bytes(scene, lines, budget);
+    if needed <= config.memory_budget {
+        return Ok(());
+    }
+    let gib = |bytes: u64| bytes as f64 / f64::from(1 << 30);
+    Err(ApiError::Budget(format!(
+        "the job would need about {:.1} GiB with {lines} lines, over the budget of {:.1} GiB: use \
+         fewer lines, fewer frames or a larger patch_size",
+        gib(needed),
+        gib(config.memory_budget)
+    )))
+}
+
 fn job(state: &AppState, id: &str) -> Result<Arc<Job>, ApiError> {
     state
         .0
@@ -256,90 +274,13 @@ fn job(state: &AppState, id: &str) -> Result<Arc<Job>, ApiError> {
         .ok_or_else(|| ApiError::NotFound(format!("no timeline {id:?}")))
 }
 
-/// The seconds left of a stage that has done `done` of `total` like steps, the last ending
-/// `at` seconds into it, now `now` seconds in: the steps left at the rate so far, counted down
-/// while the next step takes longer than that, never below what the steps after it need. It
-/// never climbs while a step stalls (the rate over the elapsed time did, at every poll).
-fn seconds_left((done, total): (usize, usize), at: f64, now: f64) -> f64 {
-    let rate = at / done.max(1) as f64;
-    let left = total.saturating_sub(done) as f64;
-    (at + left * rate - now).max((left - 1.0).max(0.0) * rate)
-}
-
-/// The status document of a job.
-fn status_json(job: &Job) -> serde_json::Value {
-    let (status, error, timings, memory, (stage_seconds, last_frame)) = match job.state.lock() {
-        Ok(s) => (
-            s.status,
-            s.error.clone(),
-            s.timings,
-            s.memory,
-            (s.stage_started.elapsed().as_secs_f64(), s.last_frame),
-        ),
-        Err(_) => (
-            Status::Failed,
-            Some("state unavailable".into()),
-            Default::default(),
-            None,
-            (0.0, None),
-        ),
-    };
-    let frames = job.frame_times.len();
-    let solved = job.frames_solved.load(Ordering::Acquire);
-    let fraction = job.control.fraction();
-    // The control counts the work of the first trace and of every refinement since, in
-    // proportion to their lines; a job read back from disk has traced all of its own.
-    let lines_total = job.lines_total.load(Ordering::Acquire);
-    let lines_traced = match status {
-        Status::Done => lines_total,
-        _ => (fraction * lines_total as f64).round() as u64,
-    };
-    let eta = match status {
-        Status::Tracing if fraction > 0.0 => Some(stage_seconds * (1.0 - fraction) / fraction),
-        Status::Solving if solved > 0 => {
-            last_frame.map(|at| seconds_left((solved, frames), at, stage_seconds))
-        }
-        _ => None,
-    };
-    // The solves' iterations per frame, for the frames solved for the current version.
-    let version = job.version();
-    let iterations: Vec<Option<usize>> = (job.frames().iter())
-        .map(|r| {
-            r.as_ref()
-                .filter(|(v, _)| *v == version)
-                .map(|(_, s)| s.iterations)
-        })
-        .collect();
-    let mut doc = json!({
-        "id": job.id,
-        "status": status,
-        "progress": {
-            "lines_traced": lines_traced,
-            "lines_total": lines_total,
-            "frames_solved": solved,
-            "frames_total": frames,
-            "eta_seconds": eta,
-        },
-        "frames": frames,
-        "patches": job.patches.load(Ordering::Acquire),
-        "iterations": iterations,
-        "timings": timings,
-        "memory": memory.map(|(hits, bytes)| json!({"hits": hits, "bytes": bytes})),
-        "warnings": job.warnings(),
-    });
-    if let Some(error) = error {
-        doc["error"] = json!(error);
-    }
-    doc
-}
-
 async fn timeline_status(
     State(state): State<AppState>,
     Path(id): Path<String>,
     _: StrictQuery<NoParameters>,
 ) -> Result<Json<serde_json::Value>, ApiError> {
     let job = job(&state, &id)?;
-    Ok(Json(status_json(&job)))
+    Ok(Json(job.status_document()))
 }
 
 async fn list_timelines(
@@ -472,7 +413,7 @@ async fn timeline_events(
             // The status before the document: a job ending in between sends one more event
             // (the final document), never a final event with an older document.
             let last = job.status().is_final();
-            let doc = status_json(&job);
+            let doc = job.status_document();
             let event = Event::default()
                 .event("status")
                 .json_data(&doc)
@@ -498,25 +439,4 @@ pub const OPENAPI: &str = include_str!("../../api/openapi.json");
 
 async fn openapi(_: StrictQuery<NoParameters>) -> Response {
     ([(header::CONTENT_TYPE, "application/json")], OPENAPI).into_response()
-}
-
-#[cfg(test)]
-mod tests {
-    use super::seconds_left;
-
-    #[test]
-    fn the_eta_counts_down_and_holds_while_a_frame_stalls() {
-        // 5 of 10 frames in 10 s, the last at 10 s: 2 s a frame, 10 s left.
-        assert_eq!(seconds_left((5, 10), 10.0, 10.0), 10.0);
-        assert_eq!(seconds_left((5, 10), 10.0, 11.0), 9.0);
-        // Stalled on the sixth frame: it holds at what the four after it need, never climbs.
-        let polls: Vec<f64> = (10..60)
-            .map(|now| seconds_left((5, 10), 10.0, f64::from(now)))
-            .collect();
-        assert!(polls.windows(2).all(|w| w[1] <= w[0]), "{polls:?}");
-        assert_eq!(polls.last(), Some(&8.0));
-        // The last frame: down to 0, not below.
-        assert_eq!(seconds_left((9, 10), 18.0, 100.0), 0.0);
-        assert_eq!(seconds_left((10, 10), 20.0, 21.0), 0.0);
-    }
 }
