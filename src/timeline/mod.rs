@@ -32,15 +32,16 @@ pub struct LineParams {
 /// same names in the CLI and the API.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum Preset {
-    /// 100,000 lines: previews (the sample level's 25 frames in about 4 s; against the path
-    /// tracer, 9.0% at points; the README's preset table).
+    /// 100,000 lines: previews (the sample level's 25 frames in about 5 s; against the path
+    /// tracer, 8.5% at points; the README's preset table).
     Draft,
-    /// 1,000,000 lines: everyday bakes, and what a bake asks for by default (about 22 s for the level's 25 frames at 4.2% per patch,
-    /// 5.7% at points; the moving Cornell box at 1.0% per patch, 5.0% at points).
+    /// 1,000,000 lines: everyday bakes, and what a bake asks for by default (about 25 s for the
+    /// level's 25 frames at 1.9% per patch, 5.6% at points; the moving Cornell box at 1.0% per
+    /// patch, 5.0% at points).
     #[default]
     Default,
-    /// 10,000,000 lines: final bakes (about 3.5 to 4 minutes for 25 frames; the moving Cornell
-    /// box at 0.8% per patch, 4.4% at points).
+    /// 10,000,000 lines: final bakes (about 4 minutes for 25 frames; the moving Cornell box at
+    /// 0.8% per patch, 3.9% at points).
     Final,
 }
 
