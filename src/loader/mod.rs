@@ -882,6 +882,98 @@ fn local_box(positions: &[DVec3], used: &[usize]) -> Bounds {
     )
 }
 
+impl Instance {
+    /// Positions (scene units) that decide the subdivision, and where areas are measured: a
+    /// rigid object's at its widest pose, a deforming one's at frame 0.
+    fn measured_positions(&self) -> Vec<DVec3> {
+        match &self.placement {
+            Placement::Static(p) => p.clone(),
+            Placement::Rigid(poses) => {
+                let widest = poses
+                    .iter()
+                    .max_by(|a, b| a.determinant().abs().total_cmp(&b.determinant().abs()))
+                    .copied()
+                    .unwrap_or(DMat4::IDENTITY);
+                (self.geometry.positions.iter())
+                    .map(|&p| widest.transform_point3(p))
+                    .collect()
+            }
+            Placement::Deforming(d) => d.positions_at(0),
+        }
+    }
+
+    /// The area of each of `split`'s triangles: a rigid object's at its first pose, the others'
+    /// on `measure` (the positions the split was made on, its midpoints included).
+    fn areas(&self, split: &Subdivision, measure: &[DVec3]) -> Vec<f64> {
+        let positions: Vec<DVec3> = match &self.placement {
+            Placement::Rigid(poses) => {
+                let mut local = self.geometry.positions.clone();
+                subdivide::apply_midpoints(&mut local, &split.midpoints);
+                (local.iter())
+                    .map(|&p| poses[0].transform_point3(p))
+                    .collect()
+            }
+            _ => measure.to_vec(),
+        };
+        (split.triangles.iter())
+            .map(|t| {
+                let [a, b, c] = t.map(|i| positions[i as usize]);
+                triangle_area(a, b, c)
+            })
+            .collect()
+    }
+}
+
+/// A rigid moving object of node `node`: `mesh` on `positions` (mesh space, with the split's
+/// `midpoints`) recentred on their box, posed by `poses` (mesh space to scene units) carried
+/// into normalised space by `to_norm`.
+fn rigid(
+    node: u32,
+    positions: &[DVec3],
+    mut mesh: TriangleMesh,
+    (poses, midpoints): (&[DMat4], &[[u32; 2]]),
+    to_norm: DAffine3,
+) -> MovingObject {
+    let used: Vec<usize> = (0..positions.len()).collect();
+    let local_bounds = local_box(positions, &used);
+    let centre = 0.5 * (local_bounds.min + local_bounds.max);
+    let mut local = positions.to_vec();
+    subdivide::apply_midpoints(&mut local, midpoints);
+    mesh.positions = local.iter().map(|&p| (p - centre).as_vec3()).collect();
+    let recentre = DMat4::from_translation(centre);
+    let to_norm = DMat4::from(to_norm);
+    let poses = (poses.iter())
+        .map(|m| DAffine3::from_mat4(to_norm * *m * recentre))
+        .collect();
+    MovingObject {
+        node,
+        mesh,
+        motion: Motion::Rigid { poses },
+    }
+}
+
+/// A deforming object of node `node`: `mesh` with the deformation `d` (its poses carried into
+/// normalised space by `to_norm`, the split's `midpoints` kept), posed at frame 0.
+fn deforming(
+    node: u32,
+    mut d: Deformation,
+    mut mesh: TriangleMesh,
+    midpoints: Vec<[u32; 2]>,
+    to_norm: DAffine3,
+) -> MovingObject {
+    d.node_poses.iter_mut().for_each(|m| *m = to_norm * *m);
+    if let Some(skin) = &mut d.skin {
+        skin.joint_poses.iter_mut().for_each(|m| *m = to_norm * *m);
+    }
+    d.midpoints = midpoints;
+    mesh.positions = d.positions_at(0).iter().map(|p| p.as_vec3()).collect();
+    MovingObject {
+        node,
+        mesh,
+        motion: Motion::Deforming(Box::new(d)),
+    }
+}
+
 /// Makes the patches and the engine's geometry from the placed instances.
 fn build(
     instances: Vec<Instance>,
@@ -896,7 +988,6 @@ fn build(
         radius: 0.5 * (bounds.max - bounds.min).length(),
     };
     let to_norm = normalisation.to_normalised();
-    let to_norm_mat = DMat4::from(to_norm);
     let mut patches: Vec<Patch> = Vec::new();
     let mut statics = TriangleMesh::default();
     let mut objects = Vec::new();
@@ -919,23 +1010,7 @@ fn build(
         }
         source_triangles += kept.len();
         let triangles: Vec<[u32; 3]> = kept.iter().map(|&t| inst.geometry.triangles[t]).collect();
-        // Positions (scene units) that decide the subdivision, and where areas are measured.
-        let measure: Vec<DVec3> = match &inst.placement {
-            Placement::Static(p) => p.clone(),
-            Placement::Rigid(poses) => {
-                let widest = poses
-                    .iter()
-                    .max_by(|a, b| a.determinant().abs().total_cmp(&b.determinant().abs()))
-                    .copied()
-                    .unwrap_or(DMat4::IDENTITY);
-                inst.geometry
-                    .positions
-                    .iter()
-                    .map(|&p| widest.transform_point3(p))
-                    .collect()
-            }
-            Placement::Deforming(d) => d.positions_at(0),
-        };
+        let measure = inst.measured_positions();
         let budget = options.max_patches.saturating_sub(patches.len());
         let split = match options.patch_size {
             Some(size) => {
@@ -949,26 +1024,14 @@ fn build(
         };
         let mut measure = measure;
         subdivide::apply_midpoints(&mut measure, &split.midpoints);
-        let area_positions: Vec<DVec3> = match &inst.placement {
-            Placement::Rigid(poses) => {
-                let mut local = inst.geometry.positions.clone();
-                subdivide::apply_midpoints(&mut local, &split.midpoints);
-                local
-                    .iter()
-                    .map(|&p| poses[0].transform_point3(p))
-                    .collect()
-            }
-            _ => measure.clone(),
-        };
         let object = match inst.placement {
             Placement::Static(_) => None,
             _ => Some(objects.len() as u32),
         };
         let mut mesh = TriangleMesh::default();
-        for (t, &src) in split.triangles.iter().zip(&split.sources) {
+        let areas = inst.areas(&split, &measure);
+        for ((t, &src), area) in split.triangles.iter().zip(&split.sources).zip(areas) {
             let (primitive, triangle, material) = inst.geometry.origin[kept[src as usize]];
-            let [a, b, c] = t.map(|i| area_positions[i as usize]);
-            let area = triangle_area(a, b, c);
             let source = Provenance {
                 node: inst.node,
                 mesh: inst.mesh,
@@ -1010,35 +1073,17 @@ fn build(
                 statics.faces.extend(mesh.faces);
             }
             Placement::Rigid(poses) => {
-                let used: Vec<usize> = (0..inst.geometry.positions.len()).collect();
-                let local_bounds = local_box(&inst.geometry.positions, &used);
-                let centre = 0.5 * (local_bounds.min + local_bounds.max);
-                let mut local = inst.geometry.positions.clone();
-                subdivide::apply_midpoints(&mut local, &split.midpoints);
-                mesh.positions = local.iter().map(|&p| (p - centre).as_vec3()).collect();
-                let recentre = DMat4::from_translation(centre);
-                let poses = poses
-                    .iter()
-                    .map(|m| DAffine3::from_mat4(to_norm_mat * *m * recentre))
-                    .collect();
-                objects.push(MovingObject {
-                    node: inst.node,
+                let positions = &inst.geometry.positions;
+                objects.push(rigid(
+                    inst.node,
+                    positions,
                     mesh,
-                    motion: Motion::Rigid { poses },
-                });
+                    (&poses, &split.midpoints),
+                    to_norm,
+                ));
             }
-            Placement::Deforming(mut d) => {
-                d.node_poses.iter_mut().for_each(|m| *m = to_norm * *m);
-                if let Some(skin) = &mut d.skin {
-                    skin.joint_poses.iter_mut().for_each(|m| *m = to_norm * *m);
-                }
-                d.midpoints = split.midpoints;
-                mesh.positions = d.positions_at(0).iter().map(|p| p.as_vec3()).collect();
-                objects.push(MovingObject {
-                    node: inst.node,
-                    mesh,
-                    motion: Motion::Deforming(d),
-                });
+            Placement::Deforming(d) => {
+                objects.push(deforming(inst.node, *d, mesh, split.midpoints, to_norm));
             }
         }
     }
