@@ -68,7 +68,7 @@ pub const MIN_LINES: u64 = 1_000;
 /// takes the defaults.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Limits {
-    /// Most lines of one bake (a refine's added lines included).
+    /// Most lines of one bake, and of the lines one refine adds.
     pub max_lines: u64,
     /// Most frames of one timeline ([`LoadOptions::max_frames`]).
     pub max_frames: usize,
