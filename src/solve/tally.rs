@@ -270,7 +270,7 @@ impl Tallies {
         }
         let new = self.lines..list.lines();
         self.groups = list.line_groups(GROUPS);
-        self.weights = list.line_weights();
+        self.weights = list.line_weights().to_vec();
         let statics = tally_static(list, surfaces, new.clone(), (&self.groups, &self.weights));
         let entries = if self.lines == 0 {
             statics

@@ -105,6 +105,9 @@ pub struct IntersectionList {
     /// Regions whose lines are denser ([`IntersectionList::add_dense`]), and by how much.
     dense: Vec<Bounds>,
     factor: u32,
+    /// Every line's weight ([`IntersectionList::line_weights`]), kept as lines and regions
+    /// are added.
+    weights: Vec<u8>,
     /// The scene's box the global lines were drawn against.
     bounds: Bounds,
 }
@@ -148,6 +151,7 @@ impl IntersectionList {
             dynamic_hits: Vec::new(),
             dense: Vec::new(),
             factor: 1,
+            weights: Vec::new(),
             bounds: scene.bounds,
         };
         list.add_lines(scene, tracer, params, control)?;
@@ -179,7 +183,9 @@ impl IntersectionList {
                 index,
             ));
         }
-        self.add_batches(&batches, scene, tracer, control)
+        self.add_batches(&batches, scene, tracer, control)?;
+        self.weights = self.weights_of_lines();
+        Ok(())
     }
 
     /// Makes the lines that meet `regions` (boxes in normalised space) `factor` times as dense
@@ -218,6 +224,7 @@ impl IntersectionList {
         }
         self.add_batches(&batches, scene, tracer, control)?;
         (self.dense, self.factor) = (regions.to_vec(), factor);
+        self.weights = self.weights_of_lines();
         Ok(())
     }
 
@@ -244,7 +251,12 @@ impl IntersectionList {
     /// every segment in both directions with its line's weight: `S` stays symmetric and its
     /// expectation is that of global lines alone, times the factor.
     #[must_use]
-    pub fn line_weights(&self) -> Vec<u8> {
+    pub fn line_weights(&self) -> &[u8] {
+        &self.weights
+    }
+
+    /// [`IntersectionList::line_weights`] worked out from the batches and regions.
+    fn weights_of_lines(&self) -> Vec<u8> {
         if self.dense.is_empty() {
             return vec![1; self.lines()];
         }
@@ -630,7 +642,8 @@ impl IntersectionList {
             moving_hits: self.dynamic_hits.len(),
             bytes: (self.static_offsets.len() + self.dynamic_offsets.len()) * size_of::<u32>()
                 + self.static_hits.len() * size_of::<Hit>()
-                + self.dynamic_hits.len() * size_of::<FrameHit>(),
+                + self.dynamic_hits.len() * size_of::<FrameHit>()
+                + self.weights.len(),
         }
     }
 }
