@@ -48,6 +48,20 @@ impl std::fmt::Display for Plan {
     }
 }
 
+/// Prints `value` as pretty JSON if `json`, else `text`.
+fn print_report(
+    json: bool,
+    value: &impl serde::Serialize,
+    text: impl std::fmt::Display,
+) -> anyhow::Result<()> {
+    if json {
+        println!("{}", serde_json::to_string_pretty(value)?);
+    } else {
+        print!("{text}");
+    }
+    Ok(())
+}
+
 /// The bake a command asks for, checked as the service checks it.
 fn settings(request: BakeRequest) -> anyhow::Result<BakeSettings> {
     Ok(request.validate(&Limits::default())?)
@@ -381,15 +395,8 @@ impl SceneArgs {
             ),
         };
         let summary = scene.summary();
-        if json {
-            let report = serde_json::json!({"scene": summary, "bake": plan});
-            let text = serde_json::to_string_pretty(&report)?;
-            println!("{text}");
-        } else {
-            print!("{summary}");
-            println!("{plan}");
-        }
-        Ok(())
+        let report = serde_json::json!({"scene": summary, "bake": plan});
+        print_report(json, &report, format_args!("{summary}{plan}\n"))
     }
 }
 
@@ -404,13 +411,7 @@ impl BenchArgs {
         let scene = loader::load_file(&file, &settings.load)?;
         let LineParams { lines, seed } = settings.lines;
         let report = radiosity::bench::trace(&scene, lines, seed)?;
-        if json {
-            let text = serde_json::to_string_pretty(&report)?;
-            println!("{text}");
-        } else {
-            print!("{report}");
-        }
-        Ok(())
+        print_report(json, &report, &report)
     }
 }
 
