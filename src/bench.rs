@@ -12,7 +12,7 @@ use crate::control::{Control, TraceError};
 use crate::direct::reference::Estimate;
 use crate::scene::{Material, Scene};
 use crate::timeline::{IntersectionList, LineParams};
-use crate::trace::{Hit, Line, SceneTracer};
+use crate::trace::{Hit, ParallelLines, SceneTracer, Scratch};
 
 /// Tracing figures: the multiframe list against tracing every frame independently.
 #[derive(Clone, Debug, Serialize)]
@@ -72,7 +72,10 @@ pub fn trace(scene: &Scene, lines: u64, seed: u64) -> Result<TraceReport, TraceE
     )?;
     let list_seconds = start.elapsed().as_secs_f64();
     let memory = list.memory();
-    let all_lines: Vec<Line> = list.regenerate_lines(scene).collect();
+    let bundles: Vec<ParallelLines> = list
+        .bundles(scene)
+        .map(|(_, b)| ParallelLines::new(b.direction, b.origins))
+        .collect();
     // Every moving crossing belongs to one frame; every static one to all of them.
     let frame_hits = memory.static_hits * scene.frames.count + memory.moving_hits;
 
@@ -82,24 +85,33 @@ pub fn trace(scene: &Scene, lines: u64, seed: u64) -> Result<TraceReport, TraceE
     let mut independent_hits = 0;
     for frame in 0..scene.frames.count {
         let deformed = tracer.deformed_at(scene, frame);
-        let chunks: Vec<(Vec<u32>, Vec<Hit>)> = all_lines
-            .par_chunks(1024)
-            .map(|chunk| {
-                let (mut offsets, mut hits, mut scratch) = (Vec::new(), Vec::new(), Vec::new());
-                for line in chunk {
-                    tracer.trace_frame(line, frame, &deformed, &mut scratch);
-                    hits.extend_from_slice(&scratch);
-                    offsets.push(hits.len() as u32);
-                }
-                (offsets, hits)
-            })
+        let chunks: Vec<(Vec<u32>, Vec<Hit>)> = bundles
+            .par_iter()
+            .map_init(
+                || (Scratch::default(), Vec::new()),
+                |(scratch, found), lines| {
+                    tracer.trace_frame_parallel(lines, frame, &deformed, scratch, found);
+                    let mut counts = vec![0u32; lines.len()];
+                    found
+                        .iter()
+                        .for_each(|&(line, _)| counts[line as usize] += 1);
+                    let offsets = counts
+                        .iter()
+                        .scan(0, |sum, &c| {
+                            *sum += c;
+                            Some(*sum)
+                        })
+                        .collect();
+                    (offsets, found.iter().map(|&(_, hit)| hit).collect())
+                },
+            )
             .collect();
-        let mut offsets = Vec::with_capacity(all_lines.len() + 1);
+        let mut offsets = Vec::with_capacity(list.lines() + 1);
         let mut hits = Vec::new();
         offsets.push(0u32);
         for (chunk_offsets, chunk_hits) in chunks {
             let base = hits.len() as u32;
-            offsets.extend(chunk_offsets.iter().map(|o| base + o));
+            offsets.extend(chunk_offsets.iter().map(|o: &u32| base + o));
             hits.extend_from_slice(&chunk_hits);
         }
         independent_hits += hits.len();

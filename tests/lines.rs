@@ -15,7 +15,7 @@ use radiosity::loader::{LoadOptions, load};
 use radiosity::scene::Scene;
 use radiosity::timeline::stats::SceneStats;
 use radiosity::timeline::{IntersectionList, LineParams};
-use radiosity::trace::{FrameMeshes, Hit, Line, SceneTracer};
+use radiosity::trace::{FrameMeshes, Hit, Line, ParallelLines, SceneTracer, Scratch};
 use rand::rngs::Xoshiro256PlusPlus;
 use rand::{RngExt, SeedableRng};
 use serde_json::json;
@@ -282,7 +282,7 @@ fn closed_meshes_are_watertight_even_at_shared_edges_and_vertices() {
     }
     let mut rng = Xoshiro256PlusPlus::seed_from_u64(6);
     let mut hits = Vec::new();
-    for target in targets {
+    for &target in &targets {
         let p = (target - n.center) / n.radius;
         for _ in 0..10 {
             let w = DVec3::new(
@@ -303,6 +303,33 @@ fn closed_meshes_are_watertight_even_at_shared_edges_and_vertices() {
             );
         }
     }
+    // The same targets as bundles: parallel lines through all of them at once, which must
+    // find what each finds alone.
+    let mut scratch = Scratch::default();
+    let (mut together, mut alone) = (Vec::new(), Vec::new());
+    for _ in 0..20 {
+        let w = DVec3::new(
+            rng.random::<f64>() - 0.5,
+            rng.random::<f64>() - 0.5,
+            rng.random::<f64>() - 0.5,
+        )
+        .normalize();
+        let origins = targets
+            .iter()
+            .map(|&t| ((t - n.center) / n.radius - w * f64::from(ORIGIN_OFFSET)).as_vec3())
+            .collect();
+        let lines = ParallelLines::new(w.as_vec3(), origins);
+        tracer.trace_frame_parallel(&lines, 0, &FrameMeshes::none(), &mut scratch, &mut together);
+        for (l, &origin) in lines.origins().iter().enumerate() {
+            let line = Line {
+                origin,
+                direction: lines.direction(),
+            };
+            tracer.trace_frame(&line, 0, &FrameMeshes::none(), &mut alone);
+            assert_eq!(crossings_of(&together, l), alone, "line {l} along {w}");
+            assert!(alone.len() % 2 == 0);
+        }
+    }
     // And the bulk of ordinary lines.
     for h in trace_all(&tracer, &good_lines(&scene, 20_000, 100, 7)) {
         assert!(h.len() % 2 == 0);
@@ -312,7 +339,7 @@ fn closed_meshes_are_watertight_even_at_shared_edges_and_vertices() {
 
 /// A room (closed box, faces inward through double-sided material), a rigid cube that moves and
 /// turns inside it, and a morphing closed box.
-fn animated_scene(fps: f64) -> Scene {
+fn animated_scene(fps: f64, patch_size: Option<f64>) -> Scene {
     let mut d = Doc::new();
     let wall = d.push("materials", json!({"doubleSided": true}));
     let (rv, ri) = cube([4.0, 3.0, 4.0], [0.0, 1.5, 0.0]);
@@ -363,6 +390,7 @@ fn animated_scene(fps: f64) -> Scene {
         &d.glb(),
         &LoadOptions {
             fps,
+            patch_size,
             ..LoadOptions::default()
         },
     )
@@ -371,7 +399,7 @@ fn animated_scene(fps: f64) -> Scene {
 
 #[test]
 fn each_frame_extracted_from_the_list_equals_that_frame_traced_alone() {
-    let scene = animated_scene(8.0);
+    let scene = animated_scene(8.0, None);
     assert_eq!(scene.frames.count, 9);
     assert_eq!(scene.objects.len(), 2);
     let tracer = SceneTracer::new(&scene);
@@ -408,9 +436,59 @@ fn each_frame_extracted_from_the_list_equals_that_frame_traced_alone() {
     assert!(memory.bytes_per_hit() <= 16.0, "{}", memory.bytes_per_hit());
 }
 
+/// The crossings of line `l` among a bundle's `(line, crossing)` pairs sorted by line.
+fn crossings_of(found: &[(u32, Hit)], l: usize) -> Vec<Hit> {
+    found
+        .iter()
+        .filter(|&&(line, _)| line as usize == l)
+        .map(|&(_, hit)| hit)
+        .collect()
+}
+
+#[test]
+fn bundles_find_exactly_what_their_lines_find_traced_alone() {
+    // Fine triangles (deep BVHs), a block moving and turning, a box morphing.
+    let scene = animated_scene(4.0, Some(0.2));
+    let tracer = SceneTracer::new(&scene);
+    assert!(tracer.triangles() > 2_000, "{}", tracer.triangles());
+    let batch = Batch::for_budget(20_000, Some(48), &scene.bounds, 3, 0);
+    let mut scratch = Scratch::default();
+    let (mut together, mut alone) = (Vec::new(), Vec::new());
+    let (mut lines_checked, mut moving) = (0, 0);
+    for frame in 0..scene.frames.count {
+        let deformed = tracer.deformed_at(&scene, frame);
+        for k in 0..batch.bundles {
+            let bundle = batch.bundle(k, &scene.bounds);
+            let lines = ParallelLines::new(bundle.direction, bundle.origins.clone());
+            tracer.trace_frame_parallel(&lines, frame, &deformed, &mut scratch, &mut together);
+            assert!(together.is_sorted_by(|a, b| (a.0, a.1.t) <= (b.0, b.1.t)));
+            let mut at = 0;
+            for (l, &origin) in bundle.origins.iter().enumerate() {
+                let line = Line {
+                    origin,
+                    direction: bundle.direction,
+                };
+                tracer.trace_frame(&line, frame, &deformed, &mut alone);
+                let n = together[at..]
+                    .iter()
+                    .take_while(|&&(line, _)| line as usize == l)
+                    .count();
+                let mine: Vec<Hit> = together[at..at + n].iter().map(|&(_, h)| h).collect();
+                assert_eq!(mine, alone, "frame {frame}, bundle {k}, line {l}");
+                at += n;
+                moving += alone.iter().filter(|h| h.surface() >= 12).count();
+            }
+            assert_eq!(at, together.len());
+            lines_checked += bundle.origins.len();
+        }
+    }
+    assert!(lines_checked > 90_000, "{lines_checked}");
+    assert!(moving > 10_000, "{moving}");
+}
+
 #[test]
 fn the_list_does_not_depend_on_the_number_of_threads() {
-    let scene = animated_scene(4.0);
+    let scene = animated_scene(4.0, None);
     let build = |threads: usize| {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
@@ -444,7 +522,7 @@ fn the_list_does_not_depend_on_the_number_of_threads() {
 
 #[test]
 fn refinement_adds_lines_without_touching_the_old_ones() {
-    let scene = animated_scene(4.0);
+    let scene = animated_scene(4.0, None);
     let tracer = SceneTracer::new(&scene);
     let params = LineParams {
         lines: 2_000,
@@ -515,7 +593,7 @@ fn scene_statistics_match_their_predictions() {
 #[test]
 fn a_cancelled_trace_leaves_the_list_as_it_was() {
     use radiosity::control::{Control, TraceError};
-    let scene = animated_scene(4.0);
+    let scene = animated_scene(4.0, None);
     let tracer = SceneTracer::new(&scene);
     let control = Control::default();
     let params = LineParams {

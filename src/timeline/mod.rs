@@ -16,7 +16,7 @@ use rayon::prelude::*;
 
 use crate::lines::{Batch, Bundle};
 use crate::scene::{Bounds, Scene};
-use crate::trace::{FrameMeshes, Hit, Line, SceneTracer};
+use crate::trace::{FrameMeshes, Hit, Line, ParallelLines, SceneTracer, Scratch, sort_by_line};
 
 /// How many lines to trace, and from which seed.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -381,19 +381,15 @@ impl IntersectionList {
                     return (Vec::new(), Vec::new());
                 }
                 control.advance(bundle.origins.len() as u64);
-                let mut counts = Vec::with_capacity(bundle.origins.len());
-                let mut hits = Vec::new();
-                for (i, line) in lines_of(bundle).enumerate() {
-                    // A cancel is seen within a few hundred lines, not a whole bundle (√lines
-                    // of them: 4,472 at 20M lines); what was traced is dropped below.
-                    if i % CANCEL_STRIDE == 0 && i > 0 && control.is_cancelled() {
-                        return (Vec::new(), Vec::new());
-                    }
-                    let start = hits.len();
-                    tracer.trace_static(&line, &mut hits);
-                    hits[start..].sort_unstable_by(Hit::order);
-                    counts.push((hits.len() - start) as u32);
-                }
+                let lines = ParallelLines::new(bundle.direction, bundle.origins.clone());
+                let mut found = Vec::new();
+                tracer.trace_static_parallel(&lines, &mut Scratch::default(), &mut found);
+                sort_by_line(&mut found);
+                let mut counts = vec![0u32; lines.len()];
+                found
+                    .iter()
+                    .for_each(|&(line, _)| counts[line as usize] += 1);
+                let hits = found.into_iter().map(|(_, hit)| hit).collect();
                 (counts, hits)
             })
             .collect();
@@ -662,27 +658,18 @@ fn trace_moving_bundle(
     frame: usize,
     deformed: &FrameMeshes,
 ) -> Vec<(u32, FrameHit)> {
-    let mut out = Vec::new();
-    let mut scratch = Vec::new();
-    for (i, line) in lines_of(bundle).enumerate() {
-        scratch.clear();
-        tracer.trace_moving(&line, frame, deformed, &mut scratch);
-        scratch.sort_unstable_by(Hit::order);
-        out.extend(scratch.iter().map(|&hit| {
-            (
-                i as u32,
-                FrameHit {
-                    frame: frame as u32,
-                    hit,
-                },
-            )
-        }));
-    }
-    out
+    let lines = ParallelLines::new(bundle.direction, bundle.origins.clone());
+    let mut found = Vec::new();
+    tracer.trace_moving_parallel(&lines, frame, deformed, &mut Scratch::default(), &mut found);
+    sort_by_line(&mut found);
+    found
+        .into_iter()
+        .map(|(line, hit)| {
+            let frame = frame as u32;
+            (line, FrameHit { frame, hit })
+        })
+        .collect()
 }
-
-/// Lines traced between two looks at the cancel flag within a bundle.
-const CANCEL_STRIDE: usize = 256;
 
 /// Appends one offset per count to a CSR offset array.
 fn append_csr(offsets: &mut Vec<u32>, counts: &[u32]) -> Result<(), TraceError> {

@@ -5,8 +5,10 @@
 //! per frame ([`FrameMeshes`]). Each crossing is a [`Hit`]: where along the line, which traced
 //! triangle, and from which side.
 
+pub mod bundle;
 pub mod coincident;
 pub mod triangle;
+mod wide;
 
 use std::time::Duration;
 
@@ -19,6 +21,7 @@ use obvhs::ray::Ray;
 
 use crate::lines::LINE_LENGTH;
 use crate::scene::{Faces, Motion, Scene};
+pub use bundle::{ParallelLines, Scratch};
 pub use coincident::Surfaces;
 use triangle::ShearedLine;
 
@@ -74,13 +77,20 @@ pub struct Line {
     pub direction: Vec3,
 }
 
+/// A traced triangle: its corners and global index, read together.
+#[derive(Clone, Copy, Debug)]
+struct Triangle {
+    corners: [Vec3; 3],
+    id: u32,
+}
+
 /// Triangles with a BVH over them, in BVH order.
 pub struct TraceMesh {
-    /// Triangle corners, in the BVH's primitive order.
-    corners: Vec<[Vec3; 3]>,
-    /// Global triangle index of each, in the same order.
-    ids: Vec<u32>,
+    /// The triangles, in the BVH's primitive order.
+    triangles: Vec<Triangle>,
     bvh: Bvh2,
+    /// The same BVH 4 wide, for bundles ([`TraceMesh::trace_parallel`]).
+    wide: Vec<wide::Node>,
 }
 
 /// Boxes are padded by this much (normalised units, the scale of the whole scene being 1) so
@@ -106,11 +116,21 @@ impl TraceMesh {
             })
             .collect();
         let mut build_time = Duration::ZERO;
-        let bvh = build_bvh2(&boxes, BvhBuildParams::medium_build(), &mut build_time);
+        let params = BvhBuildParams {
+            max_prims_per_leaf: 1,
+            ..BvhBuildParams::medium_build()
+        };
+        let bvh = build_bvh2(&boxes, params, &mut build_time);
         let order = &bvh.primitive_indices;
         Some(Self {
-            corners: order.iter().map(|&i| corners[i as usize]).collect(),
-            ids: order.iter().map(|&i| first_id + i).collect(),
+            triangles: order
+                .iter()
+                .map(|&i| Triangle {
+                    corners: corners[i as usize],
+                    id: first_id + i,
+                })
+                .collect(),
+            wide: wide::collapse(&bvh),
             bvh,
         })
     }
@@ -121,9 +141,10 @@ impl TraceMesh {
         let sheared = ShearedLine::new(origin, direction);
         let ray = Ray::new(origin.into(), direction.into(), 0.0, LINE_LENGTH);
         self.bvh.ray_traverse_anyhit(ray, |_, k| {
-            let [a, b, c] = self.corners[k];
+            let Triangle { corners, id } = self.triangles[k];
+            let [a, b, c] = corners;
             if let Some((t, front)) = sheared.intersect(a, b, c, LINE_LENGTH) {
-                out.push(Hit::new(t, self.ids[k], front));
+                out.push(Hit::new(t, id, front));
             }
         });
     }
@@ -139,9 +160,10 @@ impl TraceMesh {
     /// The same crossings found by testing every triangle, for checking the BVH path.
     pub fn trace_brute_force(&self, origin: Vec3, direction: Vec3, out: &mut Vec<Hit>) {
         let sheared = ShearedLine::new(origin, direction);
-        for (k, &[a, b, c]) in self.corners.iter().enumerate() {
+        for &Triangle { corners, id } in &self.triangles {
+            let [a, b, c] = corners;
             if let Some((t, front)) = sheared.intersect(a, b, c, LINE_LENGTH) {
-                out.push(Hit::new(t, self.ids[k], front));
+                out.push(Hit::new(t, id, front));
             }
         }
     }
@@ -329,6 +351,74 @@ impl SceneTracer {
         }
     }
 
+    /// Appends `(line, crossing)` for every crossing of the static geometry by `lines`, in no
+    /// particular order: per line, the crossings [`SceneTracer::trace_static`] finds.
+    pub fn trace_static_parallel(
+        &self,
+        lines: &ParallelLines,
+        scratch: &mut Scratch,
+        out: &mut Vec<(u32, Hit)>,
+    ) {
+        if let Some(mesh) = &self.statics {
+            mesh.trace_parallel(lines, scratch, out);
+        }
+    }
+
+    /// Appends `(line, crossing)` for every crossing of the moving objects as posed at `frame`
+    /// by `lines`, in no particular order: per line, the crossings
+    /// [`SceneTracer::trace_moving`] finds.
+    pub fn trace_moving_parallel(
+        &self,
+        lines: &ParallelLines,
+        frame: usize,
+        deformed: &FrameMeshes,
+        scratch: &mut Scratch,
+        out: &mut Vec<(u32, Hit)>,
+    ) {
+        let mut near = Vec::new();
+        for rigid in self.rigid.iter().flatten() {
+            let Some((bounds, inv)) = &rigid.frames[frame] else {
+                continue;
+            };
+            // The lines near the object, moved into its space as a line traced alone is.
+            near.clear();
+            lines.through_box(bounds.min.into(), bounds.max.into(), &mut near);
+            if near.is_empty() {
+                continue;
+            }
+            let origins = near
+                .iter()
+                .map(|&i| inv.transform_point3(lines.origins()[i as usize]))
+                .collect();
+            let local = ParallelLines::new(inv.transform_vector3(lines.direction()), origins);
+            let from = out.len();
+            rigid.mesh.trace_parallel(&local, scratch, out);
+            for (line, _) in &mut out[from..] {
+                *line = near[*line as usize];
+            }
+        }
+        for mesh in deformed.meshes.iter().flatten() {
+            mesh.trace_parallel(lines, scratch, out);
+        }
+    }
+
+    /// `(line, crossing)` for every crossing of `lines` with the scene as posed at `frame`,
+    /// sorted by line and along each line: the scene traced alone at one frame, a bundle at a
+    /// time (per line, what [`SceneTracer::trace_frame`] finds).
+    pub fn trace_frame_parallel(
+        &self,
+        lines: &ParallelLines,
+        frame: usize,
+        deformed: &FrameMeshes,
+        scratch: &mut Scratch,
+        out: &mut Vec<(u32, Hit)>,
+    ) {
+        out.clear();
+        self.trace_static_parallel(lines, scratch, out);
+        self.trace_moving_parallel(lines, frame, deformed, scratch, out);
+        sort_by_line(out);
+    }
+
     /// Every crossing of `line` with the scene as posed at `frame`, sorted along the line: the
     /// scene traced alone at one frame.
     pub fn trace_frame(
@@ -413,4 +503,9 @@ fn invert(pose: &DAffine3) -> Option<Affine3A> {
     let inv = pose.inverse();
     inv.is_finite()
         .then(|| Affine3A::from_mat4(glam::DMat4::from(inv).as_mat4()))
+}
+
+/// Sorts `(line, crossing)` pairs by line, and each line's crossings along it ([`Hit::order`]).
+pub fn sort_by_line(found: &mut [(u32, Hit)]) {
+    found.sort_unstable_by(|a, b| a.0.cmp(&b.0).then_with(|| Hit::order(&a.1, &b.1)));
 }

@@ -14,10 +14,9 @@
 
 use glam::Vec3;
 
-/// A line prepared for the watertight test: the shear that maps its direction to +z.
-#[derive(Clone, Copy, Debug)]
-pub struct ShearedLine {
-    origin: Vec3,
+/// The shear that maps a direction to +z: what every line of a bundle shares.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Shear {
     kx: usize,
     ky: usize,
     kz: usize,
@@ -26,10 +25,10 @@ pub struct ShearedLine {
     sz: f32,
 }
 
-impl ShearedLine {
-    /// Prepares the line `origin + t·direction`.
+impl Shear {
+    /// The shear for lines along `direction`.
     #[must_use]
-    pub fn new(origin: Vec3, direction: Vec3) -> Self {
+    pub fn new(direction: Vec3) -> Self {
         let kz = direction.abs().max_position();
         let mut kx = (kz + 1) % 3;
         let mut ky = (kx + 1) % 3;
@@ -38,7 +37,6 @@ impl ShearedLine {
             std::mem::swap(&mut kx, &mut ky);
         }
         Self {
-            origin,
             kx,
             ky,
             kz,
@@ -48,6 +46,77 @@ impl ShearedLine {
         }
     }
 
+    /// Where the line along this shear's direction through `p` meets the plane of the two
+    /// minor axes, in their coordinates: lines of a bundle are points there, and a line
+    /// crosses a triangle where its point is inside the triangle's image.
+    #[must_use]
+    #[inline]
+    pub fn project(&self, p: Vec3) -> [f32; 2] {
+        let p = p.to_array();
+        [
+            p[self.kx] - self.sx * p[self.kz],
+            p[self.ky] - self.sy * p[self.kz],
+        ]
+    }
+
+    /// The rectangle (lower x, lower y, upper x, upper y) that [`Shear::project`] maps the box
+    /// from `min` to `max` into. It holds the projection of every point of the box as
+    /// [`Shear::project`] rounds it: rounding is monotonic.
+    #[must_use]
+    #[inline]
+    pub fn project_box(&self, min: Vec3, max: Vec3) -> [f32; 4] {
+        let (min, max) = (min.to_array(), max.to_array());
+        let (zx0, zx1) = (self.sx * min[self.kz], self.sx * max[self.kz]);
+        let (zy0, zy1) = (self.sy * min[self.kz], self.sy * max[self.kz]);
+        [
+            min[self.kx] - zx0.max(zx1),
+            min[self.ky] - zy0.max(zy1),
+            max[self.kx] - zx0.min(zx1),
+            max[self.ky] - zy0.min(zy1),
+        ]
+    }
+
+    /// [`Shear::project_box`] of four boxes at once, given as their lower and upper corners'
+    /// coordinates per axis (`lo[axis][box]`): the rectangles' lower x, lower y, upper x and
+    /// upper y, one box per lane.
+    #[must_use]
+    #[inline]
+    pub fn project_boxes(&self, lo: &[[f32; 4]; 3], hi: &[[f32; 4]; 3]) -> [glam::Vec4; 4] {
+        use glam::Vec4;
+        let (lo_z, hi_z) = (Vec4::from(lo[self.kz]), Vec4::from(hi[self.kz]));
+        let (zx0, zx1) = (lo_z * self.sx, hi_z * self.sx);
+        let (zy0, zy1) = (lo_z * self.sy, hi_z * self.sy);
+        [
+            Vec4::from(lo[self.kx]) - zx0.max(zx1),
+            Vec4::from(lo[self.ky]) - zy0.max(zy1),
+            Vec4::from(hi[self.kx]) - zx0.min(zx1),
+            Vec4::from(hi[self.ky]) - zy0.min(zy1),
+        ]
+    }
+}
+
+/// A line prepared for the watertight test: its starting point and the shear that maps its
+/// direction to +z.
+#[derive(Clone, Copy, Debug)]
+pub struct ShearedLine {
+    origin: Vec3,
+    shear: Shear,
+}
+
+impl ShearedLine {
+    /// Prepares the line `origin + t·direction`.
+    #[must_use]
+    pub fn new(origin: Vec3, direction: Vec3) -> Self {
+        Self::with_shear(origin, Shear::new(direction))
+    }
+
+    /// The line from `origin` along the direction `shear` was made for.
+    #[must_use]
+    #[inline]
+    pub fn with_shear(origin: Vec3, shear: Shear) -> Self {
+        Self { origin, shear }
+    }
+
     /// The crossing of this line with triangle (a, b, c), as `(t, front)`: `t` along the line
     /// (in units of its direction's length) and whether the line arrives at the triangle's front
     /// face (the side its counter-clockwise winding faces). `None` if it does not cross, or if
@@ -55,14 +124,45 @@ impl ShearedLine {
     #[must_use]
     #[inline]
     pub fn intersect(&self, a: Vec3, b: Vec3, c: Vec3, t_max: f32) -> Option<(f32, bool)> {
-        let (kx, ky, kz) = (self.kx, self.ky, self.kz);
-        let (a, b, c) = (a - self.origin, b - self.origin, c - self.origin);
-        let ax = a[kx] - self.sx * a[kz];
-        let ay = a[ky] - self.sy * a[kz];
-        let bx = b[kx] - self.sx * b[kz];
-        let by = b[ky] - self.sy * b[kz];
-        let cx = c[kx] - self.sx * c[kz];
-        let cy = c[ky] - self.sy * c[kz];
+        let s = &self.shear;
+        let corners = [s.project(a), s.project(b), s.project(c)];
+        self.intersect_projected([a, b, c], corners, s.project(self.origin), t_max)
+    }
+
+    /// [`ShearedLine::intersect`] given the corners' and the line's starting point's
+    /// [`Shear::project`]ions (which a bundle's lines share: a triangle's are worked out once
+    /// for all of them).
+    #[must_use]
+    #[inline]
+    pub fn intersect_projected(
+        &self,
+        [a, b, c]: [Vec3; 3],
+        [[pax, pay], [pbx, pby], [pcx, pcy]]: [[f32; 2]; 3],
+        [ox, oy]: [f32; 2],
+        t_max: f32,
+    ) -> Option<(f32, bool)> {
+        // The corners seen from the line: each corner's coordinates depend on it and the line
+        // alone, so the triangles sharing it see it at the same place.
+        let seen = [
+            [pax - ox, pay - oy],
+            [pbx - ox, pby - oy],
+            [pcx - ox, pcy - oy],
+        ];
+        // Most lines tested miss, and most misses are plain in f32.
+        if certainly_outside(seen) {
+            return None;
+        }
+        self.crossing([a, b, c], seen, t_max)
+    }
+
+    /// The exact test, given the corners seen from the line (projected, relative to it).
+    #[inline]
+    fn crossing(
+        &self,
+        [a, b, c]: [Vec3; 3],
+        [[ax, ay], [bx, by], [cx, cy]]: [[f32; 2]; 3],
+        t_max: f32,
+    ) -> Option<(f32, bool)> {
         // Edge functions of the edges b→c, c→a and a→b, in f64: a product of two f32 is exact
         // in f64, so each sign is exact and a shared edge gives its two triangles exactly
         // opposite values. (Computing in f32 with an f64 fallback only at zero, as in the paper,
@@ -86,10 +186,23 @@ impl ShearedLine {
         {
             return None;
         }
-        let (az, bz, cz) = (self.sz * a[kz], self.sz * b[kz], self.sz * c[kz]);
-        let t = ((u * f(az) + v * f(bz) + w * f(cz)) / det) as f32;
+        let Shear { kz, sz, .. } = self.shear;
+        let depth = |p: Vec3| f(sz * (p[kz] - self.origin[kz]));
+        let t = ((u * depth(a) + v * depth(b) + w * depth(c)) / det) as f32;
         (t > 0.0 && t < t_max).then_some((t, ccw))
     }
+}
+
+/// Whether the edge functions computed in f32 from the corners seen from the line have
+/// opposite signs, so that the exact test finds the line outside too. An f32 edge function
+/// that is not zero has the exact one's sign: rounding is monotonic, so rounded products keep
+/// the order of the exact ones, and the difference of two f32 numbers has the exact sign.
+#[inline]
+fn certainly_outside([[ax, ay], [bx, by], [cx, cy]]: [[f32; 2]; 3]) -> bool {
+    let u = cx * by - cy * bx;
+    let v = ax * cy - ay * cx;
+    let w = bx * ay - by * ax;
+    (u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0)
 }
 
 /// Top-left rule: whether a triangle owns its edge from (px, py) to (qx, qy), taking the edge in
@@ -192,6 +305,37 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn the_f32_shortcut_rejects_only_what_the_exact_test_rejects() {
+        // Lines through points a hair's breadth from an edge (or a corner) of random
+        // triangles, where f32 edge functions round to the wrong sign if anything does.
+        let mut rng = Xoshiro256PlusPlus::seed_from_u64(11);
+        let mut coordinate = || rng.random::<f32>() * 2.0 - 1.0;
+        let (mut shortcuts, mut near) = (0, 0);
+        for k in 0..200_000 {
+            let corners: [[f32; 2]; 3] = std::array::from_fn(|_| [coordinate(), coordinate()]);
+            let (p, q) = (corners[k % 3], corners[(k + 1) % 3]);
+            let s = (coordinate() + 1.0) / 2.0;
+            // From 1e-5 down to 1e-9: down to below f32's resolution of the coordinates.
+            let nudge = coordinate() * 10f32.powf(-5.0 - 2.0 * (coordinate() + 1.0));
+            let o = [
+                p[0] + s * (q[0] - p[0]) + nudge,
+                p[1] + s * (q[1] - p[1]) - nudge,
+            ];
+            let seen = corners.map(|[x, y]| [x - o[0], y - o[1]]);
+            let line = ShearedLine::new(Vec3::new(0.0, 0.0, -2.0), Vec3::Z);
+            let [a, b, c] = corners.map(|[x, y]| Vec3::new(x, y, 0.0));
+            let exact = line.crossing([a, b, c], seen, 10.0);
+            near += usize::from(exact.is_some());
+            if certainly_outside(seen) {
+                shortcuts += 1;
+                assert_eq!(exact, None, "{corners:?} from {o:?}");
+            }
+        }
+        // About half the lines are outside, and the shortcut takes most of them.
+        assert!(shortcuts > 50_000 && near > 50_000, "{shortcuts} {near}");
     }
 
     #[test]

@@ -1,0 +1,315 @@
+//! Tracing a bundle's parallel lines together.
+//!
+//! Lines that share a direction are points on any plane they cross: sheared along the
+//! direction (the watertight test's own shear, [`Shear`]), a BVH node's box becomes a rectangle
+//! and the lines through the box are the points inside it. One walk of a 4-wide BVH per bundle
+//! carries down, from each node to its children, the list of the lines inside the node's
+//! rectangle: a node is read once per bundle, not once per line, and testing a line against
+//! four children is one comparison of its projected point with four rectangles at once. The
+//! walk goes level by level, so that the reads of a level's nodes from memory overlap.
+//!
+//! At a leaf, each line inside a triangle's rectangle gets the exact test on the same numbers
+//! as a line traced alone ([`ShearedLine::intersect_projected`]), so both find the same
+//! crossings bit for bit. No line is lost to rounding on the way: the test works on the
+//! corners' and the line's projections, the same f32 numbers the rectangles are made of, and
+//! rounding is monotonic, so a box's rectangle holds the projection of every point of the box
+//! and a line outside a triangle's rectangle has all three corners on one side.
+
+use glam::Vec3;
+
+use super::triangle::{Shear, ShearedLine};
+use super::wide::{self, INNER};
+use super::{Hit, TraceMesh, Triangle};
+use crate::lines::LINE_LENGTH;
+
+/// A line's projected point, and the line's index in the bundle's starting points.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Point {
+    x: f32,
+    y: f32,
+    line: u32,
+}
+
+/// Lines along one direction, ready to be traced together: the shear of their direction, their
+/// starting points and each one's projected point.
+#[derive(Clone, Debug)]
+pub struct ParallelLines {
+    direction: Vec3,
+    shear: Shear,
+    origins: Vec<Vec3>,
+    points: Vec<Point>,
+    /// The largest coordinate of any starting point, for [`ParallelLines::through_box`]'s
+    /// rounding margin.
+    reach: f32,
+}
+
+impl ParallelLines {
+    /// The lines from each of `origins` along `direction`.
+    #[must_use]
+    pub fn new(direction: Vec3, origins: Vec<Vec3>) -> Self {
+        let shear = Shear::new(direction);
+        let points = origins
+            .iter()
+            .enumerate()
+            .map(|(line, &o)| {
+                let [x, y] = shear.project(o);
+                Point {
+                    x,
+                    y,
+                    line: line as u32,
+                }
+            })
+            .collect();
+        let reach = origins
+            .iter()
+            .fold(0.0f32, |m, o| m.max(o.abs().max_element()));
+        Self {
+            direction,
+            shear,
+            origins,
+            points,
+            reach,
+        }
+    }
+
+    /// The lines' common direction.
+    #[must_use]
+    pub fn direction(&self) -> Vec3 {
+        self.direction
+    }
+
+    /// Their starting points.
+    #[must_use]
+    pub fn origins(&self) -> &[Vec3] {
+        &self.origins
+    }
+
+    /// Number of lines.
+    #[must_use]
+    pub fn len(&self) -> usize {
+        self.origins.len()
+    }
+
+    /// Whether there are none.
+    #[must_use]
+    pub fn is_empty(&self) -> bool {
+        self.origins.is_empty()
+    }
+
+    /// The indices of the lines that may meet the box from `min` to `max`, widened by a
+    /// rounding margin: a superset, never missing a line that meets the box, even moved into
+    /// a rigid object's space after this test.
+    pub fn through_box(&self, min: Vec3, max: Vec3, out: &mut Vec<u32>) {
+        let scale = self
+            .reach
+            .max(min.abs().max_element())
+            .max(max.abs().max_element());
+        let rect = padded(self.shear.project_box(min, max), margin(scale));
+        out.extend(
+            self.points
+                .iter()
+                .filter(|p| inside(&rect, p))
+                .map(|p| p.line),
+        );
+    }
+}
+
+/// Reusable buffers for [`TraceMesh::trace_parallel`].
+#[derive(Default)]
+pub struct Scratch {
+    /// The lists of lines inside the nodes of the level being walked, one after another.
+    points: Vec<Point>,
+    /// Those of the next level.
+    next_points: Vec<Point>,
+    /// The level's nodes, with their list's range in `points`.
+    nodes: Vec<(u32, u32, u32)>,
+    /// The next level's.
+    next_nodes: Vec<(u32, u32, u32)>,
+    /// Triangles reached at this level, with their list's range in `next_points`.
+    leaves: Vec<(u32, u32, u32)>,
+    /// Per line of a node's list, the children it goes through.
+    masks: Vec<u32>,
+}
+
+/// How many nodes or triangles ahead of the one being tested the walk asks memory for.
+const PREFETCH_AHEAD: usize = 16;
+
+/// Asks for the `bytes` from `at` to be brought into cache: a hint, no effect on results.
+#[inline]
+fn prefetch<T>(at: &T, bytes: usize) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
+        let base = std::ptr::from_ref(at).cast::<i8>();
+        for offset in (0..bytes).step_by(64) {
+            // SAFETY: SSE is part of x86_64; a prefetch never faults, whatever the address.
+            unsafe { _mm_prefetch::<_MM_HINT_T0>(base.wrapping_add(offset)) };
+        }
+    }
+}
+
+/// The rounding margin of a box moved into another space (a rigid object's): the lines moved
+/// with it are within a few units in the last place of the largest coordinate (about 6e-8
+/// relative); 1e-5 of it is ample.
+fn margin(scale: f32) -> f32 {
+    1e-5 * scale.max(f32::MIN_POSITIVE)
+}
+
+fn padded([x0, y0, x1, y1]: [f32; 4], pad: f32) -> [f32; 4] {
+    [x0 - pad, y0 - pad, x1 + pad, y1 + pad]
+}
+
+#[inline]
+fn inside(rect: &[f32; 4], p: &Point) -> bool {
+    (p.x >= rect[0]) & (p.y >= rect[1]) & (p.x <= rect[2]) & (p.y <= rect[3])
+}
+
+/// The children (bit i for child i) whose rectangles, lower x, lower y, upper x and upper y
+/// one per lane, hold `p`.
+#[inline]
+fn children_around(rects: &[glam::Vec4; 4], p: &Point) -> u32 {
+    let (x, y) = (glam::Vec4::splat(p.x), glam::Vec4::splat(p.y));
+    (x.cmpge(rects[0]) & y.cmpge(rects[1]) & x.cmple(rects[2]) & y.cmple(rects[3])).bitmask()
+}
+
+impl TraceMesh {
+    /// Appends `(line, crossing)` for every crossing of every line of `lines` with the mesh,
+    /// in no particular order; the crossings of each line are exactly those
+    /// [`TraceMesh::trace`] finds.
+    pub fn trace_parallel(
+        &self,
+        lines: &ParallelLines,
+        scratch: &mut Scratch,
+        out: &mut Vec<(u32, Hit)>,
+    ) {
+        let shear = &lines.shear;
+        let Scratch {
+            points,
+            next_points,
+            nodes,
+            next_nodes,
+            leaves,
+            masks,
+        } = scratch;
+        points.clear();
+        nodes.clear();
+        points.extend_from_slice(&lines.points);
+        if !self.wide.is_empty() {
+            nodes.push((0, 0, points.len() as u32));
+        }
+        // Level by level: the nodes of a level are independent, so their reads from memory
+        // overlap (each is asked for a few nodes ahead).
+        while !nodes.is_empty() {
+            next_points.clear();
+            next_nodes.clear();
+            leaves.clear();
+            for (n, &(node, start, end)) in nodes.iter().enumerate() {
+                if let Some(&(ahead, _, _)) = nodes.get(n + PREFETCH_AHEAD) {
+                    prefetch(&self.wide[ahead as usize], size_of::<wide::Node>());
+                }
+                let node = &self.wide[node as usize];
+                let rects = shear.project_boxes(&node.lo, &node.hi);
+                let list = &points[start as usize..end as usize];
+                let mut emit = |i: usize, from: usize, to: usize| {
+                    let (child, count) = (node.child[i], node.count[i]);
+                    let (from, to) = (from as u32, to as u32);
+                    if count == INNER {
+                        next_nodes.push((child, from, to));
+                    } else {
+                        leaves.extend((child..child + u32::from(count)).map(|k| (k, from, to)));
+                    }
+                };
+                if let [p] = list {
+                    // Most lists deep in the tree: one line, which goes on to its children.
+                    let mut m = children_around(&rects, p) & node.used;
+                    while m != 0 {
+                        let i = m.trailing_zeros() as usize;
+                        m &= m - 1;
+                        next_points.push(*p);
+                        emit(i, next_points.len() - 1, next_points.len());
+                    }
+                    continue;
+                }
+                // Which of the four children each line goes through, all four at once; then
+                // each child's list, side by side, in one pass.
+                masks.clear();
+                let mut counts = [0; 4];
+                for p in list {
+                    let m = children_around(&rects, p) & node.used;
+                    masks.push(m);
+                    for (i, count) in counts.iter_mut().enumerate() {
+                        *count += (m >> i) as usize & 1;
+                    }
+                }
+                let mut at = [0; 4];
+                let mut total = next_points.len();
+                for i in 0..4 {
+                    at[i] = total;
+                    total += counts[i];
+                }
+                let starts = at;
+                next_points.resize(total, Point::default());
+                for (p, &m) in list.iter().zip(masks.iter()) {
+                    let mut m = m;
+                    while m != 0 {
+                        let i = m.trailing_zeros() as usize;
+                        m &= m - 1;
+                        next_points[at[i]] = *p;
+                        at[i] += 1;
+                    }
+                }
+                for i in 0..4 {
+                    if counts[i] > 0 {
+                        emit(i, starts[i], at[i]);
+                    }
+                }
+            }
+            for (n, &(k, from, to)) in leaves.iter().enumerate() {
+                if let Some(&(ahead, _, _)) = leaves.get(n + PREFETCH_AHEAD) {
+                    prefetch(&self.triangles[ahead as usize], size_of::<Triangle>());
+                }
+                let list = &next_points[from as usize..to as usize];
+                self.cross_triangle(k as usize, lines, list, out);
+            }
+            std::mem::swap(points, next_points);
+            std::mem::swap(nodes, next_nodes);
+        }
+    }
+
+    /// Appends the crossings of triangle `k` by the lines of `points`.
+    #[inline]
+    fn cross_triangle(
+        &self,
+        k: usize,
+        lines: &ParallelLines,
+        points: &[Point],
+        out: &mut Vec<(u32, Hit)>,
+    ) {
+        let Triangle { corners, id } = self.triangles[k];
+        let shear = &lines.shear;
+        let projected = corners.map(|p| shear.project(p));
+        let rect = triangle_rect(projected);
+        for p in points {
+            if !inside(&rect, p) {
+                continue;
+            }
+            let line = ShearedLine::with_shear(lines.origins[p.line as usize], *shear);
+            if let Some((t, front)) =
+                line.intersect_projected(corners, projected, [p.x, p.y], LINE_LENGTH)
+            {
+                out.push((p.line, Hit::new(t, id, front)));
+            }
+        }
+    }
+}
+
+/// The rectangle of a triangle's projected corners.
+#[inline]
+fn triangle_rect([[ax, ay], [bx, by], [cx, cy]]: [[f32; 2]; 3]) -> [f32; 4] {
+    [
+        ax.min(bx).min(cx),
+        ay.min(by).min(cy),
+        ax.max(bx).max(cx),
+        ay.max(by).max(cy),
+    ]
+}
