@@ -1,6 +1,8 @@
 //! Benchmarks run by the `bench` command: what the engine costs on a given scene, measured in
 //! one run so that ratios are meaningful on a shared machine.
 
+pub mod native;
+
 use std::array::from_fn;
 use std::borrow::Borrow;
 use std::time::Instant;
@@ -55,10 +57,20 @@ pub struct TraceReport {
     pub time_ratio: f64,
     /// independent_bytes / list_bytes.
     pub memory_ratio: f64,
+    /// Frame 0 traced alone by this tracer and by native Embree, when asked for.
+    pub native: Option<native::NativeComparison>,
 }
 
 /// Measures tracing on `scene` with about `lines` lines.
-pub fn trace(scene: &Scene, lines: u64, seed: u64) -> Result<TraceReport, TraceError> {
+///
+/// With `native`, a directory to build the native Embree comparison program in, it also traces
+/// frame 0 alone with this tracer and with native Embree ([`native::compare`]).
+pub fn trace(
+    scene: &Scene,
+    lines: u64,
+    seed: u64,
+    native: Option<&std::path::Path>,
+) -> Result<TraceReport, TraceError> {
     let start = Instant::now();
     let tracer = SceneTracer::new(scene);
     let bvh_seconds = start.elapsed().as_secs_f64();
@@ -139,6 +151,9 @@ pub fn trace(scene: &Scene, lines: u64, seed: u64) -> Result<TraceReport, TraceE
         independent_hits_per_second: independent_hits as f64 / independent_seconds,
         time_ratio: independent_seconds / list_seconds,
         memory_ratio: independent_bytes as f64 / memory.bytes as f64,
+        native: native.map(|dir| {
+            native::compare(scene, &tracer, &bundles, dir, rayon::current_num_threads())
+        }),
     })
 }
 
@@ -182,7 +197,11 @@ impl std::fmt::Display for TraceReport {
             f,
             "multiframe gain  {:.1}x time, {:.1}x memory",
             self.time_ratio, self.memory_ratio
-        )
+        )?;
+        match &self.native {
+            Some(native) => write!(f, "{native}"),
+            None => Ok(()),
+        }
     }
 }
 

@@ -1,6 +1,6 @@
 //! The command line: a thin layer over the library.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use anyhow::Context as _;
@@ -172,6 +172,11 @@ struct BenchArgs {
     file: PathBuf,
     #[command(flatten)]
     request: BakeRequest,
+    /// Also trace frame 0 alone with this tracer and with native Embree (Debian's
+    /// libembree-dev; bench/embree/trace.c is built into target/embree), on the same lines,
+    /// and print the ratio.
+    #[arg(long)]
+    embree: bool,
     /// Print the report as JSON.
     #[arg(long)]
     json: bool,
@@ -405,12 +410,14 @@ impl BenchArgs {
         let Self {
             file,
             request,
+            embree,
             json,
         } = self;
         let settings = settings(request)?;
         let scene = loader::load_file(&file, &settings.load)?;
         let LineParams { lines, seed } = settings.lines;
-        let report = radiosity::bench::trace(&scene, lines, seed)?;
+        let native = Path::new(env!("CARGO_MANIFEST_DIR")).join("target/embree");
+        let report = radiosity::bench::trace(&scene, lines, seed, embree.then_some(&*native))?;
         print_report(json, &report, &report)
     }
 }

@@ -382,9 +382,9 @@ impl IntersectionList {
                 }
                 control.advance(bundle.origins.len() as u64);
                 let lines = ParallelLines::new(bundle.direction, bundle.origins.clone());
-                let mut found = Vec::new();
-                tracer.trace_static_parallel(&lines, &mut Scratch::default(), &mut found);
-                sort_by_line(&mut found);
+                let (mut found, mut scratch) = (Vec::new(), Scratch::default());
+                tracer.trace_static_parallel(&lines, &mut scratch, &mut found);
+                sort_by_line(&mut found, lines.len(), &mut scratch);
                 let mut counts = vec![0u32; lines.len()];
                 found
                     .iter()
@@ -659,9 +659,9 @@ fn trace_moving_bundle(
     deformed: &FrameMeshes,
 ) -> Vec<(u32, FrameHit)> {
     let lines = ParallelLines::new(bundle.direction, bundle.origins.clone());
-    let mut found = Vec::new();
-    tracer.trace_moving_parallel(&lines, frame, deformed, &mut Scratch::default(), &mut found);
-    sort_by_line(&mut found);
+    let (mut found, mut scratch) = (Vec::new(), Scratch::default());
+    tracer.trace_moving_parallel(&lines, frame, deformed, &mut scratch, &mut found);
+    sort_by_line(&mut found, lines.len(), &mut scratch);
     found
         .into_iter()
         .map(|(line, hit)| {

@@ -129,6 +129,16 @@ pub struct Scratch {
     leaves: Vec<(u32, u32, u32)>,
     /// Per line of a node's list, the children it goes through.
     masks: Vec<u32>,
+    /// For [`super::sort_by_line`]: where each line's crossings start, and the sorted pairs.
+    line_starts: Vec<u32>,
+    sorted: Vec<(u32, Hit)>,
+}
+
+impl Scratch {
+    /// The buffers of [`super::sort_by_line`].
+    pub(super) fn sort_buffers(&mut self) -> (&mut Vec<u32>, &mut Vec<(u32, Hit)>) {
+        (&mut self.line_starts, &mut self.sorted)
+    }
 }
 
 /// How many nodes or triangles ahead of the one being tested the walk asks memory for.
@@ -164,12 +174,71 @@ fn inside(rect: &[f32; 4], p: &Point) -> bool {
     (p.x >= rect[0]) & (p.y >= rect[1]) & (p.x <= rect[2]) & (p.y <= rect[3])
 }
 
-/// The children (bit i for child i) whose rectangles, lower x, lower y, upper x and upper y
-/// one per lane, hold `p`.
+/// The children (bit i for child i) whose rectangles hold `p`: per four children, their
+/// lower x, lower y, upper x and upper y, one per lane.
 #[inline]
-fn children_around(rects: &[glam::Vec4; 4], p: &Point) -> u32 {
+fn children_around(rects: &[[glam::Vec4; 4]; wide::WIDTH / 4], p: &Point) -> u32 {
     let (x, y) = (glam::Vec4::splat(p.x), glam::Vec4::splat(p.y));
-    (x.cmpge(rects[0]) & y.cmpge(rects[1]) & x.cmple(rects[2]) & y.cmple(rects[3])).bitmask()
+    rects.iter().enumerate().fold(0, |mask, (half, r)| {
+        let inside = x.cmpge(r[0]) & y.cmpge(r[1]) & x.cmple(r[2]) & y.cmple(r[3]);
+        mask | inside.bitmask() << (4 * half)
+    })
+}
+
+/// Appends to `next` the lines of `list` inside each child's rectangle (`rects`, see
+/// [`children_around`]; `used`, the children there are), child after child; each child's range
+/// in `next`, empty if none.
+#[inline]
+fn split(
+    list: &[Point],
+    rects: &[[glam::Vec4; 4]; wide::WIDTH / 4],
+    used: u32,
+    next: &mut Vec<Point>,
+    masks: &mut Vec<u32>,
+) -> [(u32, u32); wide::WIDTH] {
+    let mut ranges = [(0, 0); wide::WIDTH];
+    if let [p] = list {
+        // Most lists deep in the tree: one line, which goes on to its children.
+        let mut m = children_around(rects, p) & used;
+        while m != 0 {
+            let i = m.trailing_zeros() as usize;
+            m &= m - 1;
+            ranges[i] = (next.len() as u32, next.len() as u32 + 1);
+            next.push(*p);
+        }
+        return ranges;
+    }
+    // Which children each line goes through, all at once; then the children's lists, side by
+    // side, in one pass.
+    masks.clear();
+    let mut counts = [0; wide::WIDTH];
+    for p in list {
+        let m = children_around(rects, p) & used;
+        masks.push(m);
+        for (i, count) in counts.iter_mut().enumerate() {
+            *count += (m >> i) as usize & 1;
+        }
+    }
+    let mut at = [0; wide::WIDTH];
+    let mut total = next.len();
+    for (at, count) in at.iter_mut().zip(counts) {
+        *at = total;
+        total += count;
+    }
+    next.resize(total, Point::default());
+    for (i, range) in ranges.iter_mut().enumerate() {
+        *range = (at[i] as u32, (at[i] + counts[i]) as u32);
+    }
+    for (p, &m) in list.iter().zip(masks.iter()) {
+        let mut m = m;
+        while m != 0 {
+            let i = m.trailing_zeros() as usize;
+            m &= m - 1;
+            next[at[i]] = *p;
+            at[i] += 1;
+        }
+    }
+    ranges
 }
 
 impl TraceMesh {
@@ -190,6 +259,7 @@ impl TraceMesh {
             next_nodes,
             leaves,
             masks,
+            ..
         } = scratch;
         points.clear();
         nodes.clear();
@@ -208,59 +278,19 @@ impl TraceMesh {
                     prefetch(&self.wide[ahead as usize], size_of::<wide::Node>());
                 }
                 let node = &self.wide[node as usize];
-                let rects = shear.project_boxes(&node.lo, &node.hi);
+                let rects = node.boxes.map(|b| shear.project_boxes(&b.lo, &b.hi));
                 let list = &points[start as usize..end as usize];
-                let mut emit = |i: usize, from: usize, to: usize| {
-                    let (child, count) = (node.child[i], node.count[i]);
-                    let (from, to) = (from as u32, to as u32);
-                    if count == INNER {
-                        next_nodes.push((child, from, to));
-                    } else {
-                        leaves.extend((child..child + u32::from(count)).map(|k| (k, from, to)));
-                    }
-                };
-                if let [p] = list {
-                    // Most lists deep in the tree: one line, which goes on to its children.
-                    let mut m = children_around(&rects, p) & node.used;
-                    while m != 0 {
-                        let i = m.trailing_zeros() as usize;
-                        m &= m - 1;
-                        next_points.push(*p);
-                        emit(i, next_points.len() - 1, next_points.len());
-                    }
-                    continue;
-                }
-                // Which of the four children each line goes through, all four at once; then
-                // each child's list, side by side, in one pass.
-                masks.clear();
-                let mut counts = [0; 4];
-                for p in list {
-                    let m = children_around(&rects, p) & node.used;
-                    masks.push(m);
-                    for (i, count) in counts.iter_mut().enumerate() {
-                        *count += (m >> i) as usize & 1;
-                    }
-                }
-                let mut at = [0; 4];
-                let mut total = next_points.len();
-                for i in 0..4 {
-                    at[i] = total;
-                    total += counts[i];
-                }
-                let starts = at;
-                next_points.resize(total, Point::default());
-                for (p, &m) in list.iter().zip(masks.iter()) {
-                    let mut m = m;
-                    while m != 0 {
-                        let i = m.trailing_zeros() as usize;
-                        m &= m - 1;
-                        next_points[at[i]] = *p;
-                        at[i] += 1;
-                    }
-                }
-                for i in 0..4 {
-                    if counts[i] > 0 {
-                        emit(i, starts[i], at[i]);
+                let ranges = split(list, &rects, node.used, next_points, masks);
+                for (i, &(from, to)) in ranges.iter().enumerate() {
+                    match node.count[i] {
+                        _ if from == to => {}
+                        INNER => next_nodes.push((node.child[i], from, to)),
+                        count => {
+                            let first = node.child[i];
+                            for k in first..first + u32::from(count) {
+                                leaves.push((k, from, to));
+                            }
+                        }
                     }
                 }
             }

@@ -416,7 +416,7 @@ impl SceneTracer {
         out.clear();
         self.trace_static_parallel(lines, scratch, out);
         self.trace_moving_parallel(lines, frame, deformed, scratch, out);
-        sort_by_line(out);
+        sort_by_line(out, lines.len(), scratch);
     }
 
     /// Every crossing of `line` with the scene as posed at `frame`, sorted along the line: the
@@ -505,7 +505,28 @@ fn invert(pose: &DAffine3) -> Option<Affine3A> {
         .then(|| Affine3A::from_mat4(glam::DMat4::from(inv).as_mat4()))
 }
 
-/// Sorts `(line, crossing)` pairs by line, and each line's crossings along it ([`Hit::order`]).
-pub fn sort_by_line(found: &mut [(u32, Hit)]) {
-    found.sort_unstable_by(|a, b| a.0.cmp(&b.0).then_with(|| Hit::order(&a.1, &b.1)));
+/// Sorts `(line, crossing)` pairs of `lines` lines by line, and each line's crossings along
+/// it ([`Hit::order`]): a counting sort by line, then each line's few crossings.
+pub fn sort_by_line(found: &mut Vec<(u32, Hit)>, lines: usize, scratch: &mut Scratch) {
+    let (counts, sorted) = scratch.sort_buffers();
+    counts.clear();
+    counts.resize(lines + 1, 0);
+    for &(line, _) in found.iter() {
+        counts[line as usize + 1] += 1;
+    }
+    for i in 1..counts.len() {
+        counts[i] += counts[i - 1];
+    }
+    sorted.clear();
+    sorted.resize(found.len(), (0, Hit::new(0.0, 0, true)));
+    let mut next = counts.clone();
+    for &(line, hit) in found.iter() {
+        let at = &mut next[line as usize];
+        sorted[*at as usize] = (line, hit);
+        *at += 1;
+    }
+    for w in counts.windows(2) {
+        sorted[w[0] as usize..w[1] as usize].sort_unstable_by(|a, b| Hit::order(&a.1, &b.1));
+    }
+    std::mem::swap(found, sorted);
 }

@@ -1,22 +1,31 @@
-//! A 4-wide BVH for tracing bundles: the binary BVH collapsed so that a node holds the boxes of
-//! up to four children side by side, tested against a bundle's lines four at a time. Half the
-//! depth of the binary tree, and a node is two cache lines read together.
+//! A wide BVH for tracing bundles: the binary BVH collapsed so that a node holds the boxes of
+//! up to eight children side by side, tested against a bundle's lines four at a time. A third
+//! of the depth of the binary tree, and a node is four cache lines read together.
 
 use obvhs::bvh2::Bvh2;
 
-/// A node of the 4-wide BVH: its children's boxes by axis and child (`lo[axis][child]`), and
-/// what each child is.
+/// Children per node.
+pub const WIDTH: usize = 8;
+
+/// Four children's boxes by axis and child (`lo[axis][child]`), side by side for SIMD.
 #[derive(Clone, Copy, Debug)]
-#[repr(C, align(64))]
-pub struct Node {
-    /// Lower corners of the children's boxes.
+pub struct Boxes {
+    /// Lower corners.
     pub lo: [[f32; 4]; 3],
     /// Upper corners.
     pub hi: [[f32; 4]; 3],
+}
+
+/// A node of the wide BVH: its children's boxes, four at a time, and what each child is.
+#[derive(Clone, Copy, Debug)]
+#[repr(C, align(64))]
+pub struct Node {
+    /// Children 0–3, 4–7.
+    pub boxes: [Boxes; WIDTH / 4],
     /// An inner child's node index, or a leaf's first triangle.
-    pub child: [u32; 4],
+    pub child: [u32; WIDTH],
     /// A leaf's triangle count; [`INNER`] for an inner child, 0 for an unused slot.
-    pub count: [u16; 4],
+    pub count: [u16; WIDTH],
     /// The slots in use, bit i for child i.
     pub used: u32,
 }
@@ -26,10 +35,12 @@ pub const INNER: u16 = u16::MAX;
 
 impl Node {
     const UNUSED: Self = Self {
-        lo: [[f32::INFINITY; 4]; 3],
-        hi: [[f32::NEG_INFINITY; 4]; 3],
-        child: [0; 4],
-        count: [0; 4],
+        boxes: [Boxes {
+            lo: [[f32::INFINITY; 4]; 3],
+            hi: [[f32::NEG_INFINITY; 4]; 3],
+        }; WIDTH / 4],
+        child: [0; WIDTH],
+        count: [0; WIDTH],
         used: 0,
     };
 }
@@ -59,7 +70,7 @@ fn build(bvh: &Bvh2, at: usize, nodes: &mut Vec<Node>) -> u32 {
     } else {
         vec![at]
     };
-    while kids.len() < 4 {
+    while kids.len() < WIDTH {
         let widest = kids
             .iter()
             .enumerate()
@@ -77,9 +88,10 @@ fn build(bvh: &Bvh2, at: usize, nodes: &mut Vec<Node>) -> u32 {
     let mut node = Node::UNUSED;
     for (i, &k) in kids.iter().enumerate() {
         let aabb = &binary[k].aabb;
+        let boxes = &mut node.boxes[i / 4];
         for axis in 0..3 {
-            node.lo[axis][i] = aabb.min[axis];
-            node.hi[axis][i] = aabb.max[axis];
+            boxes.lo[axis][i % 4] = aabb.min[axis];
+            boxes.hi[axis][i % 4] = aabb.max[axis];
         }
         node.used |= 1 << i;
         if binary[k].prim_count == 0 {

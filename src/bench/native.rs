@@ -1,0 +1,217 @@
+//! The same tracing, measured against native Embree in one run: the scene as posed at frame 0
+//! and the list's lines go to a file, `bench/embree/trace.c` (built with Debian's
+//! `libembree-dev` when asked for) finds every crossing of every line, and this tracer traces
+//! the same lines through the same triangles, bundle by bundle, on as many threads.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Instant;
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::scene::Scene;
+use crate::trace::{ParallelLines, SceneTracer, Scratch};
+
+/// Repeats of each measurement; the median counts.
+const REPEATS: usize = 5;
+
+/// One frame traced alone by this tracer and by native Embree, on the same lines.
+#[derive(Clone, Debug, Serialize)]
+pub struct NativeComparison {
+    /// Triangles traced (the scene at frame 0, moving objects included).
+    pub triangles: usize,
+    /// Crossings found per pass by this tracer.
+    pub crossings: usize,
+    /// This tracer, median seconds of a pass.
+    pub seconds: f64,
+    /// This tracer, crossings per second.
+    pub crossings_per_second: f64,
+    /// Native Embree's fastest mode, if it could be built and run.
+    pub embree: Option<EmbreeRun>,
+    /// Why there is no Embree figure, if there is none.
+    pub embree_missing: Option<String>,
+    /// This tracer's rate over Embree's.
+    pub ratio: Option<f64>,
+}
+
+/// What the Embree program reports for one mode (one JSON line).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct EmbreeRun {
+    /// `occluded8`, `occluded1` or `intersect1`.
+    pub mode: String,
+    /// Crossings found per pass.
+    pub crossings: usize,
+    /// Median seconds of a pass.
+    pub seconds: f64,
+    /// Million crossings per second.
+    pub mcps: f64,
+}
+
+/// Traces `bundles` through the scene at frame 0 with this tracer and with native Embree
+/// (built from `bench/embree` into `build_dir` if it is not there), alternating, on `threads`
+/// threads.
+pub fn compare(
+    scene: &Scene,
+    tracer: &SceneTracer,
+    bundles: &[ParallelLines],
+    build_dir: &Path,
+    threads: usize,
+) -> NativeComparison {
+    let triangles = scene.triangles_at(0);
+    let deformed = tracer.deformed_at(scene, 0);
+    let trace_once = || {
+        let start = Instant::now();
+        let crossings: usize = bundles
+            .par_iter()
+            .map_init(
+                || (Scratch::default(), Vec::new()),
+                |(scratch, found), lines| {
+                    tracer.trace_frame_parallel(lines, 0, &deformed, scratch, found);
+                    found.len()
+                },
+            )
+            .sum();
+        (crossings, start.elapsed().as_secs_f64())
+    };
+    let _warm_up = trace_once();
+    let prepared = build(build_dir).and_then(|program| {
+        let file = build_dir.join("lines.rlines");
+        write_lines(&file, triangles.iter().map(|(c, _)| c), bundles)
+            .map_err(|e| format!("could not write {}: {e}", file.display()))?;
+        Ok((program, file))
+    });
+    // Embree's passes, then ours: both on the same machine within seconds.
+    let embree = prepared.and_then(|(program, file)| {
+        let run = run(&program, &file, threads);
+        let _ = std::fs::remove_file(&file);
+        run
+    });
+    let ours = (0..REPEATS).map(|_| trace_once()).collect();
+    match embree {
+        Ok(run) => finish(ours, triangles.len(), Some(run), None),
+        Err(why) => finish(ours, triangles.len(), None, Some(why)),
+    }
+}
+
+fn finish(
+    mut runs: Vec<(usize, f64)>,
+    triangles: usize,
+    embree: Option<EmbreeRun>,
+    embree_missing: Option<String>,
+) -> NativeComparison {
+    runs.sort_by(|a, b| a.1.total_cmp(&b.1));
+    let (crossings, seconds) = runs[runs.len() / 2];
+    let crossings_per_second = crossings as f64 / seconds;
+    let ratio = embree
+        .as_ref()
+        .map(|e| crossings_per_second / (e.mcps * 1e6));
+    NativeComparison {
+        triangles,
+        crossings,
+        seconds,
+        crossings_per_second,
+        embree,
+        embree_missing,
+        ratio,
+    }
+}
+
+/// Builds the comparison program into `dir`; why not, if it cannot be.
+fn build(dir: &Path) -> Result<PathBuf, String> {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("bench/embree/build.sh");
+    let out = Command::new("bash")
+        .arg(&script)
+        .arg(dir)
+        .output()
+        .map_err(|e| format!("could not run {}: {e}", script.display()))?;
+    if !out.status.success() {
+        let said = String::from_utf8_lossy(&out.stderr);
+        return Err(format!(
+            "native Embree not built ({}): {}",
+            script.display(),
+            said.trim()
+        ));
+    }
+    Ok(dir.join("trace"))
+}
+
+/// Runs the program on `file`; its fastest mode.
+fn run(program: &Path, file: &Path, threads: usize) -> Result<EmbreeRun, String> {
+    let out = Command::new(program)
+        .arg(file)
+        .args(["--threads", &threads.to_string()])
+        .args(["--repeat", &REPEATS.to_string()])
+        .output()
+        .map_err(|e| format!("could not run {}: {e}", program.display()))?;
+    if !out.status.success() {
+        return Err(format!(
+            "{} failed: {}",
+            program.display(),
+            String::from_utf8_lossy(&out.stderr).trim()
+        ));
+    }
+    String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .filter_map(|line| serde_json::from_str::<EmbreeRun>(line).ok())
+        .max_by(|a, b| a.mcps.total_cmp(&b.mcps))
+        .ok_or_else(|| format!("{} reported nothing", program.display()))
+}
+
+/// Writes triangles and bundles in the program's `RLINES1` format (bench/embree/README.md).
+fn write_lines<'a>(
+    path: &Path,
+    triangles: impl ExactSizeIterator<Item = &'a [glam::Vec3; 3]>,
+    bundles: &[ParallelLines],
+) -> std::io::Result<()> {
+    let mut out = std::io::BufWriter::new(std::fs::File::create(path)?);
+    let count = |n: usize| u32::try_from(n).map_err(std::io::Error::other);
+    out.write_all(b"RLINES1\0")?;
+    out.write_all(&count(triangles.len())?.to_le_bytes())?;
+    let floats = |out: &mut std::io::BufWriter<_>, v: glam::Vec3| {
+        v.to_array()
+            .iter()
+            .try_for_each(|x| out.write_all(&x.to_le_bytes()))
+    };
+    for corners in triangles {
+        for &c in corners {
+            floats(&mut out, c)?;
+        }
+    }
+    out.write_all(&count(bundles.len())?.to_le_bytes())?;
+    for lines in bundles {
+        floats(&mut out, lines.direction())?;
+        out.write_all(&count(lines.len())?.to_le_bytes())?;
+        for &o in lines.origins() {
+            floats(&mut out, o)?;
+        }
+    }
+    out.flush()
+}
+
+impl std::fmt::Display for NativeComparison {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        writeln!(
+            f,
+            "frame 0 alone    {} triangles, {} crossings in {:.3} s: {:.1} M crossings/s",
+            self.triangles,
+            self.crossings,
+            self.seconds,
+            self.crossings_per_second / 1e6
+        )?;
+        match (&self.embree, &self.embree_missing) {
+            (Some(e), _) => writeln!(
+                f,
+                "native Embree    {} crossings in {:.3} s ({}): {:.1} M crossings/s; this tracer {:.2}x",
+                e.crossings,
+                e.seconds,
+                e.mode,
+                e.mcps,
+                self.ratio.unwrap_or(f64::NAN)
+            ),
+            (None, Some(why)) => writeln!(f, "native Embree    none: {why}"),
+            (None, None) => Ok(()),
+        }
+    }
+}
