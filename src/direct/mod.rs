@@ -31,7 +31,7 @@ use rand::{RngExt, SeedableRng};
 use rayon::prelude::*;
 
 use crate::control::{Control, TraceError};
-use crate::lines::parallel_bundle;
+use crate::lines::{LINE_LENGTH, parallel_bundle};
 use crate::scene::subdivide::normal_and_area;
 use crate::scene::{Faces, Light, LightKind, Scene};
 use crate::trace::coincident::{COINCIDENT, mix, resolve};
@@ -348,19 +348,22 @@ enum Occluders {
 impl Frame<'_> {
     /// Every crossing of `line` with the occluders, sorted along it.
     fn trace(&self, line: &Line, hits: &mut Vec<Hit>) {
+        self.trace_until(line, LINE_LENGTH, hits);
+    }
+
+    /// [`Frame::trace`] for `0 < t < t_max` only.
+    fn trace_until(&self, line: &Line, t_max: f32, hits: &mut Vec<Hit>) {
+        let (tracer, frame, deformed) = (self.tracer, self.frame, self.deformed);
         match self.occluders {
-            Occluders::All => self
-                .tracer
-                .trace_frame(line, self.frame, self.deformed, hits),
+            Occluders::All => tracer.trace_frame_until(line, frame, deformed, t_max, hits),
             Occluders::Static => {
                 hits.clear();
-                self.tracer.trace_static(line, hits);
+                tracer.trace_static_until(line, t_max, hits);
                 hits.sort_unstable_by(Hit::order);
             }
             Occluders::Moving => {
                 hits.clear();
-                self.tracer
-                    .trace_moving(line, self.frame, self.deformed, hits);
+                tracer.trace_moving_until(line, frame, deformed, t_max, hits);
                 hits.sort_unstable_by(Hit::order);
             }
         }
@@ -373,7 +376,7 @@ impl Frame<'_> {
     fn blocked(&self, from: DVec3, to: DVec3, own: u32, back: bool, hits: &mut Vec<Hit>) -> bool {
         let d = to - from;
         let length = d.length();
-        let behind = self.trace_from_behind(from, d / length, hits);
+        let behind = self.trace_from_behind(from, d / length, length, hits);
         let (start, end) = (behind as f32, (behind + length) as f32 - SHADOW_EPSILON);
         hits.iter().any(|&h| {
             (h.surface() != own && h.t > start + COINCIDENT && h.t < end)
@@ -386,20 +389,27 @@ impl Frame<'_> {
     /// touching surface [`Frame::blocked`] finds at the start of every shadow ray from there,
     /// looked for along the normal.
     fn covered(&self, x: DVec3, n: DVec3, face: (u32, bool), hits: &mut Vec<Hit>) -> bool {
-        let start = self.trace_from_behind(x, n, hits) as f32;
+        let start = self.trace_from_behind(x, n, 0.0, hits) as f32;
         hits.iter().any(|&h| self.touching_at(h, start, face))
     }
 
     /// Traces the line through `x` along unit `direction` from a little behind `x`, so that a
     /// surface touching the face `x` lies on is crossed whichever side of `x` rounding puts
-    /// it; `x`'s distance along the line.
-    fn trace_from_behind(&self, x: DVec3, direction: DVec3, hits: &mut Vec<Hit>) -> f64 {
+    /// it, as far as `reach` past `x` (and a little more); `x`'s distance along the line.
+    fn trace_from_behind(
+        &self,
+        x: DVec3,
+        direction: DVec3,
+        reach: f64,
+        hits: &mut Vec<Hit>,
+    ) -> f64 {
         let behind = f64::from(4.0 * COINCIDENT);
         let line = Line {
             origin: (x - direction * behind).as_vec3(),
             direction: direction.as_vec3(),
         };
-        self.trace(&line, hits);
+        let t_max = (behind + reach) as f32 + 4.0 * COINCIDENT;
+        self.trace_until(&line, t_max.min(LINE_LENGTH), hits);
         behind
     }
 
@@ -863,7 +873,7 @@ fn sunlit(at: &Frame<'_>, w: DVec3, face: &Face, seed: u64, hits: &mut Vec<Hit>)
     let mut points = Vec::new();
     let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed);
     sample_points(inset(&face.corners), PART_LEVEL, &mut rng, &mut points);
-    let away = w * f64::from(crate::lines::LINE_LENGTH);
+    let away = w * f64::from(LINE_LENGTH);
     let values: Vec<f64> = points
         .iter()
         .map(|&x| {
@@ -977,7 +987,7 @@ fn directional(at: &Frame<'_>, light: &Light) -> Vec<(f64, f64)> {
             } else {
                 // Smaller than the grid: one shadow ray from the centroid, out of the scene.
                 let centre = corners.iter().map(|c| c.as_dvec3()).sum::<DVec3>() / 3.0;
-                let away = centre - w * f64::from(crate::lines::LINE_LENGTH);
+                let away = centre - w * f64::from(LINE_LENGTH);
                 let visible = !at.blocked(centre, away, t as u32, back, &mut hits);
                 (f64::from(u8::from(visible)), 0.0)
             };

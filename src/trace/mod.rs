@@ -138,12 +138,17 @@ impl TraceMesh {
     /// Appends every crossing of the line `origin + t·direction`, `0 < t < LINE_LENGTH`, in
     /// traversal order.
     pub fn trace(&self, origin: Vec3, direction: Vec3, out: &mut Vec<Hit>) {
+        self.trace_until(origin, direction, LINE_LENGTH, out);
+    }
+
+    /// [`TraceMesh::trace`] for `0 < t < t_max` only: the nodes beyond are not visited.
+    pub fn trace_until(&self, origin: Vec3, direction: Vec3, t_max: f32, out: &mut Vec<Hit>) {
         let sheared = ShearedLine::new(origin, direction);
-        let ray = Ray::new(origin.into(), direction.into(), 0.0, LINE_LENGTH);
+        let ray = Ray::new(origin.into(), direction.into(), 0.0, t_max);
         self.bvh.ray_traverse_anyhit(ray, |_, k| {
             let Triangle { corners, id } = self.triangles[k];
             let [a, b, c] = corners;
-            if let Some((t, front)) = sheared.intersect(a, b, c, LINE_LENGTH) {
+            if let Some((t, front)) = sheared.intersect(a, b, c, t_max) {
                 out.push(Hit::new(t, id, front));
             }
         });
@@ -321,8 +326,13 @@ impl SceneTracer {
 
     /// Appends the crossings of `line` with the static geometry.
     pub fn trace_static(&self, line: &Line, out: &mut Vec<Hit>) {
+        self.trace_static_until(line, LINE_LENGTH, out);
+    }
+
+    /// [`SceneTracer::trace_static`] for `0 < t < t_max` only.
+    pub fn trace_static_until(&self, line: &Line, t_max: f32, out: &mut Vec<Hit>) {
         if let Some(mesh) = &self.statics {
-            mesh.trace(line.origin, line.direction, out);
+            mesh.trace_until(line.origin, line.direction, t_max, out);
         }
     }
 
@@ -335,19 +345,33 @@ impl SceneTracer {
         deformed: &FrameMeshes,
         out: &mut Vec<Hit>,
     ) {
-        let ray = Ray::new(line.origin.into(), line.direction.into(), 0.0, LINE_LENGTH);
+        self.trace_moving_until(line, frame, deformed, LINE_LENGTH, out);
+    }
+
+    /// [`SceneTracer::trace_moving`] for `0 < t < t_max` only.
+    pub fn trace_moving_until(
+        &self,
+        line: &Line,
+        frame: usize,
+        deformed: &FrameMeshes,
+        t_max: f32,
+        out: &mut Vec<Hit>,
+    ) {
+        let ray = Ray::new(line.origin.into(), line.direction.into(), 0.0, t_max);
         for rigid in self.rigid.iter().flatten() {
             if let Some((bounds, inv)) = &rigid.frames[frame] {
                 if bounds.intersect_ray(&ray) == f32::INFINITY {
                     continue;
                 }
+                // The same t along the line in the object's space: origin and direction move
+                // together.
                 let origin = inv.transform_point3(line.origin);
                 let direction = inv.transform_vector3(line.direction);
-                rigid.mesh.trace(origin, direction, out);
+                rigid.mesh.trace_until(origin, direction, t_max, out);
             }
         }
         for mesh in deformed.meshes.iter().flatten() {
-            mesh.trace(line.origin, line.direction, out);
+            mesh.trace_until(line.origin, line.direction, t_max, out);
         }
     }
 
@@ -428,9 +452,21 @@ impl SceneTracer {
         deformed: &FrameMeshes,
         out: &mut Vec<Hit>,
     ) {
+        self.trace_frame_until(line, frame, deformed, LINE_LENGTH, out);
+    }
+
+    /// [`SceneTracer::trace_frame`] for `0 < t < t_max` only: what a shadow ray needs.
+    pub fn trace_frame_until(
+        &self,
+        line: &Line,
+        frame: usize,
+        deformed: &FrameMeshes,
+        t_max: f32,
+        out: &mut Vec<Hit>,
+    ) {
         out.clear();
-        self.trace_static(line, out);
-        self.trace_moving(line, frame, deformed, out);
+        self.trace_static_until(line, t_max, out);
+        self.trace_moving_until(line, frame, deformed, t_max, out);
         out.sort_unstable_by(Hit::order);
     }
 
