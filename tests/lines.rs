@@ -199,6 +199,7 @@ fn each_patch_is_crossed_a_over_2_delta_times_per_bundle() {
                     origin,
                     direction: b.direction,
                 },
+                LINE_LENGTH,
                 &mut hits,
             );
             for h in &hits {

@@ -358,12 +358,12 @@ impl Frame<'_> {
             Occluders::All => tracer.trace_frame_until(line, frame, deformed, t_max, hits),
             Occluders::Static => {
                 hits.clear();
-                tracer.trace_static_until(line, t_max, hits);
+                tracer.trace_static(line, t_max, hits);
                 hits.sort_unstable_by(Hit::order);
             }
             Occluders::Moving => {
                 hits.clear();
-                tracer.trace_moving_until(line, frame, deformed, t_max, hits);
+                tracer.trace_moving(line, frame, deformed, t_max, hits);
                 hits.sort_unstable_by(Hit::order);
             }
         }

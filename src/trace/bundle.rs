@@ -2,10 +2,10 @@
 //!
 //! Lines that share a direction are points on any plane they cross: sheared along the
 //! direction (the watertight test's own shear, [`Shear`]), a BVH node's box becomes a rectangle
-//! and the lines through the box are the points inside it. One walk of a 4-wide BVH per bundle
+//! and the lines through the box are the points inside it. One walk of an 8-wide BVH per bundle
 //! carries down, from each node to its children, the list of the lines inside the node's
 //! rectangle: a node is read once per bundle, not once per line, and testing a line against
-//! four children is one comparison of its projected point with four rectangles at once. The
+//! eight children is two comparisons of its projected point with four rectangles at once. The
 //! walk goes level by level, so that the reads of a level's nodes from memory overlap.
 //!
 //! At a leaf, each line inside a triangle's rectangle gets the exact test on the same numbers

@@ -89,7 +89,7 @@ pub struct TraceMesh {
     /// The triangles, in the BVH's primitive order.
     triangles: Vec<Triangle>,
     bvh: Bvh2,
-    /// The same BVH 4 wide, for bundles ([`TraceMesh::trace_parallel`]).
+    /// The same BVH, 8 wide, for bundles ([`TraceMesh::trace_parallel`]).
     wide: Vec<wide::Node>,
 }
 
@@ -116,6 +116,8 @@ impl TraceMesh {
             })
             .collect();
         let mut build_time = Duration::ZERO;
+        // One triangle per leaf: a bundle's walk tests a leaf's box with its siblings' and
+        // reads a triangle only for the lines inside its box (measured best of 1, 2 and 4).
         let params = BvhBuildParams {
             max_prims_per_leaf: 1,
             ..BvhBuildParams::medium_build()
@@ -324,32 +326,17 @@ impl SceneTracer {
         self.faces.len()
     }
 
-    /// Appends the crossings of `line` with the static geometry.
-    pub fn trace_static(&self, line: &Line, out: &mut Vec<Hit>) {
-        self.trace_static_until(line, LINE_LENGTH, out);
-    }
-
-    /// [`SceneTracer::trace_static`] for `0 < t < t_max` only.
-    pub fn trace_static_until(&self, line: &Line, t_max: f32, out: &mut Vec<Hit>) {
+    /// Appends the crossings of `line` with the static geometry, `0 < t < t_max`
+    /// ([`LINE_LENGTH`] for the whole line; less for a shadow ray, sparing the nodes beyond).
+    pub fn trace_static(&self, line: &Line, t_max: f32, out: &mut Vec<Hit>) {
         if let Some(mesh) = &self.statics {
             mesh.trace_until(line.origin, line.direction, t_max, out);
         }
     }
 
-    /// Appends the crossings of `line` with the moving objects as posed at `frame`; `deformed`
-    /// holds the deforming objects' meshes for that frame.
+    /// Appends the crossings of `line` with the moving objects as posed at `frame`,
+    /// `0 < t < t_max`; `deformed` holds the deforming objects' meshes for that frame.
     pub fn trace_moving(
-        &self,
-        line: &Line,
-        frame: usize,
-        deformed: &FrameMeshes,
-        out: &mut Vec<Hit>,
-    ) {
-        self.trace_moving_until(line, frame, deformed, LINE_LENGTH, out);
-    }
-
-    /// [`SceneTracer::trace_moving`] for `0 < t < t_max` only.
-    pub fn trace_moving_until(
         &self,
         line: &Line,
         frame: usize,
@@ -465,8 +452,8 @@ impl SceneTracer {
         out: &mut Vec<Hit>,
     ) {
         out.clear();
-        self.trace_static_until(line, t_max, out);
-        self.trace_moving_until(line, frame, deformed, t_max, out);
+        self.trace_static(line, t_max, out);
+        self.trace_moving(line, frame, deformed, t_max, out);
         out.sort_unstable_by(Hit::order);
     }
 

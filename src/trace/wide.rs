@@ -45,7 +45,7 @@ impl Node {
     };
 }
 
-/// Collapses `bvh` into 4-wide nodes, root first, each node's subtrees after it in depth-first
+/// Collapses `bvh` into wide nodes, root first, each node's subtrees after it in depth-first
 /// order. Leaves keep the binary BVH's triangles (`first_index`, `prim_count`). Empty if the
 /// BVH is.
 #[must_use]
@@ -57,13 +57,13 @@ pub fn collapse(bvh: &Bvh2) -> Vec<Node> {
     nodes
 }
 
-/// Appends the 4-wide node standing for binary node `at` (and its subtrees); its index.
+/// Appends the wide node standing for binary node `at` (and its subtrees); its index.
 fn build(bvh: &Bvh2, at: usize, nodes: &mut Vec<Node>) -> u32 {
     let slot = nodes.len();
     nodes.push(Node::UNUSED);
     let binary = &bvh.nodes;
     // The children: start from `at` (or its two children), then open the largest inner one
-    // until there are four.
+    // until there are eight.
     let mut kids = if binary[at].prim_count == 0 {
         let first = binary[at].first_index as usize;
         vec![first, first + 1]
