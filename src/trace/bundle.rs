@@ -186,8 +186,8 @@ fn children_around(rects: &[[glam::Vec4; 4]; wide::WIDTH / 4], p: &Point) -> u32
 }
 
 /// Appends to `next` the lines of `list` inside each child's rectangle (`rects`, see
-/// [`children_around`]; `used`, the children there are), child after child; each child's range
-/// in `next`, empty if none.
+/// [`children_around`]; `used`, the children there are), child after child: the children
+/// reached (bit i for child i), and each one's range in `next`.
 #[inline]
 fn split(
     list: &[Point],
@@ -195,25 +195,28 @@ fn split(
     used: u32,
     next: &mut Vec<Point>,
     masks: &mut Vec<u32>,
-) -> [(u32, u32); wide::WIDTH] {
+) -> (u32, [(u32, u32); wide::WIDTH]) {
     let mut ranges = [(0, 0); wide::WIDTH];
     if let [p] = list {
         // Most lists deep in the tree: one line, which goes on to its children.
-        let mut m = children_around(rects, p) & used;
+        let reached = children_around(rects, p) & used;
+        let mut m = reached;
         while m != 0 {
             let i = m.trailing_zeros() as usize;
             m &= m - 1;
             ranges[i] = (next.len() as u32, next.len() as u32 + 1);
             next.push(*p);
         }
-        return ranges;
+        return (reached, ranges);
     }
     // Which children each line goes through, all at once; then the children's lists, side by
     // side, in one pass.
     masks.clear();
     let mut counts = [0; wide::WIDTH];
+    let mut reached = 0;
     for p in list {
         let m = children_around(rects, p) & used;
+        reached |= m;
         masks.push(m);
         for (i, count) in counts.iter_mut().enumerate() {
             *count += (m >> i) as usize & 1;
@@ -238,7 +241,7 @@ fn split(
             at[i] += 1;
         }
     }
-    ranges
+    (reached, ranges)
 }
 
 impl TraceMesh {
@@ -280,10 +283,12 @@ impl TraceMesh {
                 let node = &self.wide[node as usize];
                 let rects = node.boxes.map(|b| shear.project_boxes(&b.lo, &b.hi));
                 let list = &points[start as usize..end as usize];
-                let ranges = split(list, &rects, node.used, next_points, masks);
-                for (i, &(from, to)) in ranges.iter().enumerate() {
+                let (mut reached, ranges) = split(list, &rects, node.used, next_points, masks);
+                while reached != 0 {
+                    let i = reached.trailing_zeros() as usize;
+                    reached &= reached - 1;
+                    let (from, to) = ranges[i];
                     match node.count[i] {
-                        _ if from == to => {}
                         INNER => next_nodes.push((node.child[i], from, to)),
                         count => {
                             let first = node.child[i];
