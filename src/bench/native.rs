@@ -89,18 +89,20 @@ pub fn compare(
         run
     });
     let ours = (0..REPEATS).map(|_| trace_once()).collect();
-    match embree {
-        Ok(run) => finish(ours, triangles.len(), Some(run), None),
-        Err(why) => finish(ours, triangles.len(), None, Some(why)),
-    }
+    finish(ours, triangles.len(), embree)
 }
 
+/// The comparison from this tracer's passes (crossings, seconds) and Embree's run or why there
+/// is none.
 fn finish(
     mut runs: Vec<(usize, f64)>,
     triangles: usize,
-    embree: Option<EmbreeRun>,
-    embree_missing: Option<String>,
+    embree: Result<EmbreeRun, String>,
 ) -> NativeComparison {
+    let (embree, embree_missing) = match embree {
+        Ok(run) => (Some(run), None),
+        Err(why) => (None, Some(why)),
+    };
     runs.sort_by(|a, b| a.1.total_cmp(&b.1));
     let (crossings, seconds) = runs[runs.len() / 2];
     let crossings_per_second = crossings as f64 / seconds;

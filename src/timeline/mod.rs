@@ -322,20 +322,21 @@ impl IntersectionList {
             }
             let mut start = self.lines() as u32;
             for b in bundles.iter().rev() {
-                start -= b.origins.len() as u32;
-                self.bundle_starts.push((start, b.direction));
+                start -= b.len() as u32;
+                self.bundle_starts.push((start, b.direction()));
             }
             let added = self.bundle_starts.len() - bundles.len();
             self.bundle_starts[added..].reverse();
             self.batches.push(BatchLines {
                 batch: *batch,
-                bundle_lines: bundles.iter().map(|b| b.origins.len() as u32).collect(),
+                bundle_lines: bundles.iter().map(|b| b.len() as u32).collect(),
             });
         }
         Ok(())
     }
 
-    /// Traces one batch through the whole timeline: its bundles, each bundle's lines' counts
+    /// Traces one batch through the whole timeline: its bundles (ready for tracing), each
+    /// bundle's lines' counts
     /// and static crossings, and its moving crossings per bundle (line within the bundle,
     /// crossing) in frame order.
     #[allow(clippy::type_complexity)]
@@ -347,26 +348,28 @@ impl IntersectionList {
         control: &Control,
     ) -> Result<
         (
-            Vec<Bundle>,
+            Vec<ParallelLines>,
             Vec<(Vec<u32>, Vec<Hit>)>,
             Vec<Vec<(u32, FrameHit)>>,
         ),
         TraceError,
     > {
-        let bundles: Vec<Bundle> = (0..batch.bundles)
+        let bundles: Vec<ParallelLines> = (0..batch.bundles)
             .into_par_iter()
             .map(|k| {
-                if control.is_cancelled() {
-                    return Bundle {
+                let Bundle { direction, origins } = if control.is_cancelled() {
+                    Bundle {
                         direction: glam::Vec3::Z,
                         origins: Vec::new(),
-                    };
-                }
-                batch.bundle(k, &scene.bounds)
+                    }
+                } else {
+                    batch.bundle(k, &scene.bounds)
+                };
+                ParallelLines::new(direction, origins)
             })
             .collect();
         control.check()?;
-        let lines: u64 = bundles.iter().map(|b| b.origins.len() as u64).sum();
+        let lines: u64 = bundles.iter().map(|b| b.len() as u64).sum();
         let passes = 1 + if scene.objects.is_empty() {
             0
         } else {
@@ -376,22 +379,24 @@ impl IntersectionList {
 
         let traced: Vec<(Vec<u32>, Vec<Hit>)> = bundles
             .par_iter()
-            .map(|bundle| {
-                if control.is_cancelled() {
-                    return (Vec::new(), Vec::new());
-                }
-                control.advance(bundle.origins.len() as u64);
-                let lines = ParallelLines::new(bundle.direction, bundle.origins.clone());
-                let (mut found, mut scratch) = (Vec::new(), Scratch::default());
-                tracer.trace_static_parallel(&lines, &mut scratch, &mut found);
-                sort_by_line(&mut found, lines.len(), &mut scratch);
-                let mut counts = vec![0u32; lines.len()];
-                found
-                    .iter()
-                    .for_each(|&(line, _)| counts[line as usize] += 1);
-                let hits = found.into_iter().map(|(_, hit)| hit).collect();
-                (counts, hits)
-            })
+            .map_init(
+                || (Scratch::default(), Vec::new()),
+                |(scratch, found), lines| {
+                    if control.is_cancelled() {
+                        return (Vec::new(), Vec::new());
+                    }
+                    control.advance(lines.len() as u64);
+                    found.clear();
+                    tracer.trace_static_parallel(lines, scratch, found);
+                    sort_by_line(found, lines.len(), scratch);
+                    let mut counts = vec![0u32; lines.len()];
+                    found
+                        .iter()
+                        .for_each(|&(line, _)| counts[line as usize] += 1);
+                    let hits = found.iter().map(|&(_, hit)| hit).collect();
+                    (counts, hits)
+                },
+            )
             .collect();
         control.check()?;
 
@@ -404,12 +409,12 @@ impl IntersectionList {
                 control.check()?;
                 let traced: Vec<Vec<(u32, FrameHit)>> = bundles
                     .par_iter()
-                    .map(|bundle| {
+                    .map_init(Scratch::default, |scratch, lines| {
                         if control.is_cancelled() {
                             return Vec::new();
                         }
-                        control.advance(bundle.origins.len() as u64);
-                        trace_moving_bundle(tracer, bundle, frame, &deformed)
+                        control.advance(lines.len() as u64);
+                        trace_moving_bundle(tracer, lines, frame, &deformed, scratch)
                     })
                     .collect();
                 for (all, new) in moving.iter_mut().zip(traced) {
@@ -424,7 +429,7 @@ impl IntersectionList {
     /// Appends a traced batch: static crossings per bundle, moving ones grouped by line.
     fn append(
         &mut self,
-        bundles: &[Bundle],
+        bundles: &[ParallelLines],
         traced: &[(Vec<u32>, Vec<Hit>)],
         moving: Vec<Vec<(u32, FrameHit)>>,
     ) -> Result<(), TraceError> {
@@ -434,7 +439,7 @@ impl IntersectionList {
         }
         for (bundle, hits) in bundles.iter().zip(moving) {
             // Group by line with a counting sort, which keeps the frame order within a line.
-            let mut counts = vec![0u32; bundle.origins.len()];
+            let mut counts = vec![0u32; bundle.len()];
             hits.iter()
                 .for_each(|&(line, _)| counts[line as usize] += 1);
             let mut next: Vec<usize> = counts
@@ -652,16 +657,18 @@ fn lines_of(bundle: &Bundle) -> impl Iterator<Item = Line> + '_ {
     })
 }
 
+/// The crossings of the moving objects at `frame` by `lines`: (line within the bundle,
+/// crossing), by line and along each line.
 fn trace_moving_bundle(
     tracer: &SceneTracer,
-    bundle: &Bundle,
+    lines: &ParallelLines,
     frame: usize,
     deformed: &FrameMeshes,
+    scratch: &mut Scratch,
 ) -> Vec<(u32, FrameHit)> {
-    let lines = ParallelLines::new(bundle.direction, bundle.origins.clone());
-    let (mut found, mut scratch) = (Vec::new(), Scratch::default());
-    tracer.trace_moving_parallel(&lines, frame, deformed, &mut scratch, &mut found);
-    sort_by_line(&mut found, lines.len(), &mut scratch);
+    let mut found = Vec::new();
+    tracer.trace_moving_parallel(lines, frame, deformed, scratch, &mut found);
+    sort_by_line(&mut found, lines.len(), scratch);
     found
         .into_iter()
         .map(|(line, hit)| {
