@@ -150,11 +150,16 @@ fn prefetch<T>(at: &T, bytes: usize) {
     #[cfg(target_arch = "x86_64")]
     {
         use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
+        // Every cache line the bytes touch: an object may straddle two.
         let base = std::ptr::from_ref(at).cast::<i8>();
-        for offset in (0..bytes).step_by(64) {
+        let mut offset = 0;
+        while offset < bytes {
             // SAFETY: SSE is part of x86_64; a prefetch never faults, whatever the address.
             unsafe { _mm_prefetch::<_MM_HINT_T0>(base.wrapping_add(offset)) };
+            offset += 64;
         }
+        // SAFETY: as above; the last line, when the bytes straddle one more than they fill.
+        unsafe { _mm_prefetch::<_MM_HINT_T0>(base.wrapping_add(bytes - 1)) };
     }
 }
 
@@ -281,7 +286,11 @@ impl TraceMesh {
                     prefetch(&self.wide[ahead as usize], size_of::<wide::Node>());
                 }
                 let node = &self.wide[node as usize];
-                let rects = node.boxes.map(|b| shear.project_boxes(&b.lo, &b.hi));
+                let [low, high] = &node.boxes;
+                let rects = [
+                    shear.project_boxes(&low.lo, &low.hi),
+                    shear.project_boxes(&high.lo, &high.hi),
+                ];
                 let list = &points[start as usize..end as usize];
                 let (mut reached, ranges) = split(list, &rects, node.used, next_points, masks);
                 while reached != 0 {
@@ -322,7 +331,8 @@ impl TraceMesh {
     ) {
         let Triangle { corners, id } = self.triangles[k];
         let shear = &lines.shear;
-        let projected = corners.map(|p| shear.project(p));
+        let [a, b, c] = corners;
+        let projected = [shear.project(a), shear.project(b), shear.project(c)];
         let rect = triangle_rect(projected);
         for p in points {
             if !inside(&rect, p) {

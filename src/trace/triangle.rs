@@ -52,11 +52,8 @@ impl Shear {
     #[must_use]
     #[inline]
     pub fn project(&self, p: Vec3) -> [f32; 2] {
-        let p = p.to_array();
-        [
-            p[self.kx] - self.sx * p[self.kz],
-            p[self.ky] - self.sy * p[self.kz],
-        ]
+        let (x, y, z) = (axis(&p, self.kx), axis(&p, self.ky), axis(&p, self.kz));
+        [x - self.sx * z, y - self.sy * z]
     }
 
     /// The rectangle (lower x, lower y, upper x, upper y) that [`Shear::project`] maps the box
@@ -65,14 +62,14 @@ impl Shear {
     #[must_use]
     #[inline]
     pub fn project_box(&self, min: Vec3, max: Vec3) -> [f32; 4] {
-        let (min, max) = (min.to_array(), max.to_array());
-        let (zx0, zx1) = (self.sx * min[self.kz], self.sx * max[self.kz]);
-        let (zy0, zy1) = (self.sy * min[self.kz], self.sy * max[self.kz]);
+        let (min_z, max_z) = (axis(&min, self.kz), axis(&max, self.kz));
+        let (zx0, zx1) = (self.sx * min_z, self.sx * max_z);
+        let (zy0, zy1) = (self.sy * min_z, self.sy * max_z);
         [
-            min[self.kx] - zx0.max(zx1),
-            min[self.ky] - zy0.max(zy1),
-            max[self.kx] - zx0.min(zx1),
-            max[self.ky] - zy0.min(zy1),
+            axis(&min, self.kx) - zx0.max(zx1),
+            axis(&min, self.ky) - zy0.max(zy1),
+            axis(&max, self.kx) - zx0.min(zx1),
+            axis(&max, self.ky) - zy0.min(zy1),
         ]
     }
 
@@ -82,17 +79,37 @@ impl Shear {
     #[must_use]
     #[inline]
     pub fn project_boxes(&self, lo: &[[f32; 4]; 3], hi: &[[f32; 4]; 3]) -> [glam::Vec4; 4] {
-        use glam::Vec4;
-        let (lo_z, hi_z) = (Vec4::from(lo[self.kz]), Vec4::from(hi[self.kz]));
+        let (lo_z, hi_z) = (axes(lo, self.kz), axes(hi, self.kz));
         let (zx0, zx1) = (lo_z * self.sx, hi_z * self.sx);
         let (zy0, zy1) = (lo_z * self.sy, hi_z * self.sy);
         [
-            Vec4::from(lo[self.kx]) - zx0.max(zx1),
-            Vec4::from(lo[self.ky]) - zy0.max(zy1),
-            Vec4::from(hi[self.kx]) - zx0.min(zx1),
-            Vec4::from(hi[self.ky]) - zy0.min(zy1),
+            axes(lo, self.kx) - zx0.max(zx1),
+            axes(lo, self.ky) - zy0.max(zy1),
+            axes(hi, self.kx) - zx0.min(zx1),
+            axes(hi, self.ky) - zy0.min(zy1),
         ]
     }
+}
+
+/// Coordinate `k` (0, 1 or 2) of `p`: a branch taken the same way for every point of a bundle,
+/// where indexing would go through memory.
+#[inline(always)]
+fn axis(p: &Vec3, k: usize) -> f32 {
+    match k {
+        0 => p.x,
+        1 => p.y,
+        _ => p.z,
+    }
+}
+
+/// [`axis`] of four points given by axis.
+#[inline(always)]
+fn axes(p: &[[f32; 4]; 3], k: usize) -> glam::Vec4 {
+    glam::Vec4::from(match k {
+        0 => p[0],
+        1 => p[1],
+        _ => p[2],
+    })
 }
 
 /// A line prepared for the watertight test: its starting point and the shear that maps its
@@ -172,7 +189,7 @@ impl ShearedLine {
         let u = f(cx) * f(by) - f(cy) * f(bx);
         let v = f(ax) * f(cy) - f(ay) * f(cx);
         let w = f(bx) * f(ay) - f(by) * f(ax);
-        if (u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0) {
+        if ((u < 0.0) | (v < 0.0) | (w < 0.0)) & ((u > 0.0) | (v > 0.0) | (w > 0.0)) {
             return None;
         }
         let det = u + v + w;
@@ -202,7 +219,8 @@ fn certainly_outside([[ax, ay], [bx, by], [cx, cy]]: [[f32; 2]; 3]) -> bool {
     let u = cx * by - cy * bx;
     let v = ax * cy - ay * cx;
     let w = bx * ay - by * ax;
-    (u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0)
+    // Without short cuts: the branches would be as hard to predict as the answer.
+    ((u < 0.0) | (v < 0.0) | (w < 0.0)) & ((u > 0.0) | (v > 0.0) | (w > 0.0))
 }
 
 /// Top-left rule: whether a triangle owns its edge from (px, py) to (qx, qy), taking the edge in
