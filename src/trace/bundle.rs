@@ -190,7 +190,7 @@ fn children_around(rects: &[[glam::Vec4; 4]; wide::WIDTH / 4], p: &Point) -> u32
     })
 }
 
-/// Appends to `next` the lines of `list` inside each child's rectangle (`rects`, see
+/// Appends to `next` the lines of `list` (of several lines) inside each child's rectangle (`rects`, see
 /// [`children_around`]; `used`, the children there are), child after child: the children
 /// reached (bit i for child i), and each one's range in `next`.
 #[inline]
@@ -202,18 +202,6 @@ fn split(
     masks: &mut Vec<u32>,
 ) -> (u32, [(u32, u32); wide::WIDTH]) {
     let mut ranges = [(0, 0); wide::WIDTH];
-    if let [p] = list {
-        // Most lists deep in the tree: one line, which goes on to its children.
-        let reached = children_around(rects, p) & used;
-        let mut m = reached;
-        while m != 0 {
-            let i = m.trailing_zeros() as usize;
-            m &= m - 1;
-            ranges[i] = (next.len() as u32, next.len() as u32 + 1);
-            next.push(*p);
-        }
-        return (reached, ranges);
-    }
     // Which children each line goes through, all at once; then the children's lists, side by
     // side, in one pass.
     masks.clear();
@@ -292,7 +280,17 @@ impl TraceMesh {
                     shear.project_boxes(&high.lo, &high.hi),
                 ];
                 let list = &points[start as usize..end as usize];
-                let (mut reached, ranges) = split(list, &rects, node.used, next_points, masks);
+                let (mut reached, ranges) = if let [p] = list {
+                    // Most lists deep in the tree: one line, whose children share one copy.
+                    let reached = children_around(&rects, p) & node.used;
+                    let at = next_points.len() as u32;
+                    if reached != 0 {
+                        next_points.push(*p);
+                    }
+                    (reached, [(at, at + 1); wide::WIDTH])
+                } else {
+                    split(list, &rects, node.used, next_points, masks)
+                };
                 while reached != 0 {
                     let i = reached.trailing_zeros() as usize;
                     reached &= reached - 1;

@@ -150,7 +150,7 @@ impl ShearedLine {
     /// [`Shear::project`]ions (which a bundle's lines share: a triangle's are worked out once
     /// for all of them).
     #[must_use]
-    #[inline]
+    #[inline(always)]
     pub fn intersect_projected(
         &self,
         [a, b, c]: [Vec3; 3],
@@ -173,7 +173,7 @@ impl ShearedLine {
     }
 
     /// The exact test, given the corners seen from the line (projected, relative to it).
-    #[inline]
+    #[inline(always)]
     fn crossing(
         &self,
         [a, b, c]: [Vec3; 3],
