@@ -17,7 +17,7 @@
 
 use glam::Vec3;
 
-use super::triangle::{Shear, ShearedLine};
+use super::triangle::{Shear, ShearedLine, certainly_outside4};
 use super::wide::{self, INNER};
 use super::{Hit, TraceMesh, Triangle};
 use crate::lines::LINE_LENGTH;
@@ -331,16 +331,33 @@ impl TraceMesh {
         let shear = &lines.shear;
         let [a, b, c] = corners;
         let projected = [shear.project(a), shear.project(b), shear.project(c)];
-        let rect = triangle_rect(projected);
-        for p in points {
-            if !inside(&rect, p) {
-                continue;
-            }
+        let mut cross = |p: &Point| {
             let line = ShearedLine::with_shear(lines.origins[p.line as usize], *shear);
             if let Some((t, front)) =
                 line.intersect_projected(corners, projected, [p.x, p.y], LINE_LENGTH)
             {
                 out.push((p.line, Hit::new(t, id, front)));
+            }
+        };
+        if let [p] = points {
+            // Most lists at the leaves of a fine mesh: one line.
+            if inside(&triangle_rect(projected), p) {
+                cross(p);
+            }
+            return;
+        }
+        // Four lines at a time through the plain f32 rejection; the rest one by one.
+        for chunk in points.chunks(4) {
+            let (mut x, mut y) = ([0.0; 4], [0.0; 4]);
+            for (i, p) in chunk.iter().enumerate() {
+                (x[i], y[i]) = (p.x, p.y);
+            }
+            let outside = certainly_outside4(projected, x.into(), y.into());
+            let mut maybe = !outside & ((1 << chunk.len()) - 1);
+            while maybe != 0 {
+                let i = maybe.trailing_zeros() as usize;
+                maybe &= maybe - 1;
+                cross(&chunk[i]);
             }
         }
     }

@@ -223,6 +223,29 @@ fn certainly_outside([[ax, ay], [bx, by], [cx, cy]]: [[f32; 2]; 3]) -> bool {
     ((u < 0.0) | (v < 0.0) | (w < 0.0)) & ((u > 0.0) | (v > 0.0) | (w > 0.0))
 }
 
+/// [`certainly_outside`] for four lines at once, through the points `(ox[i], oy[i])` of the
+/// plane the corners are [`Shear::project`]ed on: bit i set when line i certainly misses. The
+/// same `f32` operations in the same order, lane by lane, so the same answers.
+#[must_use]
+#[inline]
+pub fn certainly_outside4(
+    [[pax, pay], [pbx, pby], [pcx, pcy]]: [[f32; 2]; 3],
+    ox: glam::Vec4,
+    oy: glam::Vec4,
+) -> u32 {
+    use glam::Vec4;
+    let (ax, ay) = (Vec4::splat(pax) - ox, Vec4::splat(pay) - oy);
+    let (bx, by) = (Vec4::splat(pbx) - ox, Vec4::splat(pby) - oy);
+    let (cx, cy) = (Vec4::splat(pcx) - ox, Vec4::splat(pcy) - oy);
+    let u = cx * by - cy * bx;
+    let v = ax * cy - ay * cx;
+    let w = bx * ay - by * ax;
+    let zero = Vec4::ZERO;
+    let negative = u.cmplt(zero) | v.cmplt(zero) | w.cmplt(zero);
+    let positive = u.cmpgt(zero) | v.cmpgt(zero) | w.cmpgt(zero);
+    (negative & positive).bitmask()
+}
+
 /// Top-left rule: whether a triangle owns its edge from (px, py) to (qx, qy), taking the edge in
 /// the triangle's counter-clockwise order in projection (reversed when the projection is
 /// clockwise). Exactly one of an edge's two directions is owned.
@@ -241,6 +264,28 @@ mod tests {
     use super::*;
     use rand::rngs::Xoshiro256PlusPlus;
     use rand::{RngExt, SeedableRng};
+
+    #[test]
+    fn four_lines_at_once_are_rejected_exactly_as_one_by_one() {
+        let mut rng = Xoshiro256PlusPlus::seed_from_u64(5);
+        let mut disagreements = 0;
+        let mut rejected = 0;
+        for _ in 0..100_000 {
+            // Small integers make exact zeros (lines through edges and corners) common.
+            let mut c = || f32::from(rng.random_range(-4i8..=4)) * 0.25;
+            let corners = [[c(), c()], [c(), c()], [c(), c()]];
+            let (ox, oy) = ([c(), c(), c(), c()], [c(), c(), c(), c()]);
+            let mask = certainly_outside4(corners, ox.into(), oy.into());
+            for i in 0..4 {
+                let seen = corners.map(|[x, y]| [x - ox[i], y - oy[i]]);
+                let one = certainly_outside(seen);
+                rejected += usize::from(one);
+                disagreements += usize::from(one != (mask >> i & 1 == 1));
+            }
+        }
+        assert_eq!(disagreements, 0);
+        assert!(rejected > 100_000, "{rejected}");
+    }
 
     #[test]
     fn a_line_through_the_middle_hits_at_the_right_distance_and_side() {
