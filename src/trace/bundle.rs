@@ -331,14 +331,7 @@ impl TraceMesh {
         let shear = &lines.shear;
         let [a, b, c] = corners;
         let projected = [shear.project(a), shear.project(b), shear.project(c)];
-        let mut cross = |p: &Point| {
-            let line = ShearedLine::with_shear(lines.origins[p.line as usize], *shear);
-            if let Some((t, front)) =
-                line.intersect_projected(corners, projected, [p.x, p.y], LINE_LENGTH)
-            {
-                out.push((p.line, Hit::new(t, id, front)));
-            }
-        };
+        let mut cross = |p: &Point| cross_one(lines, corners, projected, id, p, out);
         if let [p] = points {
             // Most lists at the leaves of a fine mesh: one line.
             if inside(&triangle_rect(projected), p) {
@@ -360,6 +353,24 @@ impl TraceMesh {
                 cross(&chunk[i]);
             }
         }
+    }
+}
+
+/// Appends the crossing, if any, of the line of `p` with the triangle of `corners` (projected:
+/// `projected`) and global index `id`.
+#[inline(always)]
+fn cross_one(
+    lines: &ParallelLines,
+    corners: [Vec3; 3],
+    projected: [[f32; 2]; 3],
+    id: u32,
+    p: &Point,
+    out: &mut Vec<(u32, Hit)>,
+) {
+    let line = ShearedLine::with_shear(lines.origins[p.line as usize], lines.shear);
+    if let Some((t, front)) = line.intersect_projected(corners, projected, [p.x, p.y], LINE_LENGTH)
+    {
+        out.push((p.line, Hit::new(t, id, front)));
     }
 }
 
