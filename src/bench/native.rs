@@ -17,6 +17,10 @@ use crate::trace::{ParallelLines, SceneTracer, Scratch};
 /// Repeats of each measurement; the median counts.
 const REPEATS: usize = 5;
 
+/// Passes per run of the Embree program, which reports their median: a run's first pass is
+/// cold (a new process, a new BVH), and three passes leave it out.
+const EMBREE_PASSES: usize = 3;
+
 /// One frame traced alone by this tracer and by native Embree, on the same lines.
 #[derive(Clone, Debug, Serialize)]
 pub struct NativeComparison {
@@ -32,7 +36,7 @@ pub struct NativeComparison {
     pub embree: Option<EmbreeRun>,
     /// Why there is no Embree figure, if there is none.
     pub embree_missing: Option<String>,
-    /// This tracer's rate over Embree's.
+    /// This tracer's rate over Embree's: the median over passes run one after the other.
     pub ratio: Option<f64>,
 }
 
@@ -43,15 +47,18 @@ pub struct EmbreeRun {
     pub mode: String,
     /// Crossings found per pass.
     pub crossings: usize,
-    /// Median seconds of a pass.
+    /// Seconds of a pass (in a comparison, the median pass).
     pub seconds: f64,
     /// Million crossings per second.
     pub mcps: f64,
 }
 
 /// Traces `bundles` through the scene at frame 0 with this tracer and with native Embree
-/// (built from `bench/embree` into `build_dir` if it is not there), alternating, on `threads`
-/// threads.
+/// (built from `bench/embree` into `build_dir` if it is not there), on `threads` threads.
+///
+/// Embree's modes are tried first; then a run of its fastest and a pass of this tracer
+/// alternate, [`REPEATS`] times, so that both see the same moments of a shared, noisy machine;
+/// the ratio is the median of the pairs'.
 pub fn compare(
     scene: &Scene,
     tracer: &SceneTracer,
@@ -76,44 +83,68 @@ pub fn compare(
         (crossings, start.elapsed().as_secs_f64())
     };
     let _warm_up = trace_once();
-    let prepared = build(build_dir).and_then(|program| {
-        let file = build_dir.join("lines.rlines");
+    let file = build_dir.join("lines.rlines");
+    let program = build(build_dir).and_then(|program| {
         write_lines(&file, triangles.iter().map(|(c, _)| c), bundles)
             .map_err(|e| format!("could not write {}: {e}", file.display()))?;
-        Ok((program, file))
+        Ok(program)
     });
-    // Embree's passes, then ours: both on the same machine within seconds.
-    let embree = prepared.and_then(|(program, file)| {
-        let run = run(&program, &file, threads);
-        let _ = std::fs::remove_file(&file);
-        run
-    });
-    let ours = (0..REPEATS).map(|_| trace_once()).collect();
-    finish(ours, triangles.len(), embree)
+    let mode = program
+        .as_ref()
+        .map_err(Clone::clone)
+        .and_then(|program| run(program, &file, threads, None))
+        .map(|fastest| fastest.mode);
+    let mut embree = mode.as_ref().map(|_| Vec::new()).map_err(Clone::clone);
+    let mut ours = Vec::with_capacity(REPEATS);
+    for _ in 0..REPEATS {
+        if let (Ok(program), Ok(mode)) = (&program, &mode) {
+            let pass = run(program, &file, threads, Some(mode));
+            embree = embree.and_then(|mut runs| {
+                runs.push(pass?);
+                Ok(runs)
+            });
+        }
+        ours.push(trace_once());
+    }
+    let _ = std::fs::remove_file(&file);
+    finish(&ours, triangles.len(), embree)
 }
 
-/// The comparison from this tracer's passes (crossings, seconds) and Embree's run or why there
-/// is none.
+/// The median of `values` (not empty).
+fn median(mut values: Vec<f64>) -> f64 {
+    values.sort_by(f64::total_cmp);
+    values[values.len() / 2]
+}
+
+/// The comparison from this tracer's passes (crossings, seconds) and Embree's, pass for pass,
+/// or why there are none.
 fn finish(
-    mut runs: Vec<(usize, f64)>,
+    ours: &[(usize, f64)],
     triangles: usize,
-    embree: Result<EmbreeRun, String>,
+    embree: Result<Vec<EmbreeRun>, String>,
 ) -> NativeComparison {
-    let (embree, embree_missing) = match embree {
-        Ok(run) => (Some(run), None),
-        Err(why) => (None, Some(why)),
+    let seconds = median(ours.iter().map(|&(_, s)| s).collect());
+    let crossings = ours[0].0;
+    let (embree, embree_missing, ratio) = match embree {
+        Ok(runs) if runs.len() == ours.len() => {
+            let ratio = median(
+                ours.iter()
+                    .zip(&runs)
+                    .map(|(&(n, s), e)| n as f64 / s / (e.mcps * 1e6))
+                    .collect(),
+            );
+            let mut runs = runs;
+            runs.sort_by(|a, b| a.seconds.total_cmp(&b.seconds));
+            (Some(runs.swap_remove(ours.len() / 2)), None, Some(ratio))
+        }
+        Ok(_) => (None, Some("Embree reported no pass".to_owned()), None),
+        Err(why) => (None, Some(why), None),
     };
-    runs.sort_by(|a, b| a.1.total_cmp(&b.1));
-    let (crossings, seconds) = runs[runs.len() / 2];
-    let crossings_per_second = crossings as f64 / seconds;
-    let ratio = embree
-        .as_ref()
-        .map(|e| crossings_per_second / (e.mcps * 1e6));
     NativeComparison {
         triangles,
         crossings,
         seconds,
-        crossings_per_second,
+        crossings_per_second: crossings as f64 / seconds,
         embree,
         embree_missing,
         ratio,
@@ -139,12 +170,19 @@ fn build(dir: &Path) -> Result<PathBuf, String> {
     Ok(dir.join("trace"))
 }
 
-/// Runs the program on `file`; its fastest mode.
-fn run(program: &Path, file: &Path, threads: usize) -> Result<EmbreeRun, String> {
+/// Runs the program on `file` in `mode`, or in every mode if none ([`EMBREE_PASSES`] passes
+/// each): the fastest mode's median pass.
+fn run(
+    program: &Path,
+    file: &Path,
+    threads: usize,
+    mode: Option<&str>,
+) -> Result<EmbreeRun, String> {
     let out = Command::new(program)
         .arg(file)
         .args(["--threads", &threads.to_string()])
-        .args(["--repeat", &REPEATS.to_string()])
+        .args(["--repeat", &EMBREE_PASSES.to_string()])
+        .args(["--mode", mode.unwrap_or("all")])
         .output()
         .map_err(|e| format!("could not run {}: {e}", program.display()))?;
     if !out.status.success() {
@@ -205,7 +243,7 @@ impl std::fmt::Display for NativeComparison {
         match (&self.embree, &self.embree_missing) {
             (Some(e), _) => writeln!(
                 f,
-                "native Embree    {} crossings in {:.3} s ({}): {:.1} M crossings/s; this tracer {:.2}x",
+                "native Embree    {} crossings in {:.3} s ({}): {:.1} M crossings/s; this tracer {:.2}x (median of alternated passes)",
                 e.crossings,
                 e.seconds,
                 e.mode,
