@@ -57,7 +57,7 @@ pub struct EmbreeRun {
 /// (built from `bench/embree` into `build_dir` if it is not there), on `threads` threads.
 ///
 /// Embree's modes are tried first; then a run of its fastest and a pass of this tracer
-/// alternate, [`REPEATS`] times, so that both see the same moments of a shared, noisy machine;
+/// alternate, five times, so that both see the same moments of a shared, noisy machine;
 /// the ratio is the median of the pairs'.
 pub fn compare(
     scene: &Scene,

@@ -223,9 +223,10 @@ fn certainly_outside([[ax, ay], [bx, by], [cx, cy]]: [[f32; 2]; 3]) -> bool {
     ((u < 0.0) | (v < 0.0) | (w < 0.0)) & ((u > 0.0) | (v > 0.0) | (w > 0.0))
 }
 
-/// [`certainly_outside`] for four lines at once, through the points `(ox[i], oy[i])` of the
-/// plane the corners are [`Shear::project`]ed on: bit i set when line i certainly misses. The
-/// same `f32` operations in the same order, lane by lane, so the same answers.
+/// The plain f32 rejection of [`ShearedLine::intersect_projected`] for four lines at once,
+/// through the points `(ox[i], oy[i])` of the plane the corners are [`Shear::project`]ed on:
+/// bit i set when line i certainly misses. The same `f32` operations in the same order, lane
+/// by lane, so the same answers.
 #[must_use]
 #[inline]
 pub fn certainly_outside4(
