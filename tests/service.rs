@@ -709,18 +709,79 @@ async fn a_job_over_the_memory_budget_is_refused_before_tracing() {
     assert_eq!(listed["timelines"].as_array().unwrap().len(), 1);
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_frame_preview_is_the_png_the_command_line_writes() {
+/// A service with one finished timeline, `scenes/cornell_moving.gltf` with the settings of
+/// [`cornell_baked_by_the_command_line`]: the service's address and the timeline's id.
+async fn cornell_timeline_done(client: &reqwest::Client) -> (String, String) {
     let base = start(Config::default()).await;
-    let client = reqwest::Client::new();
     let (id, _) = create(
-        &client,
+        client,
         &base,
         "lines=20000&fps=4&seed=9",
         "cornell_moving.gltf",
     )
     .await;
-    assert_eq!(wait(&client, &base, &id, HANG).await["status"], "done");
+    assert_eq!(wait(client, &base, &id, HANG).await["status"], "done");
+    (base, id)
+}
+
+/// Checks that `file` of frame 3 of timeline `id` with each of `queries` is a 400 problem, and
+/// of frames 99 (past the end) and `x` a 404.
+async fn bad_frame_requests_are_refused(
+    client: &reqwest::Client,
+    base: &str,
+    id: &str,
+    file: &str,
+    queries: &[&str],
+) {
+    for query in queries {
+        let url = format!("{base}/v1/timelines/{id}/frames/3/{file}{query}");
+        let response = client.get(url).send().await.unwrap();
+        assert_eq!(response.status(), 400, "{query}");
+        assert_eq!(
+            response.headers()["content-type"],
+            "application/problem+json"
+        );
+    }
+    for frame in ["99", "x"] {
+        let url = format!("{base}/v1/timelines/{id}/frames/{frame}/{file}");
+        let response = client.get(url).send().await.unwrap();
+        assert_eq!(response.status(), 404, "{frame}");
+    }
+}
+
+/// The file `file` (under the scene's output directory) that `radiosity bake` writes for
+/// `scenes/cornell_moving.gltf` with the service jobs' settings of these tests (20,000 lines,
+/// 4 fps, seed 9, no GIF), the outputs `wanted` and not `unwanted`.
+fn cornell_baked_by_the_command_line(wanted: &[&str], unwanted: &[&str], file: &str) -> Vec<u8> {
+    let out = std::env::temp_dir().join(format!(
+        "radiosity-cli-{}-{}",
+        std::process::id(),
+        file.replace('/', "-")
+    ));
+    let _ = std::fs::remove_dir_all(&out);
+    let status = std::process::Command::new(env!("CARGO_BIN_EXE_radiosity"))
+        .args(["bake", "--lines", "20000", "--fps", "4", "--seed", "9"])
+        .args(wanted)
+        .args(unwanted)
+        .args(["--no-gif", "--out"])
+        .arg(&out)
+        .arg(
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("scenes")
+                .join("cornell_moving.gltf"),
+        )
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let written = std::fs::read(out.join("cornell_moving").join(file)).unwrap();
+    let _ = std::fs::remove_dir_all(&out);
+    written
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_frame_preview_is_the_png_the_command_line_writes() {
+    let client = reqwest::Client::new();
+    let (base, id) = cornell_timeline_done(&client).await;
     let url = format!("{base}/v1/timelines/{id}/frames/3/preview.png");
     let response = client
         .get(format!("{url}?width=160&height=120"))
@@ -737,29 +798,12 @@ async fn a_frame_preview_is_the_png_the_command_line_writes() {
     assert!(image.pixels().filter(|p| **p != background).count() > 160 * 120 / 20);
 
     // The same bake from the command line writes the same image.
-    let out = std::env::temp_dir().join(format!("radiosity-preview-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
-    let status = std::process::Command::new(env!("CARGO_BIN_EXE_radiosity"))
-        .args(["bake", "--lines", "20000", "--fps", "4", "--seed", "9"])
-        .args(["--preview-size", "160x120", "--preview-frames", "3"])
-        .args(["--glb-frames", "none", "--no-gif", "--out"])
-        .arg(&out)
-        .arg(
-            std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-                .join("scenes")
-                .join("cornell_moving.gltf"),
-        )
-        .status()
-        .unwrap();
-    assert!(status.success());
-    let written = std::fs::read(
-        out.join("cornell_moving")
-            .join("preview")
-            .join("frame_0003.png"),
-    )
-    .unwrap();
+    let written = cornell_baked_by_the_command_line(
+        &["--preview-size", "160x120", "--preview-frames", "3"],
+        &["--glb-frames", "none"],
+        "preview/frame_0003.png",
+    );
     assert!(written == served, "the service and the CLI previews differ");
-    let _ = std::fs::remove_dir_all(&out);
     // Flat shading, per patch: another image of the same frame, as the CLI's --preview-shading.
     let flat = client
         .get(format!("{url}?width=160&height=120&shading=flat"))
@@ -770,29 +814,68 @@ async fn a_frame_preview_is_the_png_the_command_line_writes() {
     assert!(flat.bytes().await.unwrap().to_vec() != served);
 
     // Bad requests get their 4xx.
-    for (query, status) in [
-        ("?width=0", 400),
-        ("?height=99999", 400),
-        ("?exposure=-1", 400),
-        ("?exposure=nan", 400),
-        ("?zoom=2", 400),
-        ("?shading=glossy", 400),
-    ] {
-        let response = client.get(format!("{url}{query}")).send().await.unwrap();
-        assert_eq!(response.status(), status, "{query}");
-        assert_eq!(
-            response.headers()["content-type"],
-            "application/problem+json"
-        );
-    }
-    for path in ["frames/99/preview.png", "frames/x/preview.png"] {
-        let response = client
-            .get(format!("{base}/v1/timelines/{id}/{path}"))
-            .send()
-            .await
-            .unwrap();
-        assert_eq!(response.status(), 404, "{path}");
-    }
+    let bad = [
+        "?width=0",
+        "?height=99999",
+        "?exposure=-1",
+        "?exposure=nan",
+        "?zoom=2",
+        "?shading=glossy",
+    ];
+    bad_frame_requests_are_refused(&client, &base, &id, "preview.png", &bad).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_frame_s_baked_gltf_is_the_file_the_command_line_writes() {
+    let client = reqwest::Client::new();
+    let (base, id) = cornell_timeline_done(&client).await;
+    let url = format!("{base}/v1/timelines/{id}/frames/3/baked.glb");
+    let response = client.get(&url).send().await.unwrap();
+    assert_eq!(response.status(), 200);
+    assert_eq!(response.headers()["content-type"], "model/gltf-binary");
+    let exposure: f64 = response.headers()["x-exposure"]
+        .to_str()
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!(exposure > 0.0);
+    let served = response.bytes().await.unwrap().to_vec();
+    // A GLB: magic, version 2, its own length.
+    assert_eq!(&served[..4], b"glTF");
+    assert_eq!(u32::from_le_bytes(served[4..8].try_into().unwrap()), 2);
+    assert_eq!(
+        u32::from_le_bytes(served[8..12].try_into().unwrap()) as usize,
+        served.len()
+    );
+
+    // The same bake from the command line writes the same file.
+    let written = cornell_baked_by_the_command_line(
+        &["--glb-frames", "3"],
+        &["--preview-frames", "none"],
+        "baked/frame_0003.glb",
+    );
+    assert!(written == served, "the service's and the CLI's glTF differ");
+
+    // Another exposure: other vertex colours, the same size, and the exposure given back.
+    let brighter = client
+        .get(format!("{url}?exposure={}", exposure * 4.0))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(brighter.status(), 200);
+    let given: f64 = brighter.headers()["x-exposure"]
+        .to_str()
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!((given - exposure * 4.0).abs() <= 1e-12 * given);
+    let brighter = brighter.bytes().await.unwrap().to_vec();
+    assert_eq!(brighter.len(), served.len());
+    assert!(brighter != served);
+
+    // Bad requests get their 4xx.
+    let bad = ["?exposure=0", "?exposure=nan", "?width=10"];
+    bad_frame_requests_are_refused(&client, &base, &id, "baked.glb", &bad).await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

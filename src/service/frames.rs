@@ -12,8 +12,9 @@ use axum::response::{IntoResponse, Response};
 use serde_json::json;
 
 use super::jobs::Job;
-use super::query::{NoParameters, PreviewQuery, StrictQuery};
+use super::query::{BakedQuery, NoParameters, PreviewQuery, StrictQuery};
 use super::{ApiError, AppState, job};
+use crate::bake::Bake;
 use crate::solve::FrameSolution;
 
 /// Binary layout of a frame (`Accept: application/octet-stream`), little-endian: u32 frame,
@@ -103,15 +104,7 @@ pub(super) async fn frame_preview(
     let (f, version, solution) = solved_frame(&job, &frame)?;
     let rendered = tokio::task::spawn_blocking(move || {
         job.with_bake(|bake| {
-            let tone = match exposure {
-                Some(exposure) => crate::output::ToneMap { exposure },
-                None => {
-                    // The timeline's exposure, from every frame solved so far.
-                    let solved: Vec<Arc<FrameSolution>> =
-                        job.frames().into_iter().flatten().map(|(_, s)| s).collect();
-                    crate::output::ToneMap::for_timeline(bake.shown(), &solved)
-                }
-            };
+            let tone = tone_map(&job, bake, exposure);
             let shown = bake.shown();
             let image = crate::output::preview_image(
                 shown,
@@ -127,17 +120,48 @@ pub(super) async fn frame_preview(
     .await
     .map_err(|e| ApiError::Internal(format!("preview task: {e}")))?;
     let Some((png, exposure)) = rendered else {
-        return Err(ApiError::NotReady(
-            "the timeline's geometry is not available: it is still being baked, refined or relit \
-             (try again when it is done), or it was restored from disk after a restart (previews need a \
-             timeline baked since the service started)"
-                .into(),
-        ));
+        return Err(geometry_not_ready());
     };
     let png = png.map_err(|e| ApiError::Internal(format!("encoding a preview: {e}")))?;
-    Ok((
+    Ok(rendered_frame("image/png", version, exposure, png))
+}
+
+/// `GET /v1/timelines/{id}/frames/{f}/baked.glb?exposure=`: the frame as a binary glTF, the
+/// same bytes as `radiosity bake` writes for it (per-vertex radiance, tone-mapped into the
+/// vertex colours and kept in `_RADIANCE`).
+pub(super) async fn frame_baked(
+    State(state): State<AppState>,
+    Path((id, frame)): Path<(String, String)>,
+    StrictQuery(query): StrictQuery<BakedQuery>,
+) -> Result<Response, ApiError> {
+    let job = job(&state, &id)?;
+    let exposure = query.validate()?;
+    let (f, version, solution) = solved_frame(&job, &frame)?;
+    let written = tokio::task::spawn_blocking(move || {
+        job.with_bake(|bake| {
+            let tone = tone_map(&job, bake, exposure);
+            let shown = bake.shown();
+            let meshes = crate::output::frame_geometry(shown, f, &solution.radiance);
+            (
+                crate::output::frame_glb(shown, f, &meshes, &tone),
+                tone.exposure,
+            )
+        })
+    })
+    .await
+    .map_err(|e| ApiError::Internal(format!("glTF task: {e}")))?;
+    let Some((glb, exposure)) = written else {
+        return Err(geometry_not_ready());
+    };
+    let glb = glb.map_err(|e| ApiError::Internal(format!("writing a glTF: {e}")))?;
+    Ok(rendered_frame("model/gltf-binary", version, exposure, glb))
+}
+
+/// A frame's file made with the tone map of `exposure`, from result version `version`.
+fn rendered_frame(content_type: &str, version: u64, exposure: f64, bytes: Vec<u8>) -> Response {
+    (
         [
-            (header::CONTENT_TYPE, "image/png".to_string()),
+            (header::CONTENT_TYPE, content_type.to_string()),
             (
                 header::HeaderName::from_static("x-result-version"),
                 version.to_string(),
@@ -147,9 +171,31 @@ pub(super) async fn frame_preview(
                 exposure.to_string(),
             ),
         ],
-        Body::from(png),
+        Body::from(bytes),
     )
-        .into_response())
+        .into_response()
+}
+
+/// The tone map asked for, or the timeline's: its exposure from every frame solved so far.
+fn tone_map(job: &Job, bake: &Bake, exposure: Option<f64>) -> crate::output::ToneMap {
+    match exposure {
+        Some(exposure) => crate::output::ToneMap { exposure },
+        None => {
+            let solved: Vec<Arc<FrameSolution>> =
+                job.frames().into_iter().flatten().map(|(_, s)| s).collect();
+            crate::output::ToneMap::for_timeline(bake.shown(), &solved)
+        }
+    }
+}
+
+/// Why a frame's preview or glTF cannot be made now.
+fn geometry_not_ready() -> ApiError {
+    ApiError::NotReady(
+        "the timeline's geometry is not available: it is still being baked, refined or relit \
+         (try again when it is done), or it was restored from disk after a restart (previews and \
+         glTF need a timeline baked since the service started)"
+            .into(),
+    )
 }
 
 /// A frame as JSON.

@@ -135,6 +135,10 @@ pub fn app(state: AppState) -> Router {
             "/v1/timelines/{id}/frames/{frame}/preview.png",
             get(frames::frame_preview),
         )
+        .route(
+            "/v1/timelines/{id}/frames/{frame}/baked.glb",
+            get(frames::frame_baked),
+        )
         .fallback(|| async { ApiError::NotFound("no such path".into()) })
         .layer(DefaultBodyLimit::max(limit))
         .layer(

@@ -154,16 +154,37 @@ impl PreviewQuery {
             side("width", self.width, 640)?,
             side("height", self.height, 480)?,
         );
-        match self.exposure {
-            Some(e) if e <= 0.0 => Err(ApiError::Parameter(format!(
-                "exposure must be a positive number, not {e}"
-            ))),
-            exposure => Ok(Preview {
-                size: (width, height),
-                exposure,
-                shading: self.shading.unwrap_or_default(),
-            }),
-        }
+        Ok(Preview {
+            size: (width, height),
+            exposure: positive_exposure(self.exposure)?,
+            shading: self.shading.unwrap_or_default(),
+        })
+    }
+}
+
+/// The query of `GET /v1/timelines/{id}/frames/{frame}/baked.glb`.
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct BakedQuery {
+    /// The tone map's exposure of the vertex colours; the timeline's by default.
+    #[serde(default, deserialize_with = "number")]
+    exposure: Option<f64>,
+}
+
+impl BakedQuery {
+    /// The exposure (> 0) if one is asked for.
+    pub(super) fn validate(self) -> Result<Option<f64>, ApiError> {
+        positive_exposure(self.exposure)
+    }
+}
+
+/// An exposure asked for, if it is positive.
+fn positive_exposure(exposure: Option<f64>) -> Result<Option<f64>, ApiError> {
+    match exposure {
+        Some(e) if e <= 0.0 => Err(ApiError::Parameter(format!(
+            "exposure must be a positive number, not {e}"
+        ))),
+        exposure => Ok(exposure),
     }
 }
 

@@ -159,7 +159,7 @@ fn prefetch<T>(at: &T, bytes: usize) {
             offset += 64;
         }
         // SAFETY: as above; the last line, when the bytes straddle one more than they fill.
-        unsafe { _mm_prefetch::<_MM_HINT_T0>(base.wrapping_add(bytes - 1)) };
+        unsafe { _mm_prefetch::<_MM_HINT_T0>(base.wrapping_add(bytes.saturating_sub(1))) };
     }
 }
 
@@ -190,9 +190,9 @@ fn children_around(rects: &[[glam::Vec4; 4]; wide::WIDTH / 4], p: &Point) -> u32
     })
 }
 
-/// Appends to `next` the lines of `list` (of several lines) inside each child's rectangle (`rects`, see
-/// [`children_around`]; `used`, the children there are), child after child: the children
-/// reached (bit i for child i), and each one's range in `next`.
+/// Appends to `next` the lines of `list` (of several lines) inside each child's rectangle
+/// (`rects`, see [`children_around`]; `used`, the children there are), child after child: the
+/// children reached (bit i for child i), and each one's range in `next`.
 #[inline]
 fn split(
     list: &[Point],
