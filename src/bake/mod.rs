@@ -1249,9 +1249,10 @@ pub fn unsampled_warning(scene: &Scene, frames: &[Arc<FrameSolution>]) -> Option
 
 /// Memory a job will need, estimated from the scene before tracing: crossings per line from
 /// `2 A / A(W)` (static once, moving per frame), 8 and 12 bytes each, plus offsets and the
-/// tallies and direct light of the patches and of the pieces they are solved on, and the
-/// patches adaptive cuts may add up to `budget` (their most patches, if they are made). The
-/// service refuses a job over its memory budget from it; `radiosity scene` reports it.
+/// tallies and direct light of the patches and of the pieces they are solved on, the patches
+/// adaptive cuts may add up to `budget` (their most patches, if they are made), and every
+/// frame's solution, which is kept ([`FrameSolution::BYTES_PER_PATCH`] per patch and frame).
+/// The service refuses a job over its memory budget from it; `radiosity scene` reports it.
 #[must_use]
 pub fn estimate_bytes(scene: &Scene, lines: u64, budget: Option<usize>) -> u64 {
     let aw = scene.bounds.surface_area().max(f64::MIN_POSITIVE);
@@ -1303,5 +1304,8 @@ pub fn estimate_bytes(scene: &Scene, lines: u64, budget: Option<usize>) -> u64 {
     let cuts = budget.map_or(0.0, |b| {
         b.saturating_sub(scene.patches.len()) as f64 * 200.0
     });
-    (bytes + cuts) as u64
+    // Every frame's solution is kept (served, written), for every patch the cuts may make.
+    let shown = budget.map_or(patches, |b| patches.max(b as f64));
+    let solved = frames * shown * FrameSolution::BYTES_PER_PATCH as f64;
+    (bytes + cuts + solved) as u64
 }

@@ -784,7 +784,13 @@ impl Job {
             "patches": job.patches.load(Ordering::Acquire),
             "iterations": iterations,
             "timings": timings,
-            "memory": memory.map(|(hits, bytes)| json!({"hits": hits, "bytes": bytes})),
+            "memory": memory.map(|(hits, bytes)| {
+                // The bake's, and the solved frames' kept for serving.
+                let solved: usize = (job.frames().iter().flatten())
+                    .map(|(_, s)| s.bytes())
+                    .sum();
+                json!({"hits": hits, "bytes": bytes + solved})
+            }),
             "warnings": job.warnings(),
         });
         if let Some(error) = error {

@@ -113,6 +113,19 @@ pub struct FrameSolution {
 }
 
 impl FrameSolution {
+    /// Bytes kept per patch: radiance, standard error and samples.
+    pub const BYTES_PER_PATCH: usize =
+        size_of::<[f64; 3]>() + size_of::<Option<[f64; 3]>>() + size_of::<u64>();
+
+    /// The memory it holds.
+    #[must_use]
+    pub fn bytes(&self) -> usize {
+        size_of::<Self>()
+            + self.radiance.len() * size_of::<[f64; 3]>()
+            + self.stderr.len() * size_of::<Option<[f64; 3]>>()
+            + self.samples.len() * size_of::<u64>()
+    }
+
     /// `Ok` if every channel converged; otherwise why frame `frame`, solved with
     /// `params`, is no answer.
     pub fn ensure_converged(&self, frame: usize, params: &SolveParams) -> Result<(), NotConverged> {
