@@ -102,19 +102,12 @@ pub fn trace(
             .map_init(
                 || (Scratch::default(), Vec::new()),
                 |(scratch, found), lines| {
-                    tracer.trace_frame_parallel(lines, frame, &deformed, scratch, found);
-                    let mut counts = vec![0u32; lines.len()];
-                    found
-                        .iter()
-                        .for_each(|&(line, _)| counts[line as usize] += 1);
-                    let offsets = counts
-                        .iter()
-                        .scan(0, |sum, &c| {
-                            *sum += c;
-                            Some(*sum)
-                        })
-                        .collect();
-                    (offsets, found.iter().map(|&(_, hit)| hit).collect())
+                    let starts =
+                        tracer.trace_frame_parallel(lines, frame, &deformed, scratch, found);
+                    (
+                        starts[1..].to_vec(),
+                        found.iter().map(|&(_, hit)| hit).collect(),
+                    )
                 },
             )
             .collect();
@@ -123,7 +116,7 @@ pub fn trace(
         offsets.push(0u32);
         for (chunk_offsets, chunk_hits) in chunks {
             let base = hits.len() as u32;
-            offsets.extend(chunk_offsets.iter().map(|o: &u32| base + o));
+            offsets.extend(chunk_offsets.iter().map(|o| base + o));
             hits.extend_from_slice(&chunk_hits);
         }
         independent_hits += hits.len();

@@ -261,6 +261,16 @@ fn the_bvh_agrees_with_brute_force() {
     assert!(total > 40_000, "{total}");
 }
 
+/// A direction drawn from `rng` (the cube's, normalised: any direction, not uniformly).
+fn any_direction(rng: &mut Xoshiro256PlusPlus) -> DVec3 {
+    DVec3::new(
+        rng.random::<f64>() - 0.5,
+        rng.random::<f64>() - 0.5,
+        rng.random::<f64>() - 0.5,
+    )
+    .normalize()
+}
+
 #[test]
 fn closed_meshes_are_watertight_even_at_shared_edges_and_vertices() {
     let (v, i) = sphere(0.5);
@@ -286,12 +296,7 @@ fn closed_meshes_are_watertight_even_at_shared_edges_and_vertices() {
     for &target in &targets {
         let p = (target - n.center) / n.radius;
         for _ in 0..10 {
-            let w = DVec3::new(
-                rng.random::<f64>() - 0.5,
-                rng.random::<f64>() - 0.5,
-                rng.random::<f64>() - 0.5,
-            )
-            .normalize();
+            let w = any_direction(&mut rng);
             let line = Line {
                 origin: (p - w * f64::from(ORIGIN_OFFSET)).as_vec3(),
                 direction: w.as_vec3(),
@@ -309,12 +314,7 @@ fn closed_meshes_are_watertight_even_at_shared_edges_and_vertices() {
     let mut scratch = Scratch::default();
     let (mut together, mut alone) = (Vec::new(), Vec::new());
     for _ in 0..20 {
-        let w = DVec3::new(
-            rng.random::<f64>() - 0.5,
-            rng.random::<f64>() - 0.5,
-            rng.random::<f64>() - 0.5,
-        )
-        .normalize();
+        let w = any_direction(&mut rng);
         let origins = targets
             .iter()
             .map(|&t| ((t - n.center) / n.radius - w * f64::from(ORIGIN_OFFSET)).as_vec3())

@@ -15,6 +15,7 @@ use super::jobs::Job;
 use super::query::{BakedQuery, NoParameters, PreviewQuery, StrictQuery};
 use super::{ApiError, AppState, job};
 use crate::bake::Bake;
+use crate::scene::Scene;
 use crate::solve::FrameSolution;
 
 /// Binary layout of a frame (`Accept: application/octet-stream`), little-endian: u32 frame,
@@ -101,29 +102,19 @@ pub(super) async fn frame_preview(
         exposure,
         shading,
     } = query.validate()?;
-    let (f, version, solution) = solved_frame(&job, &frame)?;
-    let rendered = tokio::task::spawn_blocking(move || {
-        job.with_bake(|bake| {
-            let tone = tone_map(&job, bake, exposure);
-            let shown = bake.shown();
-            let image = crate::output::preview_image(
-                shown,
-                f,
-                &solution.radiance,
-                (&tone, shading),
-                width,
-                height,
-            );
-            (crate::output::preview::encode_png(&image), tone.exposure)
-        })
-    })
+    frame_file(
+        job,
+        &frame,
+        exposure,
+        "image/png",
+        "a preview",
+        move |shown, f, radiance, tone| {
+            let image =
+                crate::output::preview_image(shown, f, radiance, (tone, shading), width, height);
+            crate::output::preview::encode_png(&image)
+        },
+    )
     .await
-    .map_err(|e| ApiError::Internal(format!("preview task: {e}")))?;
-    let Some((png, exposure)) = rendered else {
-        return Err(geometry_not_ready());
-    };
-    let png = png.map_err(|e| ApiError::Internal(format!("encoding a preview: {e}")))?;
-    Ok(rendered_frame("image/png", version, exposure, png))
 }
 
 /// `GET /v1/timelines/{id}/frames/{f}/baked.glb?exposure=`: the frame as a binary glTF, the
@@ -136,30 +127,55 @@ pub(super) async fn frame_baked(
 ) -> Result<Response, ApiError> {
     let job = job(&state, &id)?;
     let exposure = query.validate()?;
-    let (f, version, solution) = solved_frame(&job, &frame)?;
-    let written = tokio::task::spawn_blocking(move || {
+    frame_file(
+        job,
+        &frame,
+        exposure,
+        "model/gltf-binary",
+        "a glTF",
+        |shown, f, radiance, tone| {
+            let meshes = crate::output::frame_geometry(shown, f, radiance);
+            crate::output::frame_glb(shown, f, &meshes, tone)
+        },
+    )
+    .await
+}
+
+/// Solved frame `frame` of `job` made into a file by `make` (from the scene as shown, the
+/// frame, its radiance and the tone map of `exposure` or, if none, the timeline's), served as
+/// `content_type` with the result's version and the exposure; `what` names the file in errors.
+async fn frame_file<E: std::fmt::Display + Send + 'static>(
+    job: Arc<Job>,
+    frame: &str,
+    exposure: Option<f64>,
+    content_type: &str,
+    what: &str,
+    make: impl FnOnce(&Scene, usize, &[[f64; 3]], &crate::output::ToneMap) -> Result<Vec<u8>, E>
+    + Send
+    + 'static,
+) -> Result<Response, ApiError> {
+    let (f, version, solution) = solved_frame(&job, frame)?;
+    let made = tokio::task::spawn_blocking(move || {
         job.with_bake(|bake| {
             let tone = tone_map(&job, bake, exposure);
-            let shown = bake.shown();
-            let meshes = crate::output::frame_geometry(shown, f, &solution.radiance);
             (
-                crate::output::frame_glb(shown, f, &meshes, &tone),
+                make(bake.shown(), f, &solution.radiance, &tone),
                 tone.exposure,
             )
         })
     })
     .await
-    .map_err(|e| ApiError::Internal(format!("glTF task: {e}")))?;
-    let Some((glb, exposure)) = written else {
-        return Err(geometry_not_ready());
+    .map_err(|e| ApiError::Internal(format!("making {what}: {e}")))?;
+    let Some((bytes, exposure)) = made else {
+        return Err(ApiError::NotReady(
+            "the timeline's geometry is not available: it is still being baked, refined or \
+             relit (try again when it is done), or it was restored from disk after a restart \
+             (previews and glTF need a timeline baked since the service started)"
+                .into(),
+        ));
     };
-    let glb = glb.map_err(|e| ApiError::Internal(format!("writing a glTF: {e}")))?;
-    Ok(rendered_frame("model/gltf-binary", version, exposure, glb))
-}
-
-/// A frame's file made with the tone map of `exposure`, from result version `version`.
-fn rendered_frame(content_type: &str, version: u64, exposure: f64, bytes: Vec<u8>) -> Response {
-    (
+    let bytes = bytes.map_err(|e| ApiError::Internal(format!("making {what}: {e}")))?;
+    Ok((
         [
             (header::CONTENT_TYPE, content_type.to_string()),
             (
@@ -173,7 +189,7 @@ fn rendered_frame(content_type: &str, version: u64, exposure: f64, bytes: Vec<u8
         ],
         Body::from(bytes),
     )
-        .into_response()
+        .into_response())
 }
 
 /// The tone map asked for, or the timeline's: its exposure from every frame solved so far.
@@ -186,16 +202,6 @@ fn tone_map(job: &Job, bake: &Bake, exposure: Option<f64>) -> crate::output::Ton
             crate::output::ToneMap::for_timeline(bake.shown(), &solved)
         }
     }
-}
-
-/// Why a frame's preview or glTF cannot be made now.
-fn geometry_not_ready() -> ApiError {
-    ApiError::NotReady(
-        "the timeline's geometry is not available: it is still being baked, refined or relit \
-         (try again when it is done), or it was restored from disk after a restart (previews and \
-         glTF need a timeline baked since the service started)"
-            .into(),
-    )
 }
 
 /// A frame as JSON.

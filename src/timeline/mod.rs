@@ -336,9 +336,8 @@ impl IntersectionList {
     }
 
     /// Traces one batch through the whole timeline: its bundles (ready for tracing), each
-    /// bundle's lines' counts
-    /// and static crossings, and its moving crossings per bundle (line within the bundle,
-    /// crossing) in frame order.
+    /// bundle's lines' counts and static crossings, and its moving crossings per bundle (line
+    /// within the bundle, crossing) in frame order.
     #[allow(clippy::type_complexity)]
     fn trace_batch(
         &self,
@@ -388,11 +387,8 @@ impl IntersectionList {
                     control.advance(lines.len() as u64);
                     found.clear();
                     tracer.trace_static_parallel(lines, scratch, found);
-                    sort_by_line(found, lines.len(), scratch);
-                    let mut counts = vec![0u32; lines.len()];
-                    found
-                        .iter()
-                        .for_each(|&(line, _)| counts[line as usize] += 1);
+                    let starts = sort_by_line(found, lines.len(), scratch);
+                    let counts = starts.windows(2).map(|w| w[1] - w[0]).collect();
                     let hits = found.iter().map(|&(_, hit)| hit).collect();
                     (counts, hits)
                 },

@@ -415,19 +415,20 @@ impl SceneTracer {
 
     /// `(line, crossing)` for every crossing of `lines` with the scene as posed at `frame`,
     /// sorted by line and along each line: the scene traced alone at one frame, a bundle at a
-    /// time (per line, what [`SceneTracer::trace_frame`] finds).
-    pub fn trace_frame_parallel(
+    /// time (per line, what [`SceneTracer::trace_frame`] finds). Where each line's crossings
+    /// start ([`sort_by_line`]).
+    pub fn trace_frame_parallel<'s>(
         &self,
         lines: &ParallelLines,
         frame: usize,
         deformed: &FrameMeshes,
-        scratch: &mut Scratch,
+        scratch: &'s mut Scratch,
         out: &mut Vec<(u32, Hit)>,
-    ) {
+    ) -> &'s [u32] {
         out.clear();
         self.trace_static_parallel(lines, scratch, out);
         self.trace_moving_parallel(lines, frame, deformed, scratch, out);
-        sort_by_line(out, lines.len(), scratch);
+        sort_by_line(out, lines.len(), scratch)
     }
 
     /// Every crossing of `line` with the scene as posed at `frame`, sorted along the line: the
@@ -529,27 +530,33 @@ fn invert(pose: &DAffine3) -> Option<Affine3A> {
 }
 
 /// Sorts `(line, crossing)` pairs of `lines` lines by line, and each line's crossings along
-/// it ([`Hit::order`]): a counting sort by line, then each line's few crossings.
-pub fn sort_by_line(found: &mut Vec<(u32, Hit)>, lines: usize, scratch: &mut Scratch) {
-    let (counts, sorted) = scratch.sort_buffers();
-    counts.clear();
-    counts.resize(lines + 1, 0);
+/// it ([`Hit::order`]): a counting sort by line, then each line's few crossings. Where each
+/// line's crossings start, and after the last line the end (`lines + 1` offsets from 0).
+pub fn sort_by_line<'s>(
+    found: &mut Vec<(u32, Hit)>,
+    lines: usize,
+    scratch: &'s mut Scratch,
+) -> &'s [u32] {
+    let (starts, next, sorted) = scratch.sort_buffers();
+    starts.clear();
+    starts.resize(lines + 1, 0);
     for &(line, _) in found.iter() {
-        counts[line as usize + 1] += 1;
+        starts[line as usize + 1] += 1;
     }
-    for i in 1..counts.len() {
-        counts[i] += counts[i - 1];
+    for i in 1..starts.len() {
+        starts[i] += starts[i - 1];
     }
     sorted.clear();
     sorted.resize(found.len(), (0, Hit::new(0.0, 0, true)));
-    let mut next = counts.clone();
+    next.clone_from(starts);
     for &(line, hit) in found.iter() {
         let at = &mut next[line as usize];
         sorted[*at as usize] = (line, hit);
         *at += 1;
     }
-    for w in counts.windows(2) {
+    for w in starts.windows(2) {
         sorted[w[0] as usize..w[1] as usize].sort_unstable_by(|a, b| Hit::order(&a.1, &b.1));
     }
     std::mem::swap(found, sorted);
+    starts
 }
