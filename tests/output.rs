@@ -9,6 +9,7 @@ use radiosity::loader::{LoadOptions, load};
 use radiosity::output::{Shading, ToneMap, frame_geometry, frame_glb, preview_image};
 use radiosity::scene::Scene;
 use serde_json::json;
+use std::f32::consts::FRAC_PI_2;
 
 /// A floor (facing +Y) and a wall (facing +Z) meeting at a right angle along a shared edge, in
 /// one primitive with shared vertex indices: triangles 0 and 1 are the floor, 2 and 3 the wall.
@@ -225,4 +226,77 @@ fn a_blender_style_lamp_room_previews_lit_and_exposed() {
         "{white} of {} pixels white",
         drawn.len()
     );
+}
+
+#[test]
+fn the_baked_glb_names_each_triangle_s_patch_and_carries_the_camera_posed_at_its_frame() {
+    let mut d = Doc::new();
+    let (v, i) = common::cuboid([2.0, 2.0, 2.0], [0.0, 0.0, 0.0], true);
+    let mesh = d.mesh(&v, Some(&i), None);
+    let room = d.node(json!({"mesh": mesh, "translation": [100.0, 0.0, 0.0]}));
+    d.push(
+        "cameras",
+        json!({"type": "perspective", "perspective": {"yfov": 0.8, "znear": 0.05, "zfar": 50.0, "aspectRatio": 1.5}}),
+    );
+    // A camera turned 90° about Y and scaled (glTF cameras ignore scale), under a parent that
+    // moves 0.8 along +Z over one second.
+    let half = std::f32::consts::FRAC_1_SQRT_2;
+    let camera = d.node(
+        json!({"camera": 0, "name": "eye", "translation": [100.0, 0.1, 0.2],
+        "rotation": [0.0, half, 0.0, half], "scale": [2.0, 2.0, 2.0]}),
+    );
+    let rig = d.node(json!({"children": [camera]}));
+    d.scene(&[room, rig]);
+    let dolly = [0.0, 0.0, 0.0, 0.0, 0.0, 0.8];
+    d.animation(
+        "dolly",
+        &[(rig, "translation", &[0.0, 1.0], &dolly, "LINEAR")],
+    );
+    let options = LoadOptions {
+        fps: 4.0,
+        ..LoadOptions::default()
+    };
+    let scene = load(&d.gltf(), &options).unwrap();
+    let radiance = vec![[1.0; 3]; scene.patches.len()];
+    let tone = ToneMap { exposure: 1.0 };
+    for frame in [0, 2, 4] {
+        let meshes = frame_geometry(&scene, frame, &radiance);
+        let bytes = frame_glb(&scene, frame, &meshes, &tone).unwrap();
+        let gltf = gltf::Gltf::from_slice(&bytes).unwrap();
+        let blob = gltf.blob.as_deref().unwrap();
+        // Each primitive's extras.patches: one u32 per triangle, the patch it draws.
+        let node = gltf.nodes().find(|n| n.mesh().is_some()).unwrap();
+        let primitive = node.mesh().unwrap().primitives().next().unwrap();
+        let extras: serde_json::Value =
+            serde_json::from_str(primitive.extras().as_ref().unwrap().get()).unwrap();
+        let accessor = gltf
+            .accessors()
+            .nth(extras["patches"].as_u64().unwrap() as usize)
+            .unwrap();
+        assert_eq!(accessor.count(), meshes[0].triangles.len());
+        let view = accessor.view().unwrap();
+        let words = &blob[view.offset()..view.offset() + view.length()];
+        let patches: Vec<u32> = (words.chunks_exact(4))
+            .map(|w| u32::from_le_bytes(w.try_into().unwrap()))
+            .collect();
+        assert_eq!(patches, meshes[0].patches);
+        // The camera node: where the scene's camera is at the frame, turned as it is, no scale.
+        let eye = gltf.nodes().find(|n| n.camera().is_some()).unwrap();
+        assert_eq!(eye.name(), Some("eye"));
+        let (t, r, s) = eye.transform().decomposed();
+        let expected = [100.0, 0.1, 0.2 + 0.8 * frame as f32 / 4.0];
+        for (a, b) in t.iter().zip(expected) {
+            assert!((a - b).abs() < 1e-5, "frame {frame}: {t:?}");
+        }
+        let turn = glam::Quat::from_array(r).dot(glam::Quat::from_rotation_y(FRAC_PI_2));
+        assert!(1.0 - turn.abs() < 1e-6, "frame {frame}: {r:?}");
+        assert_eq!(s, [1.0; 3]);
+        let camera = eye.camera().unwrap();
+        let gltf::camera::Projection::Perspective(p) = camera.projection() else {
+            panic!("not perspective");
+        };
+        assert!((p.yfov() - 0.8).abs() < 1e-6);
+        assert!((p.znear() - 0.05).abs() < 1e-6 && (p.zfar().unwrap() - 50.0).abs() < 1e-4);
+        assert_eq!(p.aspect_ratio(), Some(1.5));
+    }
 }

@@ -4,7 +4,13 @@
 //! `extras.source_node`), one triangle per face of a traced triangle, with per-vertex:
 //! - `_RADIANCE`: the HDR radiance (f32 RGB, the scene's emission units);
 //! - `COLOR_0`: the same tone-mapped to [0, 1] ([`ToneMap`]), which ordinary viewers show;
-//! - `NORMAL`.
+//! - `NORMAL`;
+//!
+//! and per triangle the patch it draws (u32, the service's patch ids), in an accessor that the
+//! primitive's `extras.patches` names: a viewer colours or picks patches by it.
+//!
+//! The scene's camera (the one the previews are seen from), when it has one, is a camera node
+//! posed at the frame.
 //!
 //! The material is `KHR_materials_unlit`, white: the colour a viewer shows is the baked light,
 //! not re-lit. Positions are in the scene's units, relative to the scene's centre, which the
@@ -16,12 +22,13 @@
 //! a mesh's own morph targets and animated weights stay out of the way. A pipeline also loads
 //! only the frames it needs. The cost is that static geometry is repeated in every file.
 
+use glam::DQuat;
 use serde_json::{Value, json};
 
 use super::OutputError;
 use super::geometry::NodeMesh;
 use super::tonemap::ToneMap;
-use crate::scene::Scene;
+use crate::scene::{Projection, Scene, SceneCamera};
 
 /// glTF component type of a 32-bit float.
 const FLOAT: u32 = 5126;
@@ -47,18 +54,21 @@ impl Buffers {
     fn push(
         &mut self,
         words: impl Iterator<Item = [u8; 4]>,
-        target: u32,
+        target: Option<u32>,
         (component, kind, count): (u32, &str, usize),
         extra: Value,
     ) -> usize {
         let offset = self.bin.len();
         words.for_each(|w| self.bin.extend_from_slice(&w));
-        self.views.push(json!({
+        let mut view = json!({
             "buffer": 0,
             "byteOffset": offset,
             "byteLength": self.bin.len() - offset,
-            "target": target,
-        }));
+        });
+        if let Some(target) = target {
+            view["target"] = target.into();
+        }
+        self.views.push(view);
         let mut accessor = json!({
             "bufferView": self.views.len() - 1,
             "componentType": component,
@@ -88,14 +98,22 @@ impl Buffers {
             json!({})
         };
         let words = values.iter().flatten().map(|c| c.to_le_bytes());
-        self.push(words, ARRAY_BUFFER, (FLOAT, "VEC3", values.len()), extra)
+        let shape = (FLOAT, "VEC3", values.len());
+        self.push(words, Some(ARRAY_BUFFER), shape, extra)
     }
 
     /// Appends triangle indices, returning the accessor's index.
     fn indices(&mut self, triangles: &[[u32; 3]]) -> usize {
         let words = triangles.iter().flatten().map(|i| i.to_le_bytes());
         let shape = (UNSIGNED_INT, "SCALAR", triangles.len() * 3);
-        self.push(words, ELEMENT_ARRAY_BUFFER, shape, json!({}))
+        self.push(words, Some(ELEMENT_ARRAY_BUFFER), shape, json!({}))
+    }
+
+    /// Appends one u32 per triangle (not a vertex attribute), returning the accessor's index.
+    fn per_triangle(&mut self, values: &[u32]) -> usize {
+        let words = values.iter().map(|i| i.to_le_bytes());
+        let shape = (UNSIGNED_INT, "SCALAR", values.len());
+        self.push(words, None, shape, json!({}))
     }
 }
 
@@ -133,6 +151,7 @@ pub fn frame_glb(
         let colour = buffers.vec3(&colours, false);
         let hdr = buffers.vec3(&radiance, false);
         let indices = buffers.indices(&mesh.triangles);
+        let patches = buffers.per_triangle(&mesh.patches);
         // The source node's name, or its index.
         let name = (scene.node_names.get(mesh.node as usize))
             .and_then(Option::as_deref)
@@ -148,6 +167,7 @@ pub fn frame_glb(
                 },
                 "indices": indices,
                 "material": 0,
+                "extras": { "patches": patches },
             }],
         }));
         nodes.push(json!({
@@ -156,6 +176,10 @@ pub fn frame_glb(
             "translation": centre.to_array(),
             "extras": { "source_node": mesh.node },
         }));
+    }
+    let camera = scene.camera.as_ref().map(|c| camera(scene, c, frame));
+    if let Some((node, _)) = &camera {
+        nodes.push(node.clone());
     }
     while !buffers.bin.len().is_multiple_of(4) {
         buffers.bin.push(0);
@@ -184,12 +208,57 @@ pub fn frame_glb(
             "extensions": { "KHR_materials_unlit": {} },
         }],
     });
+    if let Some((_, projection)) = camera {
+        document["cameras"] = json!([projection]);
+    }
     if !buffers.bin.is_empty() {
         document["buffers"] = json!([{ "byteLength": buffers.bin.len() }]);
         document["bufferViews"] = Value::Array(buffers.views);
         document["accessors"] = Value::Array(buffers.accessors);
     }
     glb(&document, &buffers.bin)
+}
+
+/// The scene's camera at `frame` in scene units: its node (rotation and translation; the
+/// pose's scale, which glTF's cameras ignore, left out) and its glTF camera (index 0).
+fn camera(scene: &Scene, camera: &SceneCamera, frame: usize) -> (Value, Value) {
+    let radius = scene.normalisation.radius;
+    let pose = crate::output::preview::rigid(camera.pose(frame));
+    let rotation = DQuat::from_mat3(&pose.matrix3).normalize().as_quat();
+    let translation = scene.normalisation.to_scene(pose.translation).as_vec3();
+    let node = json!({
+        "name": camera.name.clone().unwrap_or_else(|| "camera".into()),
+        "camera": 0,
+        "rotation": rotation.to_array(),
+        "translation": translation.to_array(),
+    });
+    let projection = match camera.projection {
+        Projection::Perspective { yfov, znear, zfar } => {
+            let mut p = json!({ "yfov": yfov, "znear": znear * radius });
+            if let Some(far) = zfar {
+                p["zfar"] = (far * radius).into();
+            }
+            if let Some(aspect) = camera.aspect {
+                p["aspectRatio"] = aspect.into();
+            }
+            json!({ "type": "perspective", "perspective": p })
+        }
+        Projection::Orthographic {
+            xmag,
+            ymag,
+            znear,
+            zfar,
+        } => json!({
+            "type": "orthographic",
+            "orthographic": {
+                "xmag": xmag * radius,
+                "ymag": ymag * radius,
+                "znear": znear * radius,
+                "zfar": zfar * radius,
+            },
+        }),
+    };
+    (node, projection)
 }
 
 /// A GLB container (the gltf crate's [`gltf::binary::Glb`]): 12-byte header, the JSON chunk

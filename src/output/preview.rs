@@ -62,17 +62,24 @@ impl Camera {
 
     /// World space to camera space, the pose's scale removed.
     fn view(&self) -> DAffine3 {
-        let m = self.pose.matrix3;
-        let x = m.x_axis.normalize_or_zero();
-        let y = (m.y_axis - x * x.dot(m.y_axis)).normalize_or_zero();
-        let z = x.cross(y);
-        let rotation = if z == DVec3::ZERO {
-            DMat3::IDENTITY
-        } else {
-            DMat3::from_cols(x, y, z)
-        };
-        DAffine3::from_mat3_translation(rotation, self.pose.translation).inverse()
+        rigid(self.pose).inverse()
     }
+}
+
+/// A camera's `pose` without scale or shear: a rotation (X along the pose's X, Y in the plane
+/// of the pose's X and Y, Z = X × Y; the identity for a degenerate pose) and the translation.
+#[must_use]
+pub fn rigid(pose: DAffine3) -> DAffine3 {
+    let m = pose.matrix3;
+    let x = m.x_axis.normalize_or_zero();
+    let y = (m.y_axis - x * x.dot(m.y_axis)).normalize_or_zero();
+    let z = x.cross(y);
+    let rotation = if z == DVec3::ZERO {
+        DMat3::IDENTITY
+    } else {
+        DMat3::from_cols(x, y, z)
+    };
+    DAffine3::from_mat3_translation(rotation, pose.translation)
 }
 
 /// One triangle to draw.

@@ -168,9 +168,10 @@ async fn frame_file<E: std::fmt::Display + Send + 'static>(
     .map_err(|e| ApiError::Internal(format!("making {what}: {e}")))?;
     let Some((bytes, exposure)) = made else {
         return Err(ApiError::NotReady(
-            "the timeline's geometry is not available: it is still being baked, refined or \
-             relit (try again when it is done), or it was restored from disk after a restart \
-             (previews and glTF need a timeline baked since the service started)"
+            "the timeline's geometry is not available: it is being traced (a bake's first \
+             trace or a refinement: try again once frames are being solved), or it was restored \
+             from disk after a restart (previews and glTF need a timeline baked since the \
+             service started)"
                 .into(),
         ));
     };

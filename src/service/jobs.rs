@@ -128,9 +128,9 @@ pub struct Job {
     results: RwLock<Vec<Option<Versioned>>>,
     /// Version of the result: 1, then one more for every refinement or relighting.
     version: AtomicU64,
-    /// The traced scene, kept for refinement, relighting and statistics; taken by the work in
-    /// progress.
-    bake: Mutex<Option<Bake>>,
+    /// The traced scene, kept for refinement, relighting, statistics, previews and glTF; taken
+    /// while it is traced (a bake's first trace, a refinement), read while frames are solved.
+    bake: RwLock<Option<Bake>>,
     /// The materials the frames are solved with (the scene's, until relit).
     materials: Mutex<Vec<Material>>,
     /// The punctual lights' names and power (the scene's, until relit).
@@ -179,7 +179,7 @@ impl Job {
         Self {
             id,
             version: AtomicU64::new(1),
-            bake: Mutex::new(None),
+            bake: RwLock::new(None),
             materials: Mutex::new(scene.materials.clone()),
             lights: Mutex::new(
                 scene
@@ -279,7 +279,7 @@ impl Job {
             frames_solved: AtomicUsize::new(solved),
             results: RwLock::new(results),
             version: AtomicU64::new(record.version),
-            bake: Mutex::new(None),
+            bake: RwLock::new(None),
             materials: Mutex::new(Vec::new()),
             lights: Mutex::new(Vec::new()),
             solved: watch::channel(solved).0,
@@ -417,16 +417,16 @@ impl Job {
         self.solved.subscribe()
     }
 
-    /// `read` applied to the traced scene, if it is kept and not taken by work in progress.
+    /// `read` applied to the traced scene, if it is kept and not being traced.
     pub fn with_bake<R>(&self, read: impl FnOnce(&Bake) -> R) -> Option<R> {
-        self.bake.lock().ok()?.as_ref().map(read)
+        self.bake.read().ok()?.as_ref().map(read)
     }
 
     /// Whether a finished job can run again: its traced scene is kept (not once restored from
     /// disk, where only the frames are).
     #[must_use]
     pub fn can_rerun(&self) -> bool {
-        self.status() != Status::Done || self.bake.lock().is_ok_and(|b| b.is_some())
+        self.status() != Status::Done || self.bake.read().is_ok_and(|b| b.is_some())
     }
 
     /// Applies `change` to copies of the materials and lights the frames are solved with, and
@@ -444,6 +444,15 @@ impl Job {
         *materials = new_materials;
         *lights = new_lights;
         Ok(())
+    }
+
+    /// The materials and lights the frames are solved with (empty for a job read back from
+    /// disk, which cannot be relit).
+    #[must_use]
+    pub fn lighting(&self) -> (Vec<Material>, Vec<LightSetting>) {
+        let materials = (self.materials.lock()).unwrap_or_else(PoisonError::into_inner);
+        let lights = (self.lights.lock()).unwrap_or_else(PoisonError::into_inner);
+        (materials.clone(), lights.clone())
     }
 
     /// The loader's warnings, then what the last run found.
@@ -491,10 +500,10 @@ impl Job {
                     Err(e) => return self.fail(e.to_string()),
                 }
                 self.traced(&bake, started);
-                bake
+                Some(bake)
             }
             Work::Refine(lines) => {
-                let Some(mut bake) = self.bake.lock().ok().and_then(|mut b| b.take()) else {
+                let Some(mut bake) = self.bake.write().ok().and_then(|mut b| b.take()) else {
                     return self.fail("the job has no traced scene to refine".into());
                 };
                 self.lines_total.fetch_add(lines, Ordering::AcqRel);
@@ -508,14 +517,32 @@ impl Job {
                         return;
                     }
                 }
-                bake
+                Some(bake)
             }
-            Work::Relight => match self.bake.lock().ok().and_then(|mut b| b.take()) {
-                Some(bake) => bake,
-                None => return self.fail("the job has no traced scene to relight".into()),
-            },
+            Work::Relight => {
+                if self.bake.read().is_ok_and(|b| b.is_none()) {
+                    return self.fail("the job has no traced scene to relight".into());
+                }
+                None
+            }
         };
-        if let Err(e) = self.solve_frames(&bake) {
+        // The traced scene is in its slot while the frames are solved (read, not taken), so
+        // previews and glTF of the frames solved so far can be made meanwhile.
+        if let Some(bake) = bake
+            && let Ok(mut slot) = self.bake.write()
+        {
+            *slot = Some(bake);
+        }
+        let Ok(slot) = self.bake.read() else {
+            return self.fail("the traced scene is unavailable".into());
+        };
+        let Some(bake) = slot.as_ref() else {
+            return self.fail("the job has no traced scene".into());
+        };
+        if let Err(e) = self.solve_frames(bake) {
+            drop(slot);
+            // A failed job is not run again: its traced scene is not kept.
+            self.bake.write().map(|mut b| b.take()).ok();
             return self.fail(e.to_string());
         }
         let frames: Vec<Arc<FrameSolution>> = self
@@ -524,11 +551,9 @@ impl Job {
             .map(|r| r.iter().flatten().map(|(_, s)| s.clone()).collect())
             .unwrap_or_default();
         let found = bake.findings(&frames);
+        drop(slot);
         if let Ok(mut s) = self.state.lock() {
             s.found = found;
-        }
-        if let Ok(mut slot) = self.bake.lock() {
-            *slot = Some(bake);
         }
         self.set_status(Status::Done);
         self.persist();
@@ -773,6 +798,7 @@ impl Job {
         let mut doc = json!({
             "id": job.id,
             "status": status,
+            "version": version,
             "progress": {
                 "lines_traced": lines_traced,
                 "lines_total": lines_total,

@@ -12,6 +12,7 @@ mod jobs;
 mod query;
 mod relight;
 mod store;
+mod viewer;
 
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
@@ -108,7 +109,12 @@ impl AppState {
 pub fn app(state: AppState) -> Router {
     let limit = state.0.config.max_body_bytes;
     Router::new()
+        .route("/", get(viewer::home))
+        .route("/viewer/{file}", get(viewer::asset))
         .route("/healthz", get(healthz))
+        .route("/v1/samples", get(viewer::list_samples))
+        .route("/v1/samples/{name}", get(viewer::sample))
+        .route("/v1/timelines/{id}/viewer", get(viewer::timeline_viewer))
         .route("/v1/timelines", get(list_timelines).post(create_timeline))
         .route(
             "/v1/timelines/{id}",
@@ -122,7 +128,7 @@ pub fn app(state: AppState) -> Router {
         )
         .route(
             "/v1/timelines/{id}/materials",
-            axum::routing::post(relight::relight_timeline),
+            get(viewer::timeline_materials).post(relight::relight_timeline),
         )
         .route("/v1/timelines/{id}/stats", get(timeline_stats))
         .route("/v1/timelines/{id}/events", get(timeline_events))

@@ -178,6 +178,60 @@ impl BakedQuery {
     }
 }
 
+/// The query of `GET /v1/timelines/{id}/viewer`: the view the page opens with. Its script
+/// reads them; they are checked here too, so a bad link is a 400 naming the parameter rather
+/// than a page that quietly shows something else.
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct ViewerQuery {
+    /// The frame shown first.
+    #[serde(default, deserialize_with = "whole")]
+    #[allow(dead_code)] // read by the page
+    frame: Option<u64>,
+    /// The exposure; the timeline's by default.
+    #[serde(default, deserialize_with = "number")]
+    exposure: Option<f64>,
+    /// `none`, `error` or `samples`.
+    #[serde(default)]
+    #[allow(dead_code)] // read by the page
+    overlay: Option<Overlay>,
+    /// `yaw,pitch,zoom`: degrees, degrees, distance over the one that frames the scene.
+    #[serde(default)]
+    orbit: Option<String>,
+}
+
+/// The viewer's false colours.
+#[derive(Deserialize)]
+#[serde(rename_all = "lowercase")]
+enum Overlay {
+    None,
+    Error,
+    Samples,
+}
+
+impl ViewerQuery {
+    /// Checks the values the types do not: a positive exposure, an orbit of three finite
+    /// numbers with a positive zoom.
+    pub(super) fn validate(self) -> Result<(), ApiError> {
+        positive_exposure(self.exposure)?;
+        if let Some(orbit) = self.orbit {
+            let numbers: Vec<Option<f64>> = (orbit.split(','))
+                .map(|x| x.trim().parse::<f64>().ok().filter(|x| x.is_finite()))
+                .collect();
+            match numbers[..] {
+                [Some(_), Some(_), Some(zoom)] if zoom > 0.0 => {}
+                _ => {
+                    return Err(ApiError::Parameter(format!(
+                        "orbit: {orbit:?} is not yaw,pitch,zoom (degrees, degrees, and a zoom \
+                         above 0, such as 35,-25,1)"
+                    )));
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
 /// An exposure asked for, if it is positive.
 fn positive_exposure(exposure: Option<f64>) -> Result<Option<f64>, ApiError> {
     match exposure {
