@@ -1245,3 +1245,42 @@ async fn auto_patches_are_cut_after_tracing_and_served_with_their_table() {
     let frame = get_json(&client, format!("{base}/v1/timelines/{id}/frames/0")).await;
     assert_eq!(radiance(frame).len() as u64, patches);
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn solved_frames_are_served_as_glb_while_the_others_are_solved() {
+    let client = reqwest::Client::new();
+    let base = start(Config::default()).await;
+    // 121 frames of the sliding block: a solve long enough to be seen under way.
+    let query = "lines=20000&fps=60&patch_size=source";
+    let (id, _) = create(&client, &base, query, "cornell_moving.gltf").await;
+    let started = Instant::now();
+    let status = loop {
+        let status = get_json(&client, format!("{base}/v1/timelines/{id}")).await;
+        let solved = status["progress"]["frames_solved"].as_u64().unwrap();
+        if status["status"] == "solving" && solved >= 1 {
+            break status;
+        }
+        assert_ne!(
+            status["status"], "done",
+            "the solve ended before it was seen"
+        );
+        assert!(started.elapsed() < HANG, "{status}");
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    };
+    let response = (client.get(format!("{base}/v1/timelines/{id}/frames/0/baked.glb")))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(response.status(), 200, "{status}");
+    assert_eq!(&response.bytes().await.unwrap()[..4], b"glTF");
+    let last = (client.get(format!("{base}/v1/timelines/{id}/frames/120/baked.glb")))
+        .send()
+        .await
+        .unwrap();
+    let after = get_json(&client, format!("{base}/v1/timelines/{id}")).await;
+    // The last frame, unless solved meanwhile, is not ready.
+    if after["status"] == "solving" {
+        assert_eq!(last.status(), 409, "{after}");
+    }
+    assert_eq!(wait(&client, &base, &id, HANG).await["status"], "done");
+}
