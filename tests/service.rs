@@ -599,8 +599,111 @@ async fn progress_arrives_as_server_sent_events() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn finished_results_survive_a_restart_and_unfinished_jobs_report_interrupted() {
+async fn finished_results_survive_a_restart_and_unfinished_jobs_resume() {
     let dir = std::env::temp_dir().join(format!("radiosity-restart-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let config = Config {
+        data_dir: Some(dir.clone()),
+        ..Config::default()
+    };
+    let first = start(config.clone()).await;
+    let client = reqwest::Client::new();
+    let frame = |base: &str, id: &str| format!("{base}/v1/timelines/{id}/frames/5");
+    let (done, _) = create(&client, &first, "lines=20000&fps=4", "cornell_moving.gltf").await;
+    assert_eq!(wait(&client, &first, &done, HANG).await["status"], "done");
+    let before: Value = get_json(&client, frame(&first, &done)).await;
+    let patches: Value = get_json(&client, format!("{first}/v1/timelines/{done}/patches")).await;
+    // A job the server stops while it traces: made so by its files (a finished job's, with
+    // its status set back to tracing and its frames gone), so the test does not race it. It
+    // was refined and relit first: both are done again when it resumes.
+    let query = "lines=20000&fps=4&seed=5&patch_size=auto";
+    let (cut, _) = create(&client, &first, query, "cornell_moving.gltf").await;
+    assert_eq!(wait(&client, &first, &cut, HANG).await["status"], "done");
+    let refine = format!("{first}/v1/timelines/{cut}/lines?add=5000");
+    assert_eq!(client.post(refine).send().await.unwrap().status(), 202);
+    assert_eq!(wait(&client, &first, &cut, HANG).await["status"], "done");
+    let relight = client
+        .post(format!("{first}/v1/timelines/{cut}/materials"))
+        .body(r#"{"materials": [{"material": "red", "reflectance": [0.2, 0.6, 0.2]}]}"#)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(relight.status(), 202);
+    assert_eq!(wait(&client, &first, &cut, HANG).await["status"], "done");
+    let clean: Value = get_json(&client, frame(&first, &cut)).await;
+    let record = dir.join(&cut).join("job.json");
+    let mut saved: Value = serde_json::from_slice(&std::fs::read(&record).unwrap()).unwrap();
+    saved["status"] = "tracing".into();
+    std::fs::write(&record, saved.to_string()).unwrap();
+    std::fs::remove_file(dir.join(&cut).join("frames.bin")).unwrap();
+
+    // A second server on the same data directory: the restart.
+    let second = start(config).await;
+    let status = wait(&client, &second, &done, Duration::from_secs(5)).await;
+    assert_eq!(status["status"], "done");
+    assert_eq!(status["progress"]["lines_traced"], 20_000);
+    assert_eq!(status["progress"]["lines_total"], 20_000);
+    assert_eq!(before, get_json(&client, frame(&second, &done)).await);
+    let patches_after: Value =
+        get_json(&client, format!("{second}/v1/timelines/{done}/patches")).await;
+    assert_eq!(patches, patches_after);
+    // The interrupted job starts again and ends as an uninterrupted run does, counted.
+    let resumed = wait(&client, &second, &cut, HANG).await;
+    assert_eq!(resumed["status"], "done", "{resumed}");
+    assert_eq!(resumed["restarts"], 1);
+    assert_eq!(resumed["progress"]["lines_total"], 25_000);
+    assert_eq!(clean, get_json(&client, frame(&second, &cut)).await);
+
+    // The restored timeline is traced again from its stored scene when a route needs it:
+    // previews, statistics, and a relight that gives what the never-restarted server gives.
+    let preview = client
+        .get(format!("{second}/v1/timelines/{done}/frames/0/preview.png"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(preview.status(), 200);
+    let rebuilt = get_json(&client, format!("{second}/v1/timelines/{done}")).await;
+    assert!(
+        rebuilt["rebuild_seconds"].as_f64().unwrap() > 0.0,
+        "{rebuilt}"
+    );
+    let stats = client
+        .get(format!("{second}/v1/timelines/{done}/stats?frame=0"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(stats.status(), 200);
+    let mut relit = Vec::new();
+    for base in [&first, &second] {
+        let response = client
+            .post(format!("{base}/v1/timelines/{done}/materials"))
+            .body(r#"{"materials": [{"material": "light", "emission": [30, 30, 30]}]}"#)
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(response.status(), 202);
+        assert_eq!(wait(&client, base, &done, HANG).await["status"], "done");
+        relit.push(get_json(&client, frame(base, &done)).await);
+    }
+    assert_ne!(relit[0]["radiance"], before["radiance"]);
+    assert_eq!(relit[0], relit[1]);
+
+    // Deleting removes the saved results.
+    for id in [&done, &cut] {
+        let response = client
+            .delete(format!("{second}/v1/timelines/{id}"))
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(response.status(), 204);
+        assert!(!dir.join(id).exists());
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_timeline_from_a_data_directory_without_its_scene_is_served_but_not_rebuilt() {
+    let dir = std::env::temp_dir().join(format!("radiosity-unstored-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     let config = Config {
         data_dir: Some(dir.clone()),
@@ -610,30 +713,31 @@ async fn finished_results_survive_a_restart_and_unfinished_jobs_report_interrupt
     let client = reqwest::Client::new();
     let (done, _) = create(&client, &first, "lines=20000&fps=4", "cornell_moving.gltf").await;
     assert_eq!(wait(&client, &first, &done, HANG).await["status"], "done");
-    let before: Value = get_json(&client, format!("{first}/v1/timelines/{done}/frames/5")).await;
-    let patches: Value = get_json(&client, format!("{first}/v1/timelines/{done}/patches")).await;
-    // A long job still running when the "restart" happens.
-    let (running, _) = create(&client, &first, "lines=20000000&fps=30", "level.gltf").await;
-    // A second server on the same data directory: the restart.
+    let (running, _) = create(&client, &first, "lines=20000&fps=4", "cornell_moving.gltf").await;
+    assert_eq!(
+        wait(&client, &first, &running, HANG).await["status"],
+        "done"
+    );
+    // As written before scenes were stored: no scene, and one job left unfinished.
+    for id in [&done, &running] {
+        std::fs::remove_file(dir.join(id).join("scene.bin")).unwrap();
+        std::fs::remove_file(dir.join(id).join("request.json")).unwrap();
+    }
+    let record = dir.join(&running).join("job.json");
+    let mut saved: Value = serde_json::from_slice(&std::fs::read(&record).unwrap()).unwrap();
+    saved["status"] = "solving".into();
+    std::fs::write(&record, saved.to_string()).unwrap();
+    std::fs::remove_file(dir.join(&running).join("frames.bin")).unwrap();
+
     let second = start(config).await;
-    let status = wait(&client, &second, &done, Duration::from_secs(5)).await;
-    assert_eq!(status["status"], "done");
-    // Its lines were all traced before the restart.
-    assert_eq!(status["progress"]["lines_traced"], 20_000);
-    assert_eq!(status["progress"]["lines_total"], 20_000);
-    let after: Value = get_json(&client, format!("{second}/v1/timelines/{done}/frames/5")).await;
-    assert_eq!(before, after);
-    let patches_after: Value =
-        get_json(&client, format!("{second}/v1/timelines/{done}/patches")).await;
-    assert_eq!(patches, patches_after);
-    // A restored timeline has its frames, not its lines: no refinement.
+    let frame = format!("{second}/v1/timelines/{done}/frames/5");
+    assert_eq!(client.get(frame).send().await.unwrap().status(), 200);
     let refine = client
         .post(format!("{second}/v1/timelines/{done}/lines?add=1000"))
         .send()
         .await
         .unwrap();
     assert_eq!(refine.status(), 409);
-    // Nor its geometry: no preview, with a reason.
     let preview = client
         .get(format!("{second}/v1/timelines/{done}/frames/0/preview.png"))
         .send()
@@ -641,39 +745,10 @@ async fn finished_results_survive_a_restart_and_unfinished_jobs_report_interrupt
         .unwrap();
     assert_eq!(preview.status(), 409);
     assert!(preview.text().await.unwrap().contains("restored"));
-    // Nor its lines' statistics: a reason, not "try again".
-    let stats = client
-        .get(format!("{second}/v1/timelines/{done}/stats?frame=0"))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(stats.status(), 409);
-    assert!(stats.text().await.unwrap().contains("restored"));
-    assert_eq!(
-        wait(&client, &second, &done, Duration::from_secs(5)).await["status"],
-        "done"
-    );
     let interrupted: Value = get_json(&client, format!("{second}/v1/timelines/{running}")).await;
     assert_eq!(interrupted["status"], "failed");
-    assert!(
-        interrupted["error"]
-            .as_str()
-            .unwrap()
-            .starts_with("interrupted"),
-        "{interrupted}"
-    );
-    // Deleting removes the saved results.
-    client
-        .delete(format!("{first}/v1/timelines/{running}"))
-        .send()
-        .await
-        .unwrap();
-    client
-        .delete(format!("{second}/v1/timelines/{done}"))
-        .send()
-        .await
-        .unwrap();
-    assert!(!dir.join(&done).exists());
+    let error = interrupted["error"].as_str().unwrap();
+    assert!(error.starts_with("interrupted"), "{interrupted}");
     let _ = std::fs::remove_dir_all(&dir);
 }
 

@@ -170,8 +170,8 @@ async fn frame_file<E: std::fmt::Display + Send + 'static>(
         return Err(ApiError::NotReady(
             "the timeline's geometry is not available: it is being traced (a bake's first \
              trace or a refinement: try again once frames are being solved), or it was restored \
-             from disk after a restart (previews and glTF need a timeline baked since the \
-             service started)"
+             from a data directory written before scenes were stored with their timelines (post \
+             the scene again)"
                 .into(),
         ));
     };

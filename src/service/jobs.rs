@@ -10,10 +10,11 @@ use serde::Serialize;
 use serde_json::json;
 use tokio::sync::{Semaphore, watch};
 
-use super::store::{Record, Store};
+use super::store::{Lighting, Record, SavedLight, SavedMaterial, Store};
 use crate::adaptive::{self, Adaptive};
 use crate::bake::Bake;
 use crate::control::{Control, TraceError};
+use crate::params::BakeSettings;
 use crate::scene::{Material, Scene};
 use crate::solve::{FrameSolution, NotConverged, SolveParams};
 use crate::timeline::LineParams;
@@ -139,6 +140,15 @@ pub struct Job {
     solved: watch::Sender<usize>,
     /// Where finished results are kept, if anywhere.
     store: Option<Store>,
+    /// The request the job was posted with, when its scene is stored (in `store`): the traced
+    /// state is then rebuilt from them whenever it is needed and not in memory.
+    source: Option<BakeSettings>,
+    /// Lines added by each refinement, in order.
+    refinements: Mutex<Vec<u64>>,
+    /// Times the job was started again after the server stopped while it ran.
+    restarts: u32,
+    /// Seconds the last rebuild of the traced state took; its lock makes rebuilds one at a time.
+    rebuilt: Mutex<Option<f64>>,
 }
 
 /// A punctual light as relighting sees it: its name and power.
@@ -216,6 +226,83 @@ impl Job {
             results: RwLock::new(vec![None; frames]),
             solved: watch::channel(0).0,
             store,
+            source: None,
+            refinements: Mutex::new(Vec::new()),
+            restarts: 0,
+            rebuilt: Mutex::new(None),
+        }
+    }
+
+    /// The same job, rebuilt when needed from its stored scene and `settings` (the scene is
+    /// the store's to keep: [`Store::save_source`]).
+    #[must_use]
+    pub fn with_source(self, settings: BakeSettings) -> Self {
+        Self {
+            source: Some(settings),
+            ..self
+        }
+    }
+
+    /// The same job started again after the server stopped while it ran (its record
+    /// `record`): the refinements asked for and the lighting are kept, a restart counted.
+    #[must_use]
+    pub fn resumed(self, record: &Record) -> Self {
+        let lines = record.lines;
+        let job = Self {
+            version: AtomicU64::new(record.version),
+            refinements: Mutex::new(record.refinements.clone()),
+            restarts: record.restarts + 1,
+            lines_total: AtomicU64::new(lines),
+            ..self
+        };
+        if let Some(lighting) = &record.lighting {
+            job.set_lighting(lighting);
+        }
+        job
+    }
+
+    /// Replaces the materials and lights by `lighting`'s (names and numbers as saved).
+    fn set_lighting(&self, lighting: &Lighting) {
+        let materials = (lighting.materials.iter())
+            .map(|m| Material {
+                name: m.name.clone(),
+                reflectance: m.reflectance,
+                emission: m.emission,
+                double_sided: m.double_sided,
+            })
+            .collect();
+        let lights = (lighting.lights.iter())
+            .map(|l| LightSetting {
+                name: l.name.clone(),
+                colour: l.colour,
+                intensity: l.intensity,
+            })
+            .collect();
+        if let (Ok(mut m), Ok(mut l)) = (self.materials.lock(), self.lights.lock()) {
+            *m = materials;
+            *l = lights;
+        }
+    }
+
+    /// The materials and lights as a record keeps them.
+    fn saved_lighting(&self) -> Lighting {
+        let (materials, lights) = self.lighting();
+        Lighting {
+            materials: (materials.into_iter())
+                .map(|m| SavedMaterial {
+                    name: m.name,
+                    reflectance: m.reflectance,
+                    emission: m.emission,
+                    double_sided: m.double_sided,
+                })
+                .collect(),
+            lights: (lights.into_iter())
+                .map(|l| SavedLight {
+                    name: l.name,
+                    colour: l.colour,
+                    intensity: l.intensity,
+                })
+                .collect(),
         }
     }
 
@@ -226,6 +313,7 @@ impl Job {
         record: Record,
         frames: Option<Vec<Arc<FrameSolution>>>,
         store: Option<Store>,
+        source: Option<BakeSettings>,
     ) -> Self {
         let count = record.frame_times.len();
         let (status, error) = match &frames {
@@ -243,7 +331,7 @@ impl Job {
                 .collect(),
             None => vec![None; count],
         };
-        Self {
+        let job = Self {
             id: record.id,
             scene: Mutex::new(None),
             frame_times: record.frame_times,
@@ -260,8 +348,8 @@ impl Job {
                 sky: record.sky,
                 ..SolveParams::default()
             },
-            // Not used: a restored job keeps no lines, so it is never relit.
-            max_reflectance: crate::loader::MAX_REFLECTANCE,
+            max_reflectance: (source.as_ref())
+                .map_or(crate::loader::MAX_REFLECTANCE, |s| s.load.max_reflectance),
             state: Mutex::new(JobState {
                 status,
                 error,
@@ -284,7 +372,16 @@ impl Job {
             lights: Mutex::new(Vec::new()),
             solved: watch::channel(solved).0,
             store,
+            refinements: Mutex::new(record.refinements),
+            restarts: record.restarts,
+            rebuilt: Mutex::new(None),
+            // Without its lighting, a job cannot be relit: it is not rebuilt either.
+            source: source.filter(|_| record.lighting.is_some()),
+        };
+        if let Some(lighting) = &record.lighting {
+            job.set_lighting(lighting);
         }
+        job
     }
 
     /// The record of this job as it stands.
@@ -310,6 +407,13 @@ impl Job {
             timings: [timings.load, timings.trace, timings.solve],
             memory,
             patch_table: self.table().as_ref().clone(),
+            refinements: self
+                .refinements
+                .lock()
+                .map(|r| r.clone())
+                .unwrap_or_default(),
+            lighting: Some(self.saved_lighting()),
+            restarts: self.restarts,
         }
     }
 
@@ -417,16 +521,45 @@ impl Job {
         self.solved.subscribe()
     }
 
-    /// `read` applied to the traced scene, if it is kept and not being traced.
+    /// `read` applied to the traced scene, if it is kept and not being traced. A done job whose
+    /// traced scene is not in memory (restored after a restart) has it rebuilt first from its
+    /// stored scene, on the calling thread (one rebuild at a time; the others wait for it).
     pub fn with_bake<R>(&self, read: impl FnOnce(&Bake) -> R) -> Option<R> {
+        if self.status() == Status::Done {
+            self.ensure_traced().ok()?;
+        }
         self.bake.read().ok()?.as_ref().map(read)
     }
 
-    /// Whether a finished job can run again: its traced scene is kept (not once restored from
-    /// disk, where only the frames are).
+    /// Puts the traced state in its slot if it is not there, rebuilt from the stored scene
+    /// (one rebuild at a time: another caller waits for it and finds it there).
+    fn ensure_traced(&self) -> Result<(), Stop> {
+        let in_slot = || self.bake.read().is_ok_and(|b| b.is_some());
+        if self.source.is_none() || in_slot() {
+            return Ok(());
+        }
+        let mut rebuilt = self.rebuilt.lock().unwrap_or_else(PoisonError::into_inner);
+        if in_slot() {
+            return Ok(());
+        }
+        let started = Instant::now();
+        let bake = self.rebuild()?;
+        let seconds = started.elapsed().as_secs_f64();
+        tracing::info!(id = %self.id, seconds, "rebuilt the traced scene");
+        *rebuilt = Some(seconds);
+        if let Ok(mut slot) = self.bake.write() {
+            *slot = Some(bake);
+        }
+        Ok(())
+    }
+
+    /// Whether a finished job can run again: its traced scene is kept, or can be rebuilt from
+    /// its stored scene.
     #[must_use]
     pub fn can_rerun(&self) -> bool {
-        self.status() != Status::Done || self.bake.read().is_ok_and(|b| b.is_some())
+        self.status() != Status::Done
+            || self.source.is_some()
+            || self.bake.read().is_ok_and(|b| b.is_some())
     }
 
     /// Applies `change` to copies of the materials and lights the frames are solved with, and
@@ -470,60 +603,53 @@ impl Job {
     fn run(&self, work: Work) {
         let bake = match work {
             Work::Bake => {
-                let Some(scene) = self.scene.lock().ok().and_then(|mut s| s.take()) else {
-                    return self.fail("the job has no scene".into());
-                };
+                let scene = self.scene.lock().ok().and_then(|mut s| s.take());
                 self.set_status(Status::Tracing);
                 let started = Instant::now();
-                let mut bake = match Bake::trace_with(scene, &self.lines, &self.control) {
-                    Ok(bake) => bake,
-                    Err(TraceError::Cancelled) => return,
-                    Err(e) => return self.fail(e.to_string()),
+                let traced = match scene {
+                    Some(scene) => self.trace(scene),
+                    // Resumed after a restart: the scene is read again.
+                    None => self.rebuild(),
                 };
-                if let Some(auto) = &self.auto {
-                    match adaptive::adapt(&mut bake, auto, &self.solve, &self.control) {
-                        Ok(_) => {
-                            let table = crate::output::patch_table(&bake.scene);
-                            if let Ok(mut t) = self.patch_table.write() {
-                                *t = Arc::new(table);
-                            }
-                            self.patches
-                                .store(bake.scene.patches.len(), Ordering::Release);
-                        }
-                        Err(TraceError::Cancelled) => return,
-                        Err(e) => return self.fail(e.to_string()),
+                match traced {
+                    Ok(bake) => {
+                        self.traced(&bake, started);
+                        Some(bake)
                     }
+                    Err(Stop::Cancelled) => return,
+                    Err(Stop::Failed(e)) => return self.fail(e),
                 }
-                match bake.split(&self.solve, &self.control) {
-                    Ok(_) => {}
-                    Err(TraceError::Cancelled) => return,
-                    Err(e) => return self.fail(e.to_string()),
-                }
-                self.traced(&bake, started);
-                Some(bake)
             }
             Work::Refine(lines) => {
-                let Some(mut bake) = self.bake.write().ok().and_then(|mut b| b.take()) else {
-                    return self.fail("the job has no traced scene to refine".into());
-                };
-                self.lines_total.fetch_add(lines, Ordering::AcqRel);
                 self.set_status(Status::Tracing);
                 let started = Instant::now();
-                match bake.refine(lines, &self.control) {
-                    Ok(()) => self.traced(&bake, started),
-                    Err(TraceError::Cancelled) => return,
-                    Err(e) => {
-                        self.fail(e.to_string());
-                        return;
+                let taken = self.bake.write().ok().and_then(|mut b| b.take());
+                // (Its lines are counted, and kept in the record, by [`Jobs::rerun`].)
+                let traced = match taken {
+                    Some(mut bake) => {
+                        (bake.refine(lines, &self.control).map(|()| bake)).map_err(Stop::from)
                     }
+                    // Not in memory: traced again, this refinement included.
+                    None => self.rebuild(),
+                };
+                match traced {
+                    Ok(bake) => {
+                        self.traced(&bake, started);
+                        Some(bake)
+                    }
+                    Err(Stop::Cancelled) => return,
+                    Err(Stop::Failed(e)) => return self.fail(e),
                 }
-                Some(bake)
             }
             Work::Relight => {
                 if self.bake.read().is_ok_and(|b| b.is_none()) {
-                    return self.fail("the job has no traced scene to relight".into());
+                    self.set_status(Status::Tracing);
                 }
-                None
+                match self.ensure_traced() {
+                    Ok(()) => None,
+                    Err(Stop::Cancelled) => return,
+                    Err(Stop::Failed(e)) => return self.fail(e),
+                }
             }
         };
         // The traced scene is in its slot while the frames are solved (read, not taken), so
@@ -558,6 +684,62 @@ impl Job {
         self.set_status(Status::Done);
         self.persist();
         self.solved.send_modify(|_| {});
+    }
+
+    /// Traces `scene` as the job asks: its lines, `auto`'s cuts (the patch table replaced),
+    /// the pieces, then each refinement in order.
+    fn trace(&self, scene: Scene) -> Result<Bake, Stop> {
+        // A job read back from disk has its request's, for the scene as loaded.
+        let auto = (self.auto)
+            .or_else(|| (self.source.as_ref()).and_then(|s| s.adaptive(scene.patches.len())));
+        let mut bake = Bake::trace_with(scene, &self.lines, &self.control)?;
+        if let Some(auto) = &auto {
+            adaptive::adapt(&mut bake, auto, &self.solve, &self.control)?;
+            let table = crate::output::patch_table(&bake.scene);
+            if let Ok(mut t) = self.patch_table.write() {
+                *t = Arc::new(table);
+            }
+            self.patches
+                .store(bake.scene.patches.len(), Ordering::Release);
+        }
+        bake.split(&self.solve, &self.control)?;
+        let refinements = self
+            .refinements
+            .lock()
+            .map(|r| r.clone())
+            .unwrap_or_default();
+        for lines in refinements {
+            bake.refine(lines, &self.control)?;
+        }
+        Ok(bake)
+    }
+
+    /// The traced state rebuilt from the stored scene and request: the same lines, cuts,
+    /// pieces and refinements, so the same tallies as when it was first traced (the lines are
+    /// deterministic).
+    fn rebuild(&self) -> Result<Bake, Stop> {
+        let (Some(store), Some(settings)) = (&self.store, &self.source) else {
+            return Err(Stop::Failed(
+                "the job has no traced scene, and its scene is not stored".into(),
+            ));
+        };
+        let bytes = (store.load_scene(&self.id))
+            .map_err(|e| Stop::Failed(format!("the stored scene cannot be read: {e}")))?;
+        let scene = crate::loader::load(&bytes, &settings.load)
+            .map_err(|e| Stop::Failed(format!("the stored scene does not load: {e}")))?;
+        let bake = self.trace(scene)?;
+        // The frames solved are per patch: a rebuild that made other patches cannot serve them.
+        let (made, expected) = (
+            bake.scene.patches.len(),
+            self.patches.load(Ordering::Acquire),
+        );
+        if made != expected {
+            return Err(Stop::Failed(format!(
+                "the stored scene, traced again, has {made} patches, not the {expected} of its \
+                 frames"
+            )));
+        }
+        Ok(bake)
     }
 
     /// Records what tracing took.
@@ -634,6 +816,23 @@ impl Job {
     }
 }
 
+/// Why a job's tracing stopped.
+enum Stop {
+    /// A DELETE cancelled it.
+    Cancelled,
+    /// An error, as the job's `error` gives it.
+    Failed(String),
+}
+
+impl From<TraceError> for Stop {
+    fn from(e: TraceError) -> Self {
+        match e {
+            TraceError::Cancelled => Self::Cancelled,
+            e => Self::Failed(e.to_string()),
+        }
+    }
+}
+
 /// What a job's next run does.
 #[derive(Clone, Copy, Debug)]
 pub enum Work {
@@ -690,8 +889,22 @@ impl Jobs {
         if !job.reopen(change)? {
             return Ok(false);
         }
+        if let Work::Refine(lines) = work {
+            job.lines_total.fetch_add(lines, Ordering::AcqRel);
+            if let Ok(mut r) = job.refinements.lock() {
+                r.push(lines);
+            }
+        }
+        // What was asked for is on disk before it runs: a restart resumes it.
+        job.persist();
         self.schedule(job, work);
         Ok(true)
+    }
+
+    /// Starts a job read back from the data directory, which was queued or running when the
+    /// server stopped ([`Job::resumed`]).
+    pub fn resume(&self, job: Arc<Job>) {
+        self.schedule(job, Work::Bake);
     }
 
     fn schedule(&self, job: Arc<Job>, work: Work) {
@@ -818,6 +1031,8 @@ impl Job {
                 json!({"hits": hits, "bytes": bytes + solved})
             }),
             "warnings": job.warnings(),
+            "restarts": job.restarts,
+            "rebuild_seconds": job.rebuilt.lock().ok().and_then(|r| *r),
         });
         if let Some(error) = error {
             doc["error"] = json!(error);

@@ -72,6 +72,8 @@ struct Shared {
     config: Config,
     jobs: Jobs,
     store: Option<store::Store>,
+    /// Jobs to start again when the server starts serving.
+    pending: std::sync::Mutex<Vec<Arc<Job>>>,
 }
 
 /// The server's state: cheap to clone.
@@ -79,8 +81,9 @@ struct Shared {
 pub struct AppState(Arc<Shared>);
 
 impl AppState {
-    /// A server, with the timelines saved in the data directory (finished ones `done`,
-    /// unfinished ones `failed`: interrupted).
+    /// A server, with the timelines saved in the data directory: finished ones `done`; those
+    /// that were queued or running start again from their stored scene when [`serve`] starts
+    /// (or, without one, come back `failed`: interrupted).
     pub fn new(config: Config) -> std::io::Result<Self> {
         let jobs = Jobs::new(config.max_running);
         let store = config
@@ -88,9 +91,23 @@ impl AppState {
             .as_deref()
             .map(store::Store::open)
             .transpose()?;
+        let mut pending = Vec::new();
         if let Some(store) = &store {
             for (record, frames) in store.load_all() {
-                let job = Arc::new(Job::restored(record, frames, Some(store.clone())));
+                let source = (store.load_query(&record.id))
+                    .and_then(|query| settings_of(&query, &config.limits));
+                let unfinished = frames.is_none()
+                    && ["queued", "tracing", "solving"].contains(&record.status.as_str());
+                if unfinished
+                    && let Some(settings) = &source
+                    && let Some(job) = resumed(store, &record, settings, &config)
+                {
+                    let job = Arc::new(job);
+                    jobs.insert(job.clone());
+                    pending.push(job);
+                    continue;
+                }
+                let job = Arc::new(Job::restored(record, frames, Some(store.clone()), source));
                 if job.status() == Status::Failed {
                     job.persist();
                 }
@@ -101,8 +118,62 @@ impl AppState {
             config,
             jobs,
             store,
+            pending: std::sync::Mutex::new(pending),
         })))
     }
+
+    /// Starts the jobs to resume (once).
+    fn resume_pending(&self) {
+        let pending =
+            std::mem::take(&mut *self.0.pending.lock().unwrap_or_else(|e| e.into_inner()));
+        for job in pending {
+            tracing::info!(id = %job.id, "resuming a job the server stopped while it ran");
+            job.persist();
+            self.0.jobs.resume(job);
+        }
+    }
+}
+
+/// The settings of a stored request's query string, as they were checked when it was posted
+/// (with today's limits).
+fn settings_of(query: &str, limits: &Limits) -> Option<crate::params::BakeSettings> {
+    let uri: axum::http::Uri = format!("/?{query}").parse().ok()?;
+    let axum::extract::Query(request) =
+        axum::extract::Query::<BakeRequest>::try_from_uri(&uri).ok()?;
+    request.validate(limits).ok()
+}
+
+/// The job of `record`, which was queued or running when the server stopped, made again from
+/// its stored scene and request, with the refinements and lighting it had been asked for.
+fn resumed(
+    store: &store::Store,
+    record: &store::Record,
+    settings: &crate::params::BakeSettings,
+    config: &Config,
+) -> Option<Job> {
+    let bytes = store.load_scene(&record.id).ok()?;
+    let scene = loader::load(&bytes, &settings.load).ok()?;
+    let auto = settings.adaptive(scene.patches.len());
+    let table = crate::output::patch_table(&scene);
+    let solve = SolveParams {
+        sky: settings.sky,
+        max_iterations: config.max_iterations,
+        ..SolveParams::default()
+    };
+    let job = Job::new(
+        record.id.clone(),
+        scene,
+        settings.lines,
+        solve,
+        settings.load.max_reflectance,
+        table,
+        Some(store.clone()),
+    );
+    Some(
+        job.with_auto(auto)
+            .with_source(settings.clone())
+            .resumed(record),
+    )
 }
 
 /// The router.
@@ -165,6 +236,7 @@ pub async fn serve(
     state: AppState,
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> std::io::Result<()> {
+    state.resume_pending();
     axum::serve(listener, app(state))
         .with_graceful_shutdown(shutdown)
         .await
@@ -184,6 +256,7 @@ async fn healthz(_: StrictQuery<NoParameters>) -> Json<serde_json::Value> {
 async fn create_timeline(
     State(state): State<AppState>,
     StrictQuery(request): StrictQuery<BakeRequest>,
+    uri: axum::http::Uri,
     headers: HeaderMap,
     body: Result<Bytes, BytesRejection>,
 ) -> Result<Response, ApiError> {
@@ -197,6 +270,7 @@ async fn create_timeline(
     })?;
     let started = Instant::now();
     let max_reflectance = options.max_reflectance;
+    let posted = body.clone();
     let scene = tokio::task::spawn_blocking(move || loader::load(&body, &options))
         .await
         .map_err(|e| ApiError::Internal(format!("loader task: {e}")))??;
@@ -209,18 +283,29 @@ async fn create_timeline(
         max_iterations: config.max_iterations,
         ..SolveParams::default()
     };
-    let job = Arc::new(
-        Job::new(
-            id.clone(),
-            scene,
-            lines,
-            solve,
-            max_reflectance,
-            table,
-            state.0.store.clone(),
-        )
-        .with_auto(auto),
-    );
+    let mut job = Job::new(
+        id.clone(),
+        scene,
+        lines,
+        solve,
+        max_reflectance,
+        table,
+        state.0.store.clone(),
+    )
+    .with_auto(auto);
+    // The scene and request are stored first, so the job can be traced again after a restart
+    // (or once its traced state is dropped).
+    if let Some(store) = state.0.store.clone() {
+        let (key, query) = (id.clone(), uri.query().unwrap_or("").to_string());
+        let saved =
+            tokio::task::spawn_blocking(move || store.save_source(&key, &posted, &query)).await;
+        match saved {
+            Ok(Ok(())) => job = job.with_source(settings),
+            Ok(Err(e)) => tracing::error!(%id, error = %e, "could not store the scene"),
+            Err(e) => tracing::error!(%id, error = %e, "could not store the scene"),
+        }
+    }
+    let job = Arc::new(job);
     job.loaded_in(started.elapsed().as_secs_f64());
     let body = json!({
         "id": id,
@@ -341,8 +426,9 @@ fn rerun(
 ) -> Result<Response, ApiError> {
     if !job.can_rerun() {
         return Err(ApiError::NotReady(format!(
-            "timeline {} was restored from disk: its lines are not kept there, so it cannot be \
-             refined or relit; post the scene again",
+            "timeline {} was restored from a data directory written before scenes were stored \
+             with their timelines: it cannot be traced again, so it cannot be refined or relit; \
+             post the scene again",
             job.id
         )));
     }
@@ -378,8 +464,9 @@ async fn timeline_stats(
     let (frame, patches) = query.validate(job.frame_times.len())?;
     if !job.can_rerun() {
         return Err(ApiError::NotReady(format!(
-            "timeline {id} was restored from disk: its lines are not kept there, so their \
-             statistics cannot be measured; post the scene again"
+            "timeline {id} was restored from a data directory written before scenes were \
+             stored with their timelines: its lines cannot be traced again, so their statistics \
+             cannot be measured; post the scene again"
         )));
     }
     let stats = tokio::task::spawn_blocking(move || {

@@ -1,11 +1,18 @@
 //! Finished results on disk, so that a restart loses nothing.
 //!
-//! Each timeline has a directory `DATA/{id}/` with `job.json` (what the status and patch
-//! endpoints serve, and the frame times) and, once done, `frames.bin`: every frame's radiance,
-//! standard error (−1 where unsampled) and samples, little-endian f64/u64, so that the numbers
-//! served after a restart are bit-identical. Files are written to a temporary name and renamed.
-//! At start-up, finished timelines come back `done`; the others come back `failed` with the
-//! reason `interrupted`.
+//! Each timeline has a directory `DATA/{id}/` with
+//! - `scene.bin` and `request.json`: the scene as posted and the request's query string,
+//!   written when the job is accepted, from which the job is traced again when its traced
+//!   state is needed and not in memory (lines are deterministic, so the same state);
+//! - `job.json`: what the status and patch endpoints serve, the frame times, the refinements
+//!   asked for and the materials and lights as relit;
+//! - once done, `frames.bin`: every frame's radiance, standard error (−1 where unsampled) and
+//!   samples, little-endian f64/u64, so that the numbers served after a restart are
+//!   bit-identical.
+//!
+//! Files are written to a temporary name and renamed. At start-up, finished timelines come back
+//! `done`; the others start again from their stored scene (or, from a data directory written
+//! before scenes were stored, come back `failed` with the reason `interrupted`).
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -41,6 +48,55 @@ pub struct Record {
     pub memory: Option<(usize, usize)>,
     /// The patch table.
     pub patch_table: serde_json::Value,
+    /// Lines added by each refinement, in order (in `lines` too).
+    #[serde(default)]
+    pub refinements: Vec<u64>,
+    /// The materials and lights the frames are solved with (the scene's, as relit since).
+    #[serde(default)]
+    pub lighting: Option<Lighting>,
+    /// How many times the job was started again after the server stopped while it ran.
+    #[serde(default)]
+    pub restarts: u32,
+}
+
+/// Materials and lights as a job solves with them.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Lighting {
+    /// Per material, in the scene's order.
+    pub materials: Vec<SavedMaterial>,
+    /// Per punctual light, in the scene's order.
+    pub lights: Vec<SavedLight>,
+}
+
+/// A material as [`Lighting`] keeps it ([`crate::scene::Material`]).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct SavedMaterial {
+    /// Its name in the file.
+    pub name: Option<String>,
+    /// Diffuse reflectance, RGB.
+    pub reflectance: [f64; 3],
+    /// Emission, RGB.
+    pub emission: [f64; 3],
+    /// Whether each triangle has a back patch too.
+    pub double_sided: bool,
+}
+
+/// A punctual light as [`Lighting`] keeps it.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct SavedLight {
+    /// Its name in the file.
+    pub name: Option<String>,
+    /// Linear RGB colour.
+    pub colour: [f64; 3],
+    /// Candela (point, spot) or lux (directional).
+    pub intensity: f64,
+}
+
+/// What `request.json` holds.
+#[derive(Serialize, Deserialize)]
+struct Request {
+    /// The query string of the `POST`, as sent.
+    query: String,
 }
 
 /// The data directory.
@@ -75,6 +131,33 @@ impl Store {
         std::fs::create_dir_all(&dir)?;
         let json = serde_json::to_vec(record).map_err(std::io::Error::other)?;
         Self::write(&dir.join("job.json"), &json)
+    }
+
+    /// Saves the scene as posted and the query string it was posted with.
+    pub fn save_source(&self, id: &str, scene: &[u8], query: &str) -> std::io::Result<()> {
+        let dir = self.dir(id);
+        std::fs::create_dir_all(&dir)?;
+        Self::write(&dir.join("scene.bin"), scene)?;
+        let request = serde_json::to_vec(&Request {
+            query: query.to_string(),
+        })
+        .map_err(std::io::Error::other)?;
+        Self::write(&dir.join("request.json"), &request)
+    }
+
+    /// The query string a timeline was posted with, if its source is stored.
+    #[must_use]
+    pub fn load_query(&self, id: &str) -> Option<String> {
+        let bytes = std::fs::read(self.dir(id).join("request.json")).ok()?;
+        Some(serde_json::from_slice::<Request>(&bytes).ok()?.query)
+    }
+
+    /// The scene a timeline was posted with.
+    ///
+    /// # Errors
+    /// The file cannot be read.
+    pub fn load_scene(&self, id: &str) -> std::io::Result<Vec<u8>> {
+        std::fs::read(self.dir(id).join("scene.bin"))
     }
 
     /// Saves every frame of a finished timeline.
