@@ -151,6 +151,19 @@ struct ServeArgs {
     /// Where finished results are kept across restarts.
     #[arg(long, default_value = "./data")]
     data_dir: PathBuf,
+    /// Traced state (lines, tallies, direct light) all timelines may keep in memory, GiB; over
+    /// it, finished timelines' is dropped, least recently used first, and traced again from
+    /// the stored scene when needed. Default: half the machine's memory.
+    #[arg(long, value_parser = parse_budget_gib)]
+    resident_gib: Option<f64>,
+}
+
+/// Half the machine's memory (Linux's `/proc/meminfo`), if known.
+fn half_the_memory() -> Option<u64> {
+    let meminfo = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = meminfo.lines().find(|l| l.starts_with("MemTotal:"))?;
+    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib * 1024 / 2)
 }
 
 /// The options of `radiosity scene`.
@@ -365,12 +378,16 @@ impl ServeArgs {
             max_body_mib,
             memory_budget_gib,
             data_dir,
+            resident_gib,
         } = self;
+        let gib = |g: f64| (g * f64::from(1u32 << 30)) as u64;
+        let resident_budget = resident_gib.map(gib).or_else(half_the_memory);
         let config = radiosity::service::Config {
             data_dir: Some(data_dir),
             max_running,
             max_body_bytes: max_body_mib << 20,
-            memory_budget: (memory_budget_gib * f64::from(1u32 << 30)) as u64,
+            memory_budget: gib(memory_budget_gib),
+            resident_budget,
             ..radiosity::service::Config::default()
         };
         serve(&addr, config)

@@ -1359,3 +1359,82 @@ async fn solved_frames_are_served_as_glb_while_the_others_are_solved() {
     }
     assert_eq!(wait(&client, &base, &id, HANG).await["status"], "done");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn over_the_resident_budget_finished_timelines_are_traced_again_when_needed() {
+    let dirs = ["budget", "reference"].map(|name| {
+        let dir = std::env::temp_dir().join(format!("radiosity-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        dir
+    });
+    // One byte: no finished timeline keeps its traced state.
+    let budget = start(Config {
+        data_dir: Some(dirs[0].clone()),
+        resident_budget: Some(1),
+        ..Config::default()
+    })
+    .await;
+    let reference = start(Config {
+        data_dir: Some(dirs[1].clone()),
+        ..Config::default()
+    })
+    .await;
+    let client = reqwest::Client::new();
+    let mut ids = [Vec::new(), Vec::new()];
+    for (base, ids) in [&budget, &reference].into_iter().zip(&mut ids) {
+        for seed in 1..=3 {
+            let query = format!("lines=20000&fps=4&seed={seed}");
+            let (id, _) = create(&client, base, &query, "cornell_moving.gltf").await;
+            assert_eq!(wait(&client, base, &id, HANG).await["status"], "done");
+            ids.push(id);
+        }
+    }
+    let health = get_json(&client, format!("{budget}/healthz")).await;
+    assert_eq!(health["memory"]["traced_bytes"], 0, "{health}");
+    assert_eq!(health["timelines"]["total"], 3, "{health}");
+    assert_eq!(health["timelines"]["traced_in_memory"], 0, "{health}");
+    assert!(
+        health["memory"]["resident_bytes"].as_u64().unwrap() > 0,
+        "{health}"
+    );
+    assert!(health["data_dir_bytes"].as_u64().unwrap() > 0, "{health}");
+    let kept = get_json(&client, format!("{reference}/healthz")).await;
+    assert_eq!(kept["timelines"]["traced_in_memory"], 3, "{kept}");
+    assert!(
+        kept["memory"]["traced_bytes"].as_u64().unwrap() > 0,
+        "{kept}"
+    );
+    let status = get_json(&client, format!("{budget}/v1/timelines/{}", ids[0][0])).await;
+    assert_eq!(status["traced_in_memory"], false, "{status}");
+
+    // A preview traces it again, and the budget drops it after.
+    let preview = format!("{budget}/v1/timelines/{}/frames/2/preview.png", ids[0][0]);
+    assert_eq!(client.get(preview).send().await.unwrap().status(), 200);
+    let status = get_json(&client, format!("{budget}/v1/timelines/{}", ids[0][0])).await;
+    assert!(
+        status["rebuild_seconds"].as_f64().unwrap() > 0.0,
+        "{status}"
+    );
+    let health = get_json(&client, format!("{budget}/healthz")).await;
+    assert_eq!(health["timelines"]["traced_in_memory"], 0, "{health}");
+
+    // Relit and refined after eviction, the numbers are the kept server's.
+    let relight = r#"{"materials": [{"material": "light", "emission": [5, 5, 5]}]}"#;
+    let mut after = [Vec::new(), Vec::new()];
+    for ((base, ids), after) in [&budget, &reference].into_iter().zip(&ids).zip(&mut after) {
+        let url = format!("{base}/v1/timelines/{}/materials", ids[1]);
+        let response = client.post(url).body(relight).send().await.unwrap();
+        assert_eq!(response.status(), 202);
+        let url = format!("{base}/v1/timelines/{}/lines?add=3000", ids[2]);
+        assert_eq!(client.post(url).send().await.unwrap().status(), 202);
+        for id in &ids[1..] {
+            assert_eq!(wait(&client, base, id, HANG).await["status"], "done");
+            let frame = format!("{base}/v1/timelines/{id}/frames/3");
+            after.push(get_json(&client, frame).await);
+        }
+    }
+    assert_eq!(after[0], after[1]);
+    for dir in dirs {
+        let _ = std::fs::remove_dir_all(dir);
+    }
+}

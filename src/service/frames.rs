@@ -97,6 +97,7 @@ pub(super) async fn frame_preview(
     StrictQuery(query): StrictQuery<PreviewQuery>,
 ) -> Result<Response, ApiError> {
     let job = job(&state, &id)?;
+    let _budget = Enforce(&state);
     let super::query::Preview {
         size: (width, height),
         exposure,
@@ -126,6 +127,7 @@ pub(super) async fn frame_baked(
     StrictQuery(query): StrictQuery<BakedQuery>,
 ) -> Result<Response, ApiError> {
     let job = job(&state, &id)?;
+    let _budget = Enforce(&state);
     let exposure = query.validate()?;
     frame_file(
         job,
@@ -139,6 +141,16 @@ pub(super) async fn frame_baked(
         },
     )
     .await
+}
+
+/// Keeps the traced state within the resident budget when dropped (at the end of a route
+/// that may have rebuilt a timeline's).
+pub(super) struct Enforce<'a>(pub &'a AppState);
+
+impl Drop for Enforce<'_> {
+    fn drop(&mut self) {
+        self.0.0.jobs.enforce_budget();
+    }
 }
 
 /// Solved frame `frame` of `job` made into a file by `make` (from the scene as shown, the

@@ -149,6 +149,8 @@ pub struct Job {
     restarts: u32,
     /// Seconds the last rebuild of the traced state took; its lock makes rebuilds one at a time.
     rebuilt: Mutex<Option<f64>>,
+    /// When the traced state was last used (the least recently used is dropped first).
+    used: Mutex<Instant>,
 }
 
 /// A punctual light as relighting sees it: its name and power.
@@ -230,6 +232,7 @@ impl Job {
             refinements: Mutex::new(Vec::new()),
             restarts: 0,
             rebuilt: Mutex::new(None),
+            used: Mutex::new(Instant::now()),
         }
     }
 
@@ -375,6 +378,7 @@ impl Job {
             refinements: Mutex::new(record.refinements),
             restarts: record.restarts,
             rebuilt: Mutex::new(None),
+            used: Mutex::new(Instant::now()),
             // Without its lighting, a job cannot be relit: it is not rebuilt either.
             source: source.filter(|_| record.lighting.is_some()),
         };
@@ -528,7 +532,34 @@ impl Job {
         if self.status() == Status::Done {
             self.ensure_traced().ok()?;
         }
+        self.touch();
         self.bake.read().ok()?.as_ref().map(read)
+    }
+
+    /// Marks the traced state used now.
+    fn touch(&self) {
+        if let Ok(mut used) = self.used.lock() {
+            *used = Instant::now();
+        }
+    }
+
+    /// Bytes of the traced state, if it is in memory.
+    #[must_use]
+    pub fn traced_bytes(&self) -> Option<usize> {
+        self.bake.try_read().ok()?.as_ref().map(Bake::bytes)
+    }
+
+    /// Drops the traced state of a done job that can trace it again, if no one is reading it;
+    /// the bytes freed.
+    fn evict(&self) -> Option<usize> {
+        if self.status() != Status::Done || self.source.is_none() {
+            return None;
+        }
+        let bake = self.bake.try_write().ok()?.take()?;
+        let bytes = bake.bytes();
+        drop(bake);
+        tracing::info!(id = %self.id, bytes, "dropped the traced state (over the resident budget)");
+        Some(bytes)
     }
 
     /// Puts the traced state in its slot if it is not there, rebuilt from the stored scene
@@ -846,18 +877,22 @@ pub enum Work {
 
 /// The jobs of a server and the slots that bound how many run at once.
 pub struct Jobs {
-    jobs: RwLock<HashMap<String, Arc<Job>>>,
+    jobs: Arc<RwLock<HashMap<String, Arc<Job>>>>,
+    /// Bytes of traced state all jobs may hold ([`super::Config::resident_budget`]).
+    budget: Option<u64>,
     /// Order of creation, for listing.
     order: Mutex<Vec<String>>,
     slots: Arc<Semaphore>,
 }
 
 impl Jobs {
-    /// An empty set running at most `running` jobs at once.
+    /// An empty set running at most `running` jobs at once, their traced state held within
+    /// `budget` bytes.
     #[must_use]
-    pub fn new(running: usize) -> Self {
+    pub fn new(running: usize, budget: Option<u64>) -> Self {
         Self {
-            jobs: RwLock::new(HashMap::new()),
+            jobs: Arc::new(RwLock::new(HashMap::new())),
+            budget,
             order: Mutex::new(Vec::new()),
             slots: Arc::new(Semaphore::new(running.max(1))),
         }
@@ -909,6 +944,7 @@ impl Jobs {
 
     fn schedule(&self, job: Arc<Job>, work: Work) {
         let slots = self.slots.clone();
+        let (jobs, budget) = (self.jobs.clone(), self.budget);
         tokio::spawn(async move {
             let Ok(_permit) = slots.acquire_owned().await else {
                 return;
@@ -920,7 +956,15 @@ impl Jobs {
             if let Err(e) = tokio::task::spawn_blocking(move || runner.run(work)).await {
                 job.fail(format!("the job stopped unexpectedly: {e}"));
             }
+            job.touch();
+            within_budget(&jobs, budget);
         });
+    }
+
+    /// Drops finished jobs' traced state, least recently used first, until all jobs' fits the
+    /// budget (running jobs' counts, and is never dropped).
+    pub fn enforce_budget(&self) {
+        within_budget(&self.jobs, self.budget);
     }
 
     /// The job with this id.
@@ -948,6 +992,27 @@ impl Jobs {
     pub fn all(&self) -> Vec<Arc<Job>> {
         let order = self.order.lock().map(|o| o.clone()).unwrap_or_default();
         order.iter().filter_map(|id| self.get(id)).collect()
+    }
+}
+
+/// [`Jobs::enforce_budget`] on `jobs`.
+fn within_budget(jobs: &RwLock<HashMap<String, Arc<Job>>>, budget: Option<u64>) {
+    let Some(budget) = budget else { return };
+    let Ok(jobs) = jobs.read().map(|j| j.values().cloned().collect::<Vec<_>>()) else {
+        return;
+    };
+    let mut held: Vec<(Instant, usize, &Arc<Job>)> = (jobs.iter())
+        .filter_map(|j| Some((*j.used.lock().ok()?, j.traced_bytes()?, j)))
+        .collect();
+    let mut total: u64 = held.iter().map(|(_, b, _)| *b as u64).sum();
+    held.sort_by_key(|(used, _, _)| *used);
+    for (_, _, job) in held {
+        if total <= budget {
+            break;
+        }
+        if let Some(freed) = job.evict() {
+            total = total.saturating_sub(freed as u64);
+        }
     }
 }
 
@@ -1033,6 +1098,7 @@ impl Job {
             "warnings": job.warnings(),
             "restarts": job.restarts,
             "rebuild_seconds": job.rebuilt.lock().ok().and_then(|r| *r),
+            "traced_in_memory": job.bake.try_read().map_or(true, |b| b.is_some()),
         });
         if let Some(error) = error {
             doc["error"] = json!(error);

@@ -52,6 +52,11 @@ pub struct Config {
     /// Iteration cap of each frame's solve (`SolveParams::max_iterations`): a frame that
     /// reaches it fails its job.
     pub max_iterations: usize,
+    /// Bytes of traced state (lines, tallies, direct light) all timelines may hold: over it,
+    /// finished timelines' traced state is dropped, least recently used first, and traced again
+    /// from the stored scene when needed (only timelines whose scene is stored: with a data
+    /// directory). `None`: no limit.
+    pub resident_budget: Option<u64>,
 }
 
 impl Default for Config {
@@ -63,6 +68,7 @@ impl Default for Config {
             limits: Limits::default(),
             data_dir: None,
             max_iterations: SolveParams::default().max_iterations,
+            resident_budget: None,
         }
     }
 }
@@ -85,7 +91,7 @@ impl AppState {
     /// that were queued or running start again from their stored scene when [`serve`] starts
     /// (or, without one, come back `failed`: interrupted).
     pub fn new(config: Config) -> std::io::Result<Self> {
-        let jobs = Jobs::new(config.max_running);
+        let jobs = Jobs::new(config.max_running, config.resident_budget);
         let store = config
             .data_dir
             .as_deref()
@@ -248,9 +254,40 @@ fn new_id() -> String {
     format!("{:016x}", rng.random::<u64>())
 }
 
-/// `GET /healthz`: liveness.
-async fn healthz(_: StrictQuery<NoParameters>) -> Json<serde_json::Value> {
-    Json(json!({"status": "ok"}))
+/// `GET /healthz`: liveness, and what the service holds: its resident memory, the traced
+/// state in memory against the budget, the timelines (and how many have their traced state in
+/// memory), the data directory's size.
+async fn healthz(
+    State(state): State<AppState>,
+    _: StrictQuery<NoParameters>,
+) -> Json<serde_json::Value> {
+    let jobs = state.0.jobs.all();
+    let traced: Vec<usize> = jobs.iter().filter_map(|j| j.traced_bytes()).collect();
+    let store = state.0.store.clone();
+    let data_bytes = tokio::task::spawn_blocking(move || store.map(|s| s.bytes()))
+        .await
+        .ok()
+        .flatten();
+    Json(json!({
+        "status": "ok",
+        "memory": {
+            "resident_bytes": resident_bytes(),
+            "traced_bytes": traced.iter().sum::<usize>(),
+            "traced_budget_bytes": state.0.config.resident_budget,
+        },
+        "timelines": {
+            "total": jobs.len(),
+            "traced_in_memory": traced.len(),
+        },
+        "data_dir_bytes": data_bytes,
+    }))
+}
+
+/// The process's resident memory (Linux's `/proc/self/statm`, 4 KiB pages), if known.
+fn resident_bytes() -> Option<u64> {
+    let statm = std::fs::read_to_string("/proc/self/statm").ok()?;
+    let pages: u64 = statm.split_whitespace().nth(1)?.parse().ok()?;
+    Some(pages * 4096)
 }
 
 async fn create_timeline(
@@ -462,6 +499,7 @@ async fn timeline_stats(
 ) -> Result<Json<serde_json::Value>, ApiError> {
     let job = job(&state, &id)?;
     let (frame, patches) = query.validate(job.frame_times.len())?;
+    let _budget = frames::Enforce(&state);
     if !job.can_rerun() {
         return Err(ApiError::NotReady(format!(
             "timeline {id} was restored from a data directory written before scenes were \

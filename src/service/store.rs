@@ -184,6 +184,20 @@ impl Store {
         Self::write(&self.dir(id).join("frames.bin"), &out)
     }
 
+    /// Bytes of every file in the data directory.
+    #[must_use]
+    pub fn bytes(&self) -> u64 {
+        let Ok(dirs) = std::fs::read_dir(&self.root) else {
+            return 0;
+        };
+        (dirs.filter_map(Result::ok))
+            .filter_map(|d| std::fs::read_dir(d.path()).ok())
+            .flat_map(|files| files.filter_map(Result::ok))
+            .filter_map(|f| f.metadata().ok())
+            .map(|m| m.len())
+            .sum()
+    }
+
     /// Removes a timeline.
     pub fn remove(&self, id: &str) -> std::io::Result<()> {
         match std::fs::remove_dir_all(self.dir(id)) {
