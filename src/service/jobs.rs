@@ -552,10 +552,14 @@ impl Job {
     /// Drops the traced state of a done job that can trace it again, if no one is reading it;
     /// the bytes freed.
     fn evict(&self) -> Option<usize> {
-        if self.status() != Status::Done || self.source.is_none() {
+        // Under the state lock, which reopening a job for more work takes: the state is not
+        // dropped between a rerun's start and its use of it.
+        let state = self.state.lock().ok()?;
+        if state.status != Status::Done || self.source.is_none() {
             return None;
         }
         let bake = self.bake.try_write().ok()?.take()?;
+        drop(state);
         let bytes = bake.bytes();
         drop(bake);
         tracing::info!(id = %self.id, bytes, "dropped the traced state (over the resident budget)");
@@ -610,8 +614,8 @@ impl Job {
         Ok(())
     }
 
-    /// The materials and lights the frames are solved with (empty for a job read back from
-    /// disk, which cannot be relit).
+    /// The materials and lights the frames are solved with (empty for a job read back from a
+    /// data directory written before they were recorded, which cannot be relit).
     #[must_use]
     pub fn lighting(&self) -> (Vec<Material>, Vec<LightSetting>) {
         let materials = (self.materials.lock()).unwrap_or_else(PoisonError::into_inner);
@@ -1006,13 +1010,29 @@ fn within_budget(jobs: &RwLock<HashMap<String, Arc<Job>>>, budget: Option<u64>) 
         .collect();
     let mut total: u64 = held.iter().map(|(_, b, _)| *b as u64).sum();
     held.sort_by_key(|(used, _, _)| *used);
+    let mut evicted = false;
     for (_, _, job) in held {
         if total <= budget {
             break;
         }
         if let Some(freed) = job.evict() {
             total = total.saturating_sub(freed as u64);
+            evicted = true;
         }
+    }
+    if evicted {
+        give_back_memory();
+    }
+}
+
+/// Returns the memory freed to the system: glibc's allocator keeps freed pages in its arenas
+/// for reuse, so the resident memory would not go down (and grows with the arenas' scatter).
+fn give_back_memory() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: `malloc_trim` only releases free memory at the top of the heap and in the arenas;
+    // it touches no live allocation.
+    unsafe {
+        libc::malloc_trim(0);
     }
 }
 
