@@ -30,7 +30,7 @@ use serde::Serialize;
 
 use crate::adaptive;
 use crate::bake::Bake;
-use crate::control::{Control, TraceError};
+use crate::control::{Control, Stop};
 use crate::loader;
 use crate::output::{self, FrameSpec, ToneMap};
 use crate::params::{BakeSettings, PatchSize};
@@ -426,21 +426,6 @@ fn up_to_date(dir: &Path, hash: &str) -> bool {
             .ok()
             .and_then(|s| serde_json::from_slice::<serde_json::Value>(&s).ok())
             .is_some_and(|s| s["content_hash"] == hash)
-}
-
-/// Why a scene's bake stopped before its outputs were written.
-enum Stop {
-    Cancelled,
-    Failed(String),
-}
-
-impl From<TraceError> for Stop {
-    fn from(e: TraceError) -> Self {
-        match e {
-            TraceError::Cancelled => Self::Cancelled,
-            e => Self::Failed(e.to_string()),
-        }
-    }
 }
 
 /// The seconds each stage of a bake took (`timings.json`).

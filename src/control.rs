@@ -16,6 +16,24 @@ pub enum TraceError {
     Cancelled,
 }
 
+/// Why long work stopped before its end: a cancel, or an error to report (its message).
+#[derive(Debug)]
+pub enum Stop {
+    /// [`Control::cancel`] was called.
+    Cancelled,
+    /// The work failed; why, as the user reads it.
+    Failed(String),
+}
+
+impl From<TraceError> for Stop {
+    fn from(e: TraceError) -> Self {
+        match e {
+            TraceError::Cancelled => Self::Cancelled,
+            e => Self::Failed(e.to_string()),
+        }
+    }
+}
+
 /// Progress and cancellation shared between a running trace and whoever watches it (another
 /// thread): checked between bundles, so a cancel takes effect within one bundle's work.
 #[derive(Debug, Default)]

@@ -598,14 +598,28 @@ async fn progress_arrives_as_server_sent_events() {
     assert!(solved.windows(2).all(|w| w[0] <= w[1]), "{solved:?}");
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn finished_results_survive_a_restart_and_unfinished_jobs_resume() {
-    let dir = std::env::temp_dir().join(format!("radiosity-restart-{}", std::process::id()));
+/// POSTs `body` to timeline `id`'s materials and waits until it is done again.
+async fn relight_to_the_end(client: &reqwest::Client, base: &str, id: &str, body: &'static str) {
+    let url = format!("{base}/v1/timelines/{id}/materials");
+    let response = client.post(url).body(body).send().await.unwrap();
+    assert_eq!(response.status(), 202);
+    assert_eq!(wait(client, base, id, HANG).await["status"], "done");
+}
+
+/// An empty data directory of its own (named `name`) and a configuration that uses it.
+fn fresh_data_dir(name: &str) -> (std::path::PathBuf, Config) {
+    let dir = std::env::temp_dir().join(format!("radiosity-{name}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     let config = Config {
         data_dir: Some(dir.clone()),
         ..Config::default()
     };
+    (dir, config)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn finished_results_survive_a_restart_and_unfinished_jobs_resume() {
+    let (dir, config) = fresh_data_dir("restart");
     let first = start(config.clone()).await;
     let client = reqwest::Client::new();
     let frame = |base: &str, id: &str| format!("{base}/v1/timelines/{id}/frames/5");
@@ -622,14 +636,8 @@ async fn finished_results_survive_a_restart_and_unfinished_jobs_resume() {
     let refine = format!("{first}/v1/timelines/{cut}/lines?add=5000");
     assert_eq!(client.post(refine).send().await.unwrap().status(), 202);
     assert_eq!(wait(&client, &first, &cut, HANG).await["status"], "done");
-    let relight = client
-        .post(format!("{first}/v1/timelines/{cut}/materials"))
-        .body(r#"{"materials": [{"material": "red", "reflectance": [0.2, 0.6, 0.2]}]}"#)
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(relight.status(), 202);
-    assert_eq!(wait(&client, &first, &cut, HANG).await["status"], "done");
+    let red = r#"{"materials": [{"material": "red", "reflectance": [0.2, 0.6, 0.2]}]}"#;
+    relight_to_the_end(&client, &first, &cut, red).await;
     let clean: Value = get_json(&client, frame(&first, &cut)).await;
     let record = dir.join(&cut).join("job.json");
     let mut saved: Value = serde_json::from_slice(&std::fs::read(&record).unwrap()).unwrap();
@@ -674,15 +682,9 @@ async fn finished_results_survive_a_restart_and_unfinished_jobs_resume() {
         .unwrap();
     assert_eq!(stats.status(), 200);
     let mut relit = Vec::new();
+    let light = r#"{"materials": [{"material": "light", "emission": [30, 30, 30]}]}"#;
     for base in [&first, &second] {
-        let response = client
-            .post(format!("{base}/v1/timelines/{done}/materials"))
-            .body(r#"{"materials": [{"material": "light", "emission": [30, 30, 30]}]}"#)
-            .send()
-            .await
-            .unwrap();
-        assert_eq!(response.status(), 202);
-        assert_eq!(wait(&client, base, &done, HANG).await["status"], "done");
+        relight_to_the_end(&client, base, &done, light).await;
         relit.push(get_json(&client, frame(base, &done)).await);
     }
     assert_ne!(relit[0]["radiance"], before["radiance"]);
@@ -703,12 +705,7 @@ async fn finished_results_survive_a_restart_and_unfinished_jobs_resume() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_timeline_from_a_data_directory_without_its_scene_is_served_but_not_rebuilt() {
-    let dir = std::env::temp_dir().join(format!("radiosity-unstored-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    let config = Config {
-        data_dir: Some(dir.clone()),
-        ..Config::default()
-    };
+    let (dir, config) = fresh_data_dir("unstored");
     let first = start(config.clone()).await;
     let client = reqwest::Client::new();
     let (done, _) = create(&client, &first, "lines=20000&fps=4", "cornell_moving.gltf").await;
@@ -1362,23 +1359,16 @@ async fn solved_frames_are_served_as_glb_while_the_others_are_solved() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn over_the_resident_budget_finished_timelines_are_traced_again_when_needed() {
-    let dirs = ["budget", "reference"].map(|name| {
-        let dir = std::env::temp_dir().join(format!("radiosity-{name}-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        dir
-    });
+    let [(budget_dir, budget), (reference_dir, reference)] =
+        ["budget", "reference"].map(fresh_data_dir);
+    let dirs = [budget_dir, reference_dir];
     // One byte: no finished timeline keeps its traced state.
     let budget = start(Config {
-        data_dir: Some(dirs[0].clone()),
         resident_budget: Some(1),
-        ..Config::default()
+        ..budget
     })
     .await;
-    let reference = start(Config {
-        data_dir: Some(dirs[1].clone()),
-        ..Config::default()
-    })
-    .await;
+    let reference = start(reference).await;
     let client = reqwest::Client::new();
     let mut ids = [Vec::new(), Vec::new()];
     for (base, ids) in [&budget, &reference].into_iter().zip(&mut ids) {

@@ -30,6 +30,12 @@ struct Service {
 }
 
 impl Service {
+    /// GETs the JSON document at `path`.
+    async fn get(&self, path: &str) -> Value {
+        let response = reqwest::get(format!("{}{path}", self.base)).await.unwrap();
+        response.json().await.unwrap()
+    }
+
     fn start() -> Self {
         let runtime = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(2)
@@ -53,28 +59,24 @@ impl Service {
                 .join(name),
         )
         .unwrap();
-        self.runtime.block_on(async {
+        let created: Value = self.runtime.block_on(async {
             let client = reqwest::Client::new();
-            let created: Value = client
-                .post(format!("{}/v1/timelines?{query}", self.base))
-                .header("content-type", "model/gltf+json")
+            let url = format!("{}/v1/timelines?{query}", self.base);
+            let request = client.post(url).header("content-type", "model/gltf+json");
+            request
                 .body(gltf)
                 .send()
                 .await
                 .unwrap()
                 .json()
                 .await
-                .unwrap();
-            let id = created["id"].as_str().unwrap().to_string();
-            let started = Instant::now();
+                .unwrap()
+        });
+        let id = created["id"].as_str().unwrap().to_string();
+        let started = Instant::now();
+        self.runtime.block_on(async {
             loop {
-                let status: Value = (client.get(format!("{}/v1/timelines/{id}", self.base)))
-                    .send()
-                    .await
-                    .unwrap()
-                    .json()
-                    .await
-                    .unwrap();
+                let status = self.get(&format!("/v1/timelines/{id}")).await;
                 match status["status"].as_str().unwrap() {
                     "done" => return id,
                     "failed" | "cancelled" => panic!("{status}"),
@@ -166,8 +168,9 @@ fn browser() -> (Browser, Arc<Tab>, Arc<Mutex<Seen>>) {
     (browser, tab, seen)
 }
 
-/// Evaluates `expression` in the page (awaiting a promise), as JSON.
-fn evaluate(tab: &Tab, expression: &str) -> Value {
+/// Evaluates `expression` in the page (awaiting a promise), as JSON; `Err` with what it
+/// threw.
+fn try_evaluate(tab: &Tab, expression: &str) -> Result<Value, String> {
     let result = tab
         .evaluate(
             &format!("(async () => JSON.stringify(await ({expression})))()"),
@@ -175,15 +178,20 @@ fn evaluate(tab: &Tab, expression: &str) -> Value {
         )
         .unwrap();
     let Some(json) = result.value.clone() else {
-        panic!("{expression} threw: {result:?}");
+        return Err(format!("{expression} threw: {result:?}"));
     };
-    serde_json::from_str(json.as_str().unwrap()).unwrap()
+    Ok(serde_json::from_str(json.as_str().unwrap()).unwrap())
 }
 
-/// Waits until `expression` is true in the page.
+/// Evaluates `expression` in the page (awaiting a promise), as JSON.
+fn evaluate(tab: &Tab, expression: &str) -> Value {
+    try_evaluate(tab, expression).unwrap_or_else(|e| panic!("{e}"))
+}
+
+/// Waits until `expression` is true in the page (while the page loads, it may throw).
 fn wait_for(tab: &Tab, expression: &str) {
     let started = Instant::now();
-    while evaluate(tab, expression) != Value::Bool(true) {
+    while try_evaluate(tab, expression) != Ok(Value::Bool(true)) {
         assert!(started.elapsed() < WAIT, "still not {expression}");
         std::thread::sleep(Duration::from_millis(50));
     }
@@ -375,10 +383,8 @@ fn the_viewer_draws_the_baked_light_follows_the_slider_and_overlays_the_error() 
         aw > bw + 20.0,
         "the red wall's luma {bw} before, {aw} after"
     );
-    let lighting: Value = service.runtime.block_on(async {
-        let url = format!("{}/v1/timelines/{id}/materials", service.base);
-        reqwest::get(url).await.unwrap().json().await.unwrap()
-    });
+    let lighting =
+        (service.runtime).block_on(service.get(&format!("/v1/timelines/{id}/materials")));
     assert_eq!(lighting["materials"][3]["name"], "light");
     assert_eq!(
         lighting["materials"][3]["emission"],
@@ -410,8 +416,8 @@ fn the_viewer_draws_the_baked_light_follows_the_slider_and_overlays_the_error() 
         std::thread::sleep(Duration::from_millis(20));
     }
     tab.find_element("#play").unwrap().click().unwrap();
-    wait_for(&tab, "!viewer.playing");
-    std::thread::sleep(Duration::from_millis(600));
+    wait_for(&tab, "!viewer.playing && !viewer.playLoop");
+    std::thread::sleep(Duration::from_millis(200)); // the last frame's drawing
     let paused = evaluate(&tab, "document.body.dataset.frame");
     std::thread::sleep(Duration::from_millis(600));
     assert_eq!(evaluate(&tab, "document.body.dataset.frame"), paused);
@@ -453,10 +459,7 @@ fn the_home_page_bakes_a_picked_sample_shows_it_while_solved_and_lists_it() {
     wait_for(&tab, "document.body.dataset.status === 'done'");
     let id = evaluate(&tab, "location.pathname.split('/')[3]");
     let id = id.as_str().unwrap().to_string();
-    let status: Value = service.runtime.block_on(async {
-        let url = format!("{}/v1/timelines/{id}", service.base);
-        reqwest::get(url).await.unwrap().json().await.unwrap()
-    });
+    let status = (service.runtime).block_on(service.get(&format!("/v1/timelines/{id}")));
     assert_eq!(status["frames"], 9, "{status}");
     let frames = evaluate(&tab, "document.getElementById('frame').max");
     assert_eq!(frames, "8");

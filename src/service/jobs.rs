@@ -13,7 +13,7 @@ use tokio::sync::{Semaphore, watch};
 use super::store::{Lighting, Record, SavedLight, SavedMaterial, Store};
 use crate::adaptive::{self, Adaptive};
 use crate::bake::Bake;
-use crate::control::{Control, TraceError};
+use crate::control::{Control, Stop};
 use crate::params::BakeSettings;
 use crate::scene::{Material, Scene};
 use crate::solve::{FrameSolution, NotConverged, SolveParams};
@@ -636,45 +636,30 @@ impl Job {
 
     /// Does `work` to its end on the calling (blocking) thread.
     fn run(&self, work: Work) {
-        let bake = match work {
+        let started = Instant::now();
+        // The traced state for the solve: a new one (traced, refined or rebuilt), or `None`
+        // for the one in its slot.
+        let traced = match work {
             Work::Bake => {
                 let scene = self.scene.lock().ok().and_then(|mut s| s.take());
                 self.set_status(Status::Tracing);
-                let started = Instant::now();
-                let traced = match scene {
+                Some(match scene {
                     Some(scene) => self.trace(scene),
                     // Resumed after a restart: the scene is read again.
                     None => self.rebuild(),
-                };
-                match traced {
-                    Ok(bake) => {
-                        self.traced(&bake, started);
-                        Some(bake)
-                    }
-                    Err(Stop::Cancelled) => return,
-                    Err(Stop::Failed(e)) => return self.fail(e),
-                }
+                })
             }
             Work::Refine(lines) => {
                 self.set_status(Status::Tracing);
-                let started = Instant::now();
-                let taken = self.bake.write().ok().and_then(|mut b| b.take());
                 // (Its lines are counted, and kept in the record, by [`Jobs::rerun`].)
-                let traced = match taken {
+                let taken = self.bake.write().ok().and_then(|mut b| b.take());
+                Some(match taken {
                     Some(mut bake) => {
                         (bake.refine(lines, &self.control).map(|()| bake)).map_err(Stop::from)
                     }
                     // Not in memory: traced again, this refinement included.
                     None => self.rebuild(),
-                };
-                match traced {
-                    Ok(bake) => {
-                        self.traced(&bake, started);
-                        Some(bake)
-                    }
-                    Err(Stop::Cancelled) => return,
-                    Err(Stop::Failed(e)) => return self.fail(e),
-                }
+                })
             }
             Work::Relight => {
                 if self.bake.read().is_ok_and(|b| b.is_none()) {
@@ -682,10 +667,18 @@ impl Job {
                 }
                 match self.ensure_traced() {
                     Ok(()) => None,
-                    Err(Stop::Cancelled) => return,
-                    Err(Stop::Failed(e)) => return self.fail(e),
+                    Err(e) => Some(Err(e)),
                 }
             }
+        };
+        let bake = match traced {
+            None => None,
+            Some(Ok(bake)) => {
+                self.traced(&bake, started);
+                Some(bake)
+            }
+            Some(Err(Stop::Cancelled)) => return,
+            Some(Err(Stop::Failed(e))) => return self.fail(e),
         };
         // The traced scene is in its slot while the frames are solved (read, not taken), so
         // previews and glTF of the frames solved so far can be made meanwhile.
@@ -848,23 +841,6 @@ impl Job {
         self.version.fetch_add(1, Ordering::AcqRel);
         self.frames_solved.store(0, Ordering::Release);
         Ok(true)
-    }
-}
-
-/// Why a job's tracing stopped.
-enum Stop {
-    /// A DELETE cancelled it.
-    Cancelled,
-    /// An error, as the job's `error` gives it.
-    Failed(String),
-}
-
-impl From<TraceError> for Stop {
-    fn from(e: TraceError) -> Self {
-        match e {
-            TraceError::Cancelled => Self::Cancelled,
-            e => Self::Failed(e.to_string()),
-        }
     }
 }
 

@@ -679,6 +679,16 @@ class Viewer {
 
   /** Steps through the solved frames at the timeline's rate, waiting for any not yet loaded. */
   async play() {
+    if (this.playLoop) return;
+    this.playLoop = true;
+    try {
+      await this.playFrames();
+    } finally {
+      this.playLoop = false;
+    }
+  }
+
+  async playFrames() {
     while (this.playing && this.status) {
       const started = performance.now();
       const frames = this.status.frames;
