@@ -229,7 +229,7 @@ fn a_blender_style_lamp_room_previews_lit_and_exposed() {
 }
 
 #[test]
-fn the_baked_glb_names_each_triangle_s_patch_and_carries_the_camera_posed_at_its_frame() {
+fn the_baked_glb_names_each_triangle_s_patch_and_carries_the_cameras_posed_at_its_frame() {
     let mut d = Doc::new();
     let (v, i) = common::cuboid([2.0, 2.0, 2.0], [0.0, 0.0, 0.0], true);
     let mesh = d.mesh(&v, Some(&i), None);
@@ -246,7 +246,13 @@ fn the_baked_glb_names_each_triangle_s_patch_and_carries_the_camera_posed_at_its
         "rotation": [0.0, half, 0.0, half], "scale": [2.0, 2.0, 2.0]}),
     );
     let rig = d.node(json!({"children": [camera]}));
-    d.scene(&[room, rig]);
+    // A second camera, still, after the first in the hierarchy: carried too, second.
+    d.push(
+        "cameras",
+        json!({"type": "orthographic", "orthographic": {"xmag": 2.0, "ymag": 1.5, "znear": 0.1, "zfar": 9.0}}),
+    );
+    let side = d.node(json!({"camera": 1, "name": "side", "translation": [103.0, 0.0, 0.0]}));
+    d.scene(&[room, rig, side]);
     let dolly = [0.0, 0.0, 0.0, 0.0, 0.0, 0.8];
     d.animation(
         "dolly",
@@ -280,9 +286,17 @@ fn the_baked_glb_names_each_triangle_s_patch_and_carries_the_camera_posed_at_its
             .map(|w| u32::from_le_bytes(w.try_into().unwrap()))
             .collect();
         assert_eq!(patches, meshes[0].patches);
-        // The camera node: where the scene's camera is at the frame, turned as it is, no scale.
-        let eye = gltf.nodes().find(|n| n.camera().is_some()).unwrap();
+        // The camera nodes: the previews' first, then the other; each where it is at the frame,
+        // turned as it is, no scale.
+        let cameras: Vec<gltf::Node> = gltf.nodes().filter(|n| n.camera().is_some()).collect();
+        assert_eq!(cameras.len(), 2);
+        let side = &cameras[1];
+        assert_eq!(side.name(), Some("side"));
+        assert_eq!(side.camera().unwrap().index(), 1);
+        assert_eq!(side.transform().decomposed().0, [103.0, 0.0, 0.0]);
+        let eye = &cameras[0];
         assert_eq!(eye.name(), Some("eye"));
+        assert_eq!(eye.camera().unwrap().index(), 0);
         let (t, r, s) = eye.transform().decomposed();
         let expected = [100.0, 0.1, 0.2 + 0.8 * frame as f32 / 4.0];
         for (a, b) in t.iter().zip(expected) {

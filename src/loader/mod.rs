@@ -276,9 +276,8 @@ pub fn load(bytes: &[u8], options: &LoadOptions) -> Result<Scene, LoadError> {
         Some("auto") => None,
         Some(wanted) => Some(find_camera(&document, &camera_nodes, wanted)?),
     };
-    if let Some(n) = camera_node {
-        wanted[n] = true;
-    }
+    // Every camera is posed: the previews use one, the baked glTF carries all.
+    camera_nodes.iter().for_each(|&n| wanted[n] = true);
     let light_nodes: Vec<(usize, usize)> = hierarchy
         .order
         .iter()
@@ -329,6 +328,10 @@ pub fn load(bytes: &[u8], options: &LoadOptions) -> Result<Scene, LoadError> {
     }
     let normalisation = bounds(&instances, frames.count).ok_or(LoadError::Empty)?;
     let camera = camera_node.and_then(|n| read_camera(&document, n, &poses, &mut warnings));
+    let other_cameras: Vec<SceneCamera> = (camera_nodes.iter())
+        .filter(|&&n| Some(n) != camera_node)
+        .filter_map(|&n| read_camera(&document, n, &poses, &mut warnings))
+        .collect();
     let mut scene = build(
         instances,
         materials,
@@ -340,6 +343,9 @@ pub fn load(bytes: &[u8], options: &LoadOptions) -> Result<Scene, LoadError> {
     if let Some(camera) = camera {
         scene.camera = Some(camera.normalised(&scene.normalisation));
     }
+    scene.other_cameras = (other_cameras.into_iter())
+        .map(|c| c.normalised(&scene.normalisation))
+        .collect();
     scene.node_names = document
         .nodes()
         .map(|n| n.name().map(str::to_owned))
@@ -530,7 +536,8 @@ fn read_camera(
     };
     let Some(projection) = projection else {
         warnings.push(format!(
-            "camera {index} (node {n}) has an unusable projection: previews use an automatic camera"
+            "camera {index} (node {n}) has an unusable projection: it is left out (previews without \
+             a camera use an automatic one)"
         ));
         return None;
     };
@@ -1108,6 +1115,7 @@ fn build(
         warnings,
         node_names: Vec::new(),
         camera: None,
+        other_cameras: Vec::new(),
         lights: Vec::new(),
         animations: Vec::new(),
     })

@@ -9,8 +9,8 @@
 //! and per triangle the patch it draws (u32, the service's patch ids), in an accessor that the
 //! primitive's `extras.patches` names: a viewer colours or picks patches by it.
 //!
-//! The scene's camera (the one the previews are seen from), when it has one, is a camera node
-//! posed at the frame.
+//! The scene's cameras are camera nodes posed at the frame, the one the previews are seen from
+//! first.
 //!
 //! The material is `KHR_materials_unlit`, white: the colour a viewer shows is the baked light,
 //! not re-lit. Positions are in the scene's units, relative to the scene's centre, which the
@@ -177,10 +177,12 @@ pub fn frame_glb(
             "extras": { "source_node": mesh.node },
         }));
     }
-    let camera = scene.camera.as_ref().map(|c| camera(scene, c, frame));
-    if let Some((node, _)) = &camera {
-        nodes.push(node.clone());
-    }
+    // The previews' camera first, then the scene's others.
+    let cameras: Vec<(Value, Value)> = (scene.camera.iter().chain(&scene.other_cameras))
+        .enumerate()
+        .map(|(i, c)| camera(scene, c, frame, i))
+        .collect();
+    nodes.extend(cameras.iter().map(|(node, _)| node.clone()));
     while !buffers.bin.len().is_multiple_of(4) {
         buffers.bin.push(0);
     }
@@ -208,8 +210,11 @@ pub fn frame_glb(
             "extensions": { "KHR_materials_unlit": {} },
         }],
     });
-    if let Some((_, projection)) = camera {
-        document["cameras"] = json!([projection]);
+    if !cameras.is_empty() {
+        document["cameras"] = cameras
+            .into_iter()
+            .map(|(_, projection)| projection)
+            .collect();
     }
     if !buffers.bin.is_empty() {
         document["buffers"] = json!([{ "byteLength": buffers.bin.len() }]);
@@ -219,16 +224,16 @@ pub fn frame_glb(
     glb(&document, &buffers.bin)
 }
 
-/// The scene's camera at `frame` in scene units: its node (rotation and translation; the
-/// pose's scale, which glTF's cameras ignore, left out) and its glTF camera (index 0).
-fn camera(scene: &Scene, camera: &SceneCamera, frame: usize) -> (Value, Value) {
+/// A scene's camera at `frame` in scene units: its node (rotation and translation; the pose's
+/// scale, which glTF's cameras ignore, left out) and its glTF camera (at `index`).
+fn camera(scene: &Scene, camera: &SceneCamera, frame: usize, index: usize) -> (Value, Value) {
     let radius = scene.normalisation.radius;
     let pose = crate::output::preview::rigid(camera.pose(frame));
     let rotation = DQuat::from_mat3(&pose.matrix3).normalize().as_quat();
     let translation = scene.normalisation.to_scene(pose.translation).as_vec3();
     let node = json!({
-        "name": camera.name.clone().unwrap_or_else(|| "camera".into()),
-        "camera": 0,
+        "name": camera.name.clone().unwrap_or_else(|| format!("camera {index}")),
+        "camera": index,
         "rotation": rotation.to_array(),
         "translation": translation.to_array(),
     });

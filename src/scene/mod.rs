@@ -501,6 +501,9 @@ pub struct Scene {
     pub node_names: Vec<Option<String>>,
     /// The scene's camera, if it has one (used only for previews).
     pub camera: Option<SceneCamera>,
+    /// The scene's other cameras, in hierarchy order: the baked glTF carries them after
+    /// `camera`, so a viewer can offer them all.
+    pub other_cameras: Vec<SceneCamera>,
     /// Punctual lights: the direct light they give starts the interreflection solve.
     pub lights: Vec<Light>,
     /// The source file's animations, by index: each one's name, and whether it is played.
