@@ -62,7 +62,7 @@ pub struct Patch {
 }
 
 /// The optical properties the radiosity solve needs, per material.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, Serialize, serde::Deserialize)]
 pub struct Material {
     /// The material's name in the source file, if any.
     pub name: Option<String>,

@@ -97,14 +97,13 @@ pub(super) async fn frame_preview(
     StrictQuery(query): StrictQuery<PreviewQuery>,
 ) -> Result<Response, ApiError> {
     let job = job(&state, &id)?;
-    let _budget = Enforce(&state);
     let super::query::Preview {
         size: (width, height),
         exposure,
         shading,
     } = query.validate()?;
     frame_file(
-        job,
+        (&state, job),
         &frame,
         exposure,
         "image/png",
@@ -127,10 +126,9 @@ pub(super) async fn frame_baked(
     StrictQuery(query): StrictQuery<BakedQuery>,
 ) -> Result<Response, ApiError> {
     let job = job(&state, &id)?;
-    let _budget = Enforce(&state);
     let exposure = query.validate()?;
     frame_file(
-        job,
+        (&state, job),
         &frame,
         exposure,
         "model/gltf-binary",
@@ -157,7 +155,7 @@ impl Drop for Enforce<'_> {
 /// frame, its radiance and the tone map of `exposure` or, if none, the timeline's), served as
 /// `content_type` with the result's version and the exposure; `what` names the file in errors.
 async fn frame_file<E: std::fmt::Display + Send + 'static>(
-    job: Arc<Job>,
+    (state, job): (&AppState, Arc<Job>),
     frame: &str,
     exposure: Option<f64>,
     content_type: &str,
@@ -167,6 +165,8 @@ async fn frame_file<E: std::fmt::Display + Send + 'static>(
     + 'static,
 ) -> Result<Response, ApiError> {
     let (f, version, solution) = solved_frame(&job, frame)?;
+    // The traced state may be rebuilt for this file: the budget is kept when it is made.
+    let _budget = Enforce(state);
     let made = tokio::task::spawn_blocking(move || {
         job.with_bake(|bake| {
             let tone = tone_map(&job, bake, exposure);

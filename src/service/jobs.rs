@@ -10,7 +10,7 @@ use serde::Serialize;
 use serde_json::json;
 use tokio::sync::{Semaphore, watch};
 
-use super::store::{Lighting, Record, SavedLight, SavedMaterial, Store};
+use super::store::{Lighting, Record, Store};
 use crate::adaptive::{self, Adaptive};
 use crate::bake::Bake;
 use crate::control::{Control, Stop};
@@ -154,7 +154,7 @@ pub struct Job {
 }
 
 /// A punctual light as relighting sees it: its name and power.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, Serialize, serde::Deserialize)]
 pub struct LightSetting {
     /// The light's name in the scene, if any.
     pub name: Option<String>,
@@ -264,48 +264,11 @@ impl Job {
         job
     }
 
-    /// Replaces the materials and lights by `lighting`'s (names and numbers as saved).
+    /// Replaces the materials and lights by `lighting`'s.
     fn set_lighting(&self, lighting: &Lighting) {
-        let materials = (lighting.materials.iter())
-            .map(|m| Material {
-                name: m.name.clone(),
-                reflectance: m.reflectance,
-                emission: m.emission,
-                double_sided: m.double_sided,
-            })
-            .collect();
-        let lights = (lighting.lights.iter())
-            .map(|l| LightSetting {
-                name: l.name.clone(),
-                colour: l.colour,
-                intensity: l.intensity,
-            })
-            .collect();
         if let (Ok(mut m), Ok(mut l)) = (self.materials.lock(), self.lights.lock()) {
-            *m = materials;
-            *l = lights;
-        }
-    }
-
-    /// The materials and lights as a record keeps them.
-    fn saved_lighting(&self) -> Lighting {
-        let (materials, lights) = self.lighting();
-        Lighting {
-            materials: (materials.into_iter())
-                .map(|m| SavedMaterial {
-                    name: m.name,
-                    reflectance: m.reflectance,
-                    emission: m.emission,
-                    double_sided: m.double_sided,
-                })
-                .collect(),
-            lights: (lights.into_iter())
-                .map(|l| SavedLight {
-                    name: l.name,
-                    colour: l.colour,
-                    intensity: l.intensity,
-                })
-                .collect(),
+            m.clone_from(&lighting.materials);
+            l.clone_from(&lighting.lights);
         }
     }
 
@@ -416,7 +379,10 @@ impl Job {
                 .lock()
                 .map(|r| r.clone())
                 .unwrap_or_default(),
-            lighting: Some(self.saved_lighting()),
+            lighting: Some({
+                let (materials, lights) = self.lighting();
+                Lighting { materials, lights }
+            }),
             restarts: self.restarts,
         }
     }

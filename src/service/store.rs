@@ -63,33 +63,9 @@ pub struct Record {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct Lighting {
     /// Per material, in the scene's order.
-    pub materials: Vec<SavedMaterial>,
+    pub materials: Vec<crate::scene::Material>,
     /// Per punctual light, in the scene's order.
-    pub lights: Vec<SavedLight>,
-}
-
-/// A material as [`Lighting`] keeps it ([`crate::scene::Material`]).
-#[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct SavedMaterial {
-    /// Its name in the file.
-    pub name: Option<String>,
-    /// Diffuse reflectance, RGB.
-    pub reflectance: [f64; 3],
-    /// Emission, RGB.
-    pub emission: [f64; 3],
-    /// Whether each triangle has a back patch too.
-    pub double_sided: bool,
-}
-
-/// A punctual light as [`Lighting`] keeps it.
-#[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct SavedLight {
-    /// Its name in the file.
-    pub name: Option<String>,
-    /// Linear RGB colour.
-    pub colour: [f64; 3],
-    /// Candela (point, spot) or lux (directional).
-    pub intensity: f64,
+    pub lights: Vec<super::jobs::LightSetting>,
 }
 
 /// What `request.json` holds.
