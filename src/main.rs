@@ -151,11 +151,29 @@ struct ServeArgs {
     /// Where finished results are kept across restarts.
     #[arg(long, default_value = "./data")]
     data_dir: PathBuf,
-    /// Traced state (lines, tallies, direct light) all timelines may keep in memory, GiB; over
-    /// it, finished timelines' is dropped, least recently used first, and traced again from
-    /// the stored scene when needed. Default: half the machine's memory.
+    /// Traced state (lines, tallies, direct light) and solved frames all timelines may keep in
+    /// memory, GiB; over it, finished timelines' are dropped, least recently used first: frames
+    /// are then read from the data directory, and the traced state traced again from the
+    /// stored scene when needed. Default: half the machine's memory.
     #[arg(long, value_parser = parse_budget_gib)]
     resident_gib: Option<f64>,
+    /// Removes finished timelines (memory and data directory) this many days after they
+    /// ended (fractions allowed). Default: kept until deleted.
+    #[arg(long, value_parser = parse_days)]
+    retain_days: Option<f64>,
+    /// Keeps only this many finished timelines, the most recently ended; older ones are
+    /// removed (memory and data directory). Default: all.
+    #[arg(long)]
+    retain_count: Option<usize>,
+}
+
+/// A number of days above 0 (at most a million).
+fn parse_days(s: &str) -> Result<f64, String> {
+    s.trim()
+        .parse::<f64>()
+        .ok()
+        .filter(|v| v.is_finite() && *v > 0.0 && *v <= 1e6)
+        .ok_or_else(|| format!("{s:?} is not a number of days above 0 and at most 1,000,000"))
 }
 
 /// Half the machine's memory (Linux's `/proc/meminfo`), if known.
@@ -379,6 +397,8 @@ impl ServeArgs {
             memory_budget_gib,
             data_dir,
             resident_gib,
+            retain_days,
+            retain_count,
         } = self;
         let gib = |g: f64| (g * f64::from(1u32 << 30)) as u64;
         let resident_budget = resident_gib.map(gib).or_else(half_the_memory);
@@ -388,6 +408,10 @@ impl ServeArgs {
             max_body_bytes: max_body_mib << 20,
             memory_budget: gib(memory_budget_gib),
             resident_budget,
+            retention: radiosity::service::Retention {
+                days: retain_days,
+                count: retain_count,
+            },
             ..radiosity::service::Config::default()
         };
         serve(&addr, config)

@@ -640,7 +640,7 @@ async fn finished_results_survive_a_restart_and_unfinished_jobs_resume() {
     relight_to_the_end(&client, &first, &cut, red).await;
     let clean: Value = get_json(&client, frame(&first, &cut)).await;
     let record = dir.join(&cut).join("job.json");
-    let mut saved: Value = serde_json::from_slice(&std::fs::read(&record).unwrap()).unwrap();
+    let mut saved: Value = serde_json::from_slice(&std::fs::read(&record).unwrap()[24..]).unwrap();
     saved["status"] = "tracing".into();
     std::fs::write(&record, saved.to_string()).unwrap();
     std::fs::remove_file(dir.join(&cut).join("frames.bin")).unwrap();
@@ -721,7 +721,7 @@ async fn a_timeline_from_a_data_directory_without_its_scene_is_served_but_not_re
         std::fs::remove_file(dir.join(id).join("request.json")).unwrap();
     }
     let record = dir.join(&running).join("job.json");
-    let mut saved: Value = serde_json::from_slice(&std::fs::read(&record).unwrap()).unwrap();
+    let mut saved: Value = serde_json::from_slice(&std::fs::read(&record).unwrap()[24..]).unwrap();
     saved["status"] = "solving".into();
     std::fs::write(&record, saved.to_string()).unwrap();
     std::fs::remove_file(dir.join(&running).join("frames.bin")).unwrap();
@@ -1381,8 +1381,22 @@ async fn over_the_resident_budget_finished_timelines_are_traced_again_when_neede
     }
     let health = get_json(&client, format!("{budget}/healthz")).await;
     assert_eq!(health["memory"]["traced_bytes"], 0, "{health}");
+    assert_eq!(health["memory"]["solved_bytes"], 0, "{health}");
+    assert_eq!(health["memory"]["budget_bytes"], 1, "{health}");
     assert_eq!(health["timelines"]["total"], 3, "{health}");
     assert_eq!(health["timelines"]["traced_in_memory"], 0, "{health}");
+    assert_eq!(health["timelines"]["solved_in_memory"], 0, "{health}");
+    assert_eq!(health["timelines"]["on_disk"], 3, "{health}");
+    // Frames dropped from memory are served from the data directory, the same numbers.
+    for (budget_id, kept_id) in ids[0].iter().zip(&ids[1]) {
+        for frame in [0, 3] {
+            let path = |base: &str, id: &str| format!("{base}/v1/timelines/{id}/frames/{frame}");
+            assert_eq!(
+                get_json(&client, path(&budget, budget_id)).await,
+                get_json(&client, path(&reference, kept_id)).await
+            );
+        }
+    }
     assert!(
         health["memory"]["resident_bytes"].as_u64().unwrap() > 0,
         "{health}"
@@ -1390,6 +1404,7 @@ async fn over_the_resident_budget_finished_timelines_are_traced_again_when_neede
     assert!(health["data_dir_bytes"].as_u64().unwrap() > 0, "{health}");
     let kept = get_json(&client, format!("{reference}/healthz")).await;
     assert_eq!(kept["timelines"]["traced_in_memory"], 3, "{kept}");
+    assert_eq!(kept["timelines"]["solved_in_memory"], 3, "{kept}");
     assert!(
         kept["memory"]["traced_bytes"].as_u64().unwrap() > 0,
         "{kept}"
@@ -1427,4 +1442,235 @@ async fn over_the_resident_budget_finished_timelines_are_traced_again_when_neede
     for dir in dirs {
         let _ = std::fs::remove_dir_all(dir);
     }
+}
+
+/// Flips one bit of the byte at `at` (from the end if negative) of `path`.
+fn flip(path: &std::path::Path, at: i64) {
+    let mut bytes = std::fs::read(path).unwrap();
+    let at = if at < 0 { bytes.len() as i64 + at } else { at } as usize;
+    bytes[at] ^= 0x04;
+    std::fs::write(path, bytes).unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn damaged_files_are_reported_never_served_and_kept() {
+    let (dir, config) = fresh_data_dir("damage");
+    let first = start(config.clone()).await;
+    let client = reqwest::Client::new();
+    let mut ids = Vec::new();
+    for seed in 1..=5 {
+        let query = format!("lines=20000&fps=4&seed={seed}");
+        let (id, _) = create(&client, &first, &query, "cornell_moving.gltf").await;
+        assert_eq!(wait(&client, &first, &id, HANG).await["status"], "done");
+        ids.push(id);
+    }
+    let [
+        flipped_frame,
+        cut_frames,
+        flipped_record,
+        flipped_scene,
+        intact,
+    ] = ids.clone().try_into().unwrap();
+    let frame = |base: &str, id: &str, f: usize| format!("{base}/v1/timelines/{id}/frames/{f}");
+    let intact_frame = get_json(&client, frame(&first, &intact, 4)).await;
+    // A bit flipped in the last frame's numbers, a file cut short, a bit flipped in a record
+    // and in a stored scene.
+    flip(&dir.join(&flipped_frame).join("frames.bin"), -100);
+    let frames = dir.join(&cut_frames).join("frames.bin");
+    let bytes = std::fs::read(&frames).unwrap();
+    std::fs::write(&frames, &bytes[..bytes.len() - 1]).unwrap();
+    flip(&dir.join(&flipped_record).join("job.json"), 200);
+    flip(&dir.join(&flipped_scene).join("scene.bin"), 1000);
+    let files = |id: &str| {
+        let mut files: Vec<(String, Vec<u8>)> = std::fs::read_dir(dir.join(id))
+            .unwrap()
+            .map(|f| f.unwrap())
+            .map(|f| {
+                (
+                    f.file_name().into_string().unwrap(),
+                    std::fs::read(f.path()).unwrap(),
+                )
+            })
+            .collect();
+        files.sort();
+        files
+    };
+    let damaged_files: Vec<_> = ids[..4].iter().map(|id| files(id)).collect();
+
+    // The server starts, and serves what is whole.
+    let second = start(config).await;
+    assert_eq!(
+        intact_frame,
+        get_json(&client, frame(&second, &intact, 4)).await
+    );
+    let listed: Value = get_json(&client, format!("{second}/v1/timelines")).await;
+    assert_eq!(listed["timelines"].as_array().unwrap().len(), 5, "{listed}");
+    let failed = |status: &Value, words: &[&str]| {
+        assert_eq!(status["status"], "failed", "{status}");
+        let error = status["error"].as_str().unwrap();
+        for word in words {
+            assert!(error.contains(word), "{word:?} not in {error:?}");
+        }
+    };
+    // Found at start-up: a cut file, a damaged record.
+    let status = get_json(&client, format!("{second}/v1/timelines/{cut_frames}")).await;
+    failed(&status, &["frames.bin is damaged", "bytes of", "kept in"]);
+    let status = get_json(&client, format!("{second}/v1/timelines/{flipped_record}")).await;
+    failed(&status, &["job.json is damaged", "checksum"]);
+    // Found when read: a frame's numbers, the scene traced again for a preview.
+    let whole = get_json(&client, frame(&second, &flipped_frame, 0)).await;
+    assert_eq!(whole["frame"], 0, "{whole}");
+    let status = get_json(&client, format!("{second}/v1/timelines/{flipped_frame}")).await;
+    let last = status["frames"].as_u64().unwrap() as usize - 1;
+    let response = client
+        .get(frame(&second, &flipped_frame, last))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(response.status(), 409);
+    let problem: Value = response.json().await.unwrap();
+    let checksum = format!("frame {last}'s checksum");
+    assert!(
+        problem["detail"].as_str().unwrap().contains(&checksum),
+        "{problem}"
+    );
+    let status = get_json(&client, format!("{second}/v1/timelines/{flipped_frame}")).await;
+    failed(&status, &["frames.bin is damaged", &checksum]);
+    // Nothing more of it is read from disk.
+    let again = client
+        .get(frame(&second, &flipped_frame, 0))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(again.status(), 409);
+    let preview = format!("{second}/v1/timelines/{flipped_scene}/frames/0/preview.png");
+    let response = client.get(preview).send().await.unwrap();
+    assert_eq!(response.status(), 409);
+    let status = get_json(&client, format!("{second}/v1/timelines/{flipped_scene}")).await;
+    failed(&status, &["scene.bin is damaged", "checksum"]);
+    for id in &ids[..4] {
+        let relight = format!("{second}/v1/timelines/{id}/materials");
+        let body = r#"{"materials": [{"material": "light", "emission": [5, 5, 5]}]}"#;
+        let response = client.post(relight).body(body).send().await.unwrap();
+        assert_eq!(response.status(), 409, "{id}");
+    }
+    // Every damaged file is kept as it was, for inspection.
+    let after: Vec<_> = ids[..4].iter().map(|id| files(id)).collect();
+    assert!(
+        after == damaged_files,
+        "the damaged timelines' files changed"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_full_disk_fails_the_job_and_leaves_the_files_before_whole() {
+    let (dir, config) = fresh_data_dir("full");
+    let base = start(config).await;
+    let client = reqwest::Client::new();
+    // A disk that fills when the frames are written: their temporary file is the full device.
+    let full = |id: &str| {
+        std::os::unix::fs::symlink("/dev/full", dir.join(id).join("frames.tmp")).unwrap();
+    };
+    let (id, _) = create(&client, &base, "lines=20000&fps=4", "cornell_moving.gltf").await;
+    full(&id);
+    let status = wait(&client, &base, &id, HANG).await;
+    assert_eq!(status["status"], "failed", "{status}");
+    let error = status["error"].as_str().unwrap();
+    assert!(
+        error.contains("could not be saved") && error.contains("No space left"),
+        "{error}"
+    );
+    assert!(!dir.join(&id).join("frames.bin").exists());
+    assert!(!dir.join(&id).join("frames.tmp").exists());
+
+    // A refinement of a done timeline, the disk full when its frames are written: the job
+    // fails, and the frames of the version before stay on disk as they were.
+    let (done, _) = create(&client, &base, "lines=20000&fps=4", "cornell_moving.gltf").await;
+    assert_eq!(wait(&client, &base, &done, HANG).await["status"], "done");
+    let before = std::fs::read(dir.join(&done).join("frames.bin")).unwrap();
+    full(&done);
+    let refine = format!("{base}/v1/timelines/{done}/lines?add=2000");
+    assert_eq!(client.post(refine).send().await.unwrap().status(), 202);
+    let status = wait(&client, &base, &done, HANG).await;
+    assert_eq!(status["status"], "failed", "{status}");
+    assert_eq!(
+        std::fs::read(dir.join(&done).join("frames.bin")).unwrap(),
+        before
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn retention_removes_finished_timelines_past_a_count_or_an_age() {
+    let (dir, config) = fresh_data_dir("retain-count");
+    let counted = start(Config {
+        retention: radiosity::service::Retention {
+            days: None,
+            count: Some(2),
+        },
+        ..config
+    })
+    .await;
+    let client = reqwest::Client::new();
+    let mut ids = Vec::new();
+    for seed in 1..=3 {
+        let query = format!("lines=5000&fps=2&seed={seed}");
+        let (id, _) = create(&client, &counted, &query, "cornell_box.gltf").await;
+        assert_eq!(wait(&client, &counted, &id, HANG).await["status"], "done");
+        ids.push(id);
+    }
+    // Removed once the third has ended: the oldest, from memory and disk.
+    let gone = |base: String, id: String| {
+        let client = client.clone();
+        async move {
+            let start = Instant::now();
+            loop {
+                let url = format!("{base}/v1/timelines/{id}");
+                if client.get(url).send().await.unwrap().status() == 404 {
+                    return;
+                }
+                assert!(start.elapsed() < Duration::from_secs(10), "{id} kept");
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+        }
+    };
+    gone(counted.clone(), ids[0].clone()).await;
+    assert!(!dir.join(&ids[0]).exists());
+    for id in &ids[1..] {
+        let status = get_json(&client, format!("{counted}/v1/timelines/{id}")).await;
+        assert_eq!(status["status"], "done");
+        assert!(dir.join(id).exists());
+    }
+    let health = get_json(&client, format!("{counted}/healthz")).await;
+    assert_eq!(health["retention"]["count"], 2, "{health}");
+
+    // By age (three seconds): the first is removed when the next ends past it.
+    let (dir, config) = fresh_data_dir("retain-days");
+    let aged = start(Config {
+        retention: radiosity::service::Retention {
+            days: Some(3.0 / 86_400.0),
+            count: None,
+        },
+        ..config
+    })
+    .await;
+    let (old, _) = create(&client, &aged, "lines=5000&fps=2", "cornell_box.gltf").await;
+    assert_eq!(wait(&client, &aged, &old, HANG).await["status"], "done");
+    let ended = Instant::now();
+    let (new, _) = create(&client, &aged, "lines=5000&fps=2", "cornell_box.gltf").await;
+    assert_eq!(wait(&client, &aged, &new, HANG).await["status"], "done");
+    if ended.elapsed() < Duration::from_secs(2) {
+        // Not yet past its age.
+        let status = get_json(&client, format!("{aged}/v1/timelines/{old}")).await;
+        assert_eq!(status["status"], "done");
+    }
+    tokio::time::sleep(Duration::from_secs(4).saturating_sub(ended.elapsed())).await;
+    let (last, _) = create(&client, &aged, "lines=5000&fps=2", "cornell_box.gltf").await;
+    assert_eq!(wait(&client, &aged, &last, HANG).await["status"], "done");
+    gone(aged.clone(), old.clone()).await;
+    assert!(!dir.join(&old).exists());
+    let status = get_json(&client, format!("{aged}/v1/timelines/{last}")).await;
+    assert_eq!(status["status"], "done");
+    let _ = std::fs::remove_dir_all(&dir);
 }

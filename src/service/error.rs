@@ -32,6 +32,10 @@ pub enum ApiError {
     /// The resource exists but is not ready (a frame not solved yet, a job still running).
     #[error("{0}")]
     NotReady(String),
+    /// The data directory could not store what the request needs kept (a full disk): nothing
+    /// was accepted.
+    #[error("{0}")]
+    Storage(String),
     /// Something went wrong on our side; the detail is logged, not sent.
     #[error("internal error")]
     Internal(String),
@@ -94,6 +98,11 @@ impl ApiError {
             ),
             Self::NotFound(_) => (StatusCode::NOT_FOUND, "/problems/not-found", "Not found"),
             Self::NotReady(_) => (StatusCode::CONFLICT, "/problems/not-ready", "Not ready"),
+            Self::Storage(_) => (
+                StatusCode::INSUFFICIENT_STORAGE,
+                "/problems/storage",
+                "Could not be stored",
+            ),
             Self::Internal(_) => (
                 StatusCode::INTERNAL_SERVER_ERROR,
                 "/problems/internal",

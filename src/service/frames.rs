@@ -49,11 +49,14 @@ fn solved_frame(job: &Job, frame: &str) -> Result<(usize, u64, Arc<FrameSolution
                 ),
             })
         })?;
-    let (version, solution) = job.frame(f).ok_or_else(|| {
-        ApiError::NotReady(format!(
+    let (version, solution) = job.frame(f).ok_or_else(|| match job.error() {
+        Some(error) => ApiError::NotReady(format!(
+            "frame {f} is not served: the timeline failed: {error}"
+        )),
+        None => ApiError::NotReady(format!(
             "frame {f} is not solved yet (status {})",
             job.status()
-        ))
+        )),
     })?;
     Ok((f, version, solution))
 }
@@ -167,6 +170,7 @@ async fn frame_file<E: std::fmt::Display + Send + 'static>(
     let (f, version, solution) = solved_frame(&job, frame)?;
     // The traced state may be rebuilt for this file: the budget is kept when it is made.
     let _budget = Enforce(state);
+    let asked = job.clone();
     let made = tokio::task::spawn_blocking(move || {
         job.with_bake(|bake| {
             let tone = tone_map(&job, bake, exposure);
@@ -179,6 +183,11 @@ async fn frame_file<E: std::fmt::Display + Send + 'static>(
     .await
     .map_err(|e| ApiError::Internal(format!("making {what}: {e}")))?;
     let Some((bytes, exposure)) = made else {
+        if let Some(error) = asked.error() {
+            return Err(ApiError::NotReady(format!(
+                "{what} of frame {f} is not made: the timeline failed: {error}"
+            )));
+        }
         return Err(ApiError::NotReady(
             "the timeline's geometry is not available: it is being traced (a bake's first \
              trace or a refinement: try again once frames are being solved), or it was restored \

@@ -4,13 +4,13 @@ use std::collections::HashMap;
 use std::ops::ControlFlow;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, PoisonError, RwLock};
-use std::time::Instant;
+use std::time::{Instant, SystemTime};
 
 use serde::Serialize;
 use serde_json::json;
 use tokio::sync::{Semaphore, watch};
 
-use super::store::{Lighting, Record, Store};
+use super::store::{Lighting, Record, Saved, Store, unix_seconds};
 use crate::adaptive::{self, Adaptive};
 use crate::bake::Bake;
 use crate::control::{Control, Stop};
@@ -88,10 +88,23 @@ pub struct JobState {
     /// What the bake found that the user should know (coplanar overlaps, patches no line
     /// crossed), after the loader's warnings; renewed by every run.
     pub found: Vec<String>,
+    /// When the job last ended (done, failed or cancelled), seconds since the Unix epoch.
+    pub ended: Option<u64>,
 }
 
 /// A solved frame and the result version it belongs to.
 pub type Versioned = (u64, Arc<FrameSolution>);
+
+/// A solved frame as a job holds it.
+#[derive(Clone, Debug)]
+enum Held {
+    /// In memory.
+    Memory(Arc<FrameSolution>),
+    /// Only in the data directory's `frames.bin` (dropped over the resident budget, or read
+    /// back after a restart), read from there when served: its iteration count, if known, for
+    /// the status document.
+    Stored(Option<usize>),
+}
 
 /// A timeline job.
 pub struct Job {
@@ -126,7 +139,11 @@ pub struct Job {
     pub frames_solved: AtomicUsize,
     /// Solved frames with the version they were solved for (a frame keeps its older version
     /// until the new one is solved).
-    results: RwLock<Vec<Option<Versioned>>>,
+    results: RwLock<Vec<Option<(u64, Held)>>>,
+    /// The result version whose frames are in the data directory (0: none).
+    saved_version: AtomicU64,
+    /// When the job was posted, seconds since the Unix epoch.
+    created: u64,
     /// Version of the result: 1, then one more for every refinement or relighting.
     version: AtomicU64,
     /// The traced scene, kept for refinement, relighting, statistics, previews and glTF; taken
@@ -222,10 +239,13 @@ impl Job {
                 stage_started: Instant::now(),
                 last_frame: None,
                 found: Vec::new(),
+                ended: None,
             }),
             control: Control::default(),
             frames_solved: AtomicUsize::new(0),
             results: RwLock::new(vec![None; frames]),
+            saved_version: AtomicU64::new(0),
+            created: unix_seconds(SystemTime::now()),
             solved: watch::channel(0).0,
             store,
             source: None,
@@ -255,6 +275,7 @@ impl Job {
             version: AtomicU64::new(record.version),
             refinements: Mutex::new(record.refinements.clone()),
             restarts: record.restarts + 1,
+            created: record.created.unwrap_or(self.created),
             lines_total: AtomicU64::new(lines),
             ..self
         };
@@ -272,33 +293,45 @@ impl Job {
         }
     }
 
-    /// A job read back from the data directory: `done` with its frames, or `failed` with the
-    /// reason `interrupted` if it had not finished.
+    /// A job read back from the data directory ([`Store::load_all`]): `done` with its frames
+    /// on disk, `failed` with its reason (`interrupted` if it had not finished; what is damaged
+    /// if anything is), or `cancelled`.
     #[must_use]
-    pub fn restored(
-        record: Record,
-        frames: Option<Vec<Arc<FrameSolution>>>,
-        store: Option<Store>,
-        source: Option<BakeSettings>,
-    ) -> Self {
-        let count = record.frame_times.len();
-        let (status, error) = match &frames {
-            Some(_) => (Status::Done, None),
-            None => (
+    pub fn restored(saved: Saved, store: Option<Store>, source: Option<BakeSettings>) -> Self {
+        let Saved { id, record, damage } = saved;
+        let record = record.unwrap_or_else(|| Record {
+            id: id.clone(),
+            status: Status::Failed.to_string(),
+            ..Record::default()
+        });
+        let interrupted = || "interrupted: the server stopped before the job finished".to_string();
+        let (status, error) = match (damage, record.status.as_str()) {
+            (Some(damage), _) => (Status::Failed, Some(damage)),
+            (None, "done") => (Status::Done, None),
+            (None, "cancelled") => (Status::Cancelled, None),
+            (None, "failed") => (
                 Status::Failed,
-                Some("interrupted: the server stopped before the job finished".to_string()),
+                record.error.clone().or_else(|| Some(interrupted())),
             ),
+            (None, _) => (Status::Failed, Some(interrupted())),
         };
-        let solved = frames.as_ref().map_or(0, Vec::len);
-        let results = match frames {
-            Some(frames) => frames
-                .into_iter()
-                .map(|f| Some((record.version, f)))
+        let count = record.frame_times.len();
+        let done = status == Status::Done;
+        let results = match done {
+            true => (0..count)
+                .map(|f| {
+                    let iterations = record.frame_iterations.get(f).copied().flatten();
+                    Some((record.version, Held::Stored(iterations)))
+                })
                 .collect(),
-            None => vec![None; count],
+            false => vec![None; count],
         };
+        // A record from before jobs' ends were kept: its file's time.
+        let ended = (record.ended)
+            .or_else(|| Some(unix_seconds(store.as_ref()?.modified(&id)?)))
+            .filter(|_| status.is_final());
         let job = Self {
-            id: record.id,
+            id,
             scene: Mutex::new(None),
             frame_times: record.frame_times,
             patches: AtomicUsize::new(record.patches),
@@ -328,15 +361,18 @@ impl Job {
                 stage_started: Instant::now(),
                 last_frame: None,
                 found: Vec::new(),
+                ended,
             }),
             control: Control::default(),
-            frames_solved: AtomicUsize::new(solved),
+            frames_solved: AtomicUsize::new(if done { count } else { 0 }),
             results: RwLock::new(results),
+            saved_version: AtomicU64::new(if done { record.version } else { 0 }),
+            created: record.created.unwrap_or_default(),
             version: AtomicU64::new(record.version),
             bake: RwLock::new(None),
             materials: Mutex::new(Vec::new()),
             lights: Mutex::new(Vec::new()),
-            solved: watch::channel(solved).0,
+            solved: watch::channel(if done { count } else { 0 }).0,
             store,
             refinements: Mutex::new(record.refinements),
             restarts: record.restarts,
@@ -354,18 +390,17 @@ impl Job {
     /// The record of this job as it stands.
     #[must_use]
     pub fn record(&self) -> Record {
-        let (status, timings, memory) = match self.state.lock() {
-            Ok(s) => (s.status, s.timings, s.memory),
-            Err(_) => (Status::Failed, Timings::default(), None),
+        let (status, error, timings, memory, ended) = match self.state.lock() {
+            Ok(s) => (s.status, s.error.clone(), s.timings, s.memory, s.ended),
+            Err(_) => (Status::Failed, None, Timings::default(), None, None),
         };
         Record {
             id: self.id.clone(),
-            status: serde_json::to_value(status)
-                .ok()
-                .and_then(|v| v.as_str().map(str::to_owned))
-                .unwrap_or_default(),
+            status: status.to_string(),
+            error,
             version: self.version.load(Ordering::Acquire),
             frame_times: self.frame_times.clone(),
+            frame_iterations: self.iterations(),
             patches: self.patches.load(Ordering::Acquire),
             warnings: self.warnings(),
             lines: self.lines_total.load(Ordering::Acquire),
@@ -384,34 +419,99 @@ impl Job {
                 Lighting { materials, lights }
             }),
             restarts: self.restarts,
+            created: Some(self.created),
+            ended,
         }
     }
 
-    /// Writes the record (and the frames, once done) to the data directory, if there is one.
-    pub fn persist(&self) {
-        let Some(store) = &self.store else { return };
-        if self.status() == Status::Done {
-            let frames: Option<Vec<Arc<FrameSolution>>> = self.results.read().ok().and_then(|r| {
-                r.iter()
-                    .map(|f| f.as_ref().map(|(_, s)| s.clone()))
-                    .collect()
-            });
-            if let Some(frames) = frames
-                && let Err(e) = store.save_frames(&self.id, &frames)
-            {
-                tracing::error!(id = %self.id, error = %e, "could not save the frames");
-                return;
-            }
+    /// Writes the record to the data directory, if there is one.
+    ///
+    /// # Errors
+    /// It could not be written (the file before is left whole).
+    pub fn persist(&self) -> std::io::Result<()> {
+        match &self.store {
+            Some(store) => store.save_record(&self.record()),
+            None => Ok(()),
         }
-        if let Err(e) = store.save_record(&self.record()) {
+    }
+
+    /// [`Job::persist`], an error logged.
+    pub fn persist_or_log(&self) {
+        if let Err(e) = self.persist() {
             tracing::error!(id = %self.id, error = %e, "could not save the record");
         }
+    }
+
+    /// Writes the frames of the current version to the data directory, if there is one and
+    /// they are all solved and not written yet.
+    ///
+    /// # Errors
+    /// They could not be written (the file before is left whole).
+    fn save_frames(&self) -> std::io::Result<()> {
+        let Some(store) = &self.store else {
+            return Ok(());
+        };
+        let version = self.version();
+        if self.saved_version.load(Ordering::Acquire) == version {
+            return Ok(());
+        }
+        let frames: Option<Vec<Arc<FrameSolution>>> = self.results.read().ok().and_then(|r| {
+            (r.iter())
+                .map(|f| match f {
+                    Some((v, Held::Memory(s))) if *v == version => Some(s.clone()),
+                    _ => None,
+                })
+                .collect()
+        });
+        let Some(frames) = frames else {
+            return Ok(());
+        };
+        store.save_frames(
+            &self.id,
+            version,
+            &frames.iter().map(AsRef::as_ref).collect::<Vec<_>>(),
+        )?;
+        self.saved_version.store(version, Ordering::Release);
+        Ok(())
+    }
+
+    /// Solver iterations of each frame solved so far.
+    fn iterations(&self) -> Vec<Option<usize>> {
+        let results = self.results.read().unwrap_or_else(PoisonError::into_inner);
+        (results.iter())
+            .map(|r| match r {
+                Some((_, Held::Memory(s))) => Some(s.iterations),
+                Some((_, Held::Stored(iterations))) => *iterations,
+                None => None,
+            })
+            .collect()
     }
 
     /// Current status.
     #[must_use]
     pub fn status(&self) -> Status {
         self.state.lock().map_or(Status::Failed, |s| s.status)
+    }
+
+    /// When the job last ended, seconds since the Unix epoch, if it has (when it was created,
+    /// for one read back from a data directory that did not record it).
+    #[must_use]
+    pub fn ended(&self) -> Option<u64> {
+        let state = self.state.lock().ok()?;
+        state
+            .status
+            .is_final()
+            .then(|| state.ended.unwrap_or(self.created))
+    }
+
+    /// Why the job failed, if it did.
+    #[must_use]
+    pub fn error(&self) -> Option<String> {
+        let state = self.state.lock().ok()?;
+        state
+            .error
+            .clone()
+            .filter(|_| state.status == Status::Failed)
     }
 
     fn set_status(&self, status: Status) {
@@ -428,8 +528,20 @@ impl Job {
         if let Ok(mut s) = self.state.lock() {
             s.status = Status::Failed;
             s.error = Some(error);
+            s.ended = Some(unix_seconds(SystemTime::now()));
         }
-        self.persist();
+        self.persist_or_log();
+        self.solved.send_modify(|_| {});
+    }
+
+    /// Marks the job `failed` because a file of its data directory is damaged (`error` says
+    /// which and how): nothing is written, the files are kept as they are for inspection.
+    fn damaged(&self, error: String) {
+        tracing::error!(id = %self.id, %error, "a timeline's files are damaged");
+        if let Ok(mut s) = self.state.lock() {
+            s.status = Status::Failed;
+            s.error = Some(error);
+        }
         self.solved.send_modify(|_| {});
     }
 
@@ -462,21 +574,48 @@ impl Job {
             && !s.status.is_final()
         {
             s.status = Status::Cancelled;
+            s.ended = Some(unix_seconds(SystemTime::now()));
         }
         self.solved.send_modify(|_| {});
     }
 
-    /// The solution of `frame` and its version, if solved.
+    /// The solution of `frame` and its version, if solved: from memory, or read from the data
+    /// directory (a damaged file fails the job, and gives `None`).
     #[must_use]
     pub fn frame(&self, frame: usize) -> Option<Versioned> {
-        self.results.read().ok()?.get(frame)?.clone()
+        // A rerun may replace the file between reading the slot and the file: then the slot
+        // holds the new frame, in memory.
+        for _ in 0..2 {
+            let (version, held) = self.results.read().ok()?.get(frame)?.clone()?;
+            if let Held::Memory(s) = held {
+                return Some((version, s));
+            }
+            // A failed job's files are not read: one of them may be what failed it.
+            let store = (self.store.as_ref()).filter(|_| self.status() != Status::Failed)?;
+            match store.load_frame(&self.id, frame) {
+                Ok((on_disk, s)) if on_disk == version => return Some((version, Arc::new(s))),
+                Ok(_) => {}
+                Err(e) => {
+                    let kept = store.dir(&self.id);
+                    self.damaged(format!("{e} (its files are kept in {})", kept.display()));
+                    return None;
+                }
+            }
+        }
+        let kept = self.store.as_ref().map(|s| s.dir(&self.id));
+        self.damaged(format!(
+            "frames.bin is damaged: it holds another result version than its record's (its \
+             files are kept in {})",
+            kept.unwrap_or_default().display()
+        ));
+        None
     }
 
     /// Every frame's solution so far with its version (a frame keeps its older version until
-    /// the new one is solved).
+    /// the new one is solved); those on disk are read.
     #[must_use]
     pub fn frames(&self) -> Vec<Option<Versioned>> {
-        self.results.read().map(|r| r.clone()).unwrap_or_default()
+        (0..self.frame_times.len()).map(|f| self.frame(f)).collect()
     }
 
     /// The version being solved or served: 1, then one more per refinement or relighting.
@@ -515,21 +654,51 @@ impl Job {
         self.bake.try_read().ok()?.as_ref().map(Bake::bytes)
     }
 
-    /// Drops the traced state of a done job that can trace it again, if no one is reading it;
-    /// the bytes freed.
+    /// Bytes of the solved frames in memory, if any is.
+    #[must_use]
+    pub fn solved_bytes(&self) -> Option<usize> {
+        let results = self.results.try_read().ok()?;
+        (results.iter().flatten())
+            .filter_map(|(_, held)| match held {
+                Held::Memory(s) => Some(s.bytes()),
+                Held::Stored(_) => None,
+            })
+            .reduce(|a, b| a + b)
+    }
+
+    /// Drops the traced state of a done job that can trace it again, and its solved frames
+    /// if they are in the data directory, where no one is using them; the bytes freed.
     fn evict(&self) -> Option<usize> {
-        // Under the state lock, which reopening a job for more work takes: the state is not
-        // dropped between a rerun's start and its use of it.
+        // Under the state lock, which reopening a job for more work takes: nothing is dropped
+        // between a rerun's start and its use of it.
         let state = self.state.lock().ok()?;
-        if state.status != Status::Done || self.source.is_none() {
+        if state.status != Status::Done {
             return None;
         }
-        let bake = self.bake.try_write().ok()?.take()?;
+        let mut traced = 0;
+        if self.source.is_some()
+            && let Ok(mut slot) = self.bake.try_write()
+            && let Some(bake) = slot.take()
+        {
+            traced = bake.bytes();
+        }
+        let mut solved = 0;
+        if self.saved_version.load(Ordering::Acquire) == self.version()
+            && let Ok(mut results) = self.results.try_write()
+        {
+            for (_, held) in results.iter_mut().flatten() {
+                if let Held::Memory(s) = held {
+                    solved += s.bytes();
+                    *held = Held::Stored(Some(s.iterations));
+                }
+            }
+        }
         drop(state);
-        let bytes = bake.bytes();
-        drop(bake);
-        tracing::info!(id = %self.id, bytes, "dropped the traced state (over the resident budget)");
-        Some(bytes)
+        if traced + solved == 0 {
+            return None;
+        }
+        tracing::info!(id = %self.id, traced, solved, "dropped from memory (over the resident budget)");
+        Some(traced + solved)
     }
 
     /// Puts the traced state in its slot if it is not there, rebuilt from the stored scene
@@ -666,17 +835,27 @@ impl Job {
             return self.fail(e.to_string());
         }
         let frames: Vec<Arc<FrameSolution>> = self
-            .results
-            .read()
-            .map(|r| r.iter().flatten().map(|(_, s)| s.clone()).collect())
-            .unwrap_or_default();
+            .frames()
+            .into_iter()
+            .flatten()
+            .map(|(_, s)| s)
+            .collect();
         let found = bake.findings(&frames);
         drop(slot);
+        // The frames are on disk before the job is done: a failure to write them fails it.
+        if let Err(e) = self.save_frames() {
+            return self.fail(format!(
+                "the solved frames could not be saved in the data directory: {e}"
+            ));
+        }
         if let Ok(mut s) = self.state.lock() {
             s.found = found;
+            if !s.status.is_final() {
+                s.ended = Some(unix_seconds(SystemTime::now()));
+            }
         }
         self.set_status(Status::Done);
-        self.persist();
+        self.persist_or_log();
         self.solved.send_modify(|_| {});
     }
 
@@ -717,8 +896,16 @@ impl Job {
                 "the job has no traced scene, and its scene is not stored".into(),
             ));
         };
-        let bytes = (store.load_scene(&self.id))
-            .map_err(|e| Stop::Failed(format!("the stored scene cannot be read: {e}")))?;
+        let bytes = store.load_scene(&self.id).map_err(|e| {
+            let reason = format!(
+                "the stored scene cannot be read: {e} (its files are kept in {})",
+                store.dir(&self.id).display()
+            );
+            if e.kind() == std::io::ErrorKind::InvalidData {
+                self.damaged(reason.clone());
+            }
+            Stop::Failed(reason)
+        })?;
         let scene = crate::loader::load(&bytes, &settings.load)
             .map_err(|e| Stop::Failed(format!("the stored scene does not load: {e}")))?;
         let bake = self.trace(scene)?;
@@ -772,7 +959,7 @@ impl Job {
                 return ControlFlow::Break(());
             }
             if let Ok(mut results) = self.results.write() {
-                results[f] = Some((version, solution.clone()));
+                results[f] = Some((version, Held::Memory(solution.clone())));
             }
             if let Ok(mut s) = self.state.lock() {
                 s.last_frame = Some(s.stage_started.elapsed().as_secs_f64());
@@ -821,25 +1008,40 @@ pub enum Work {
     Relight,
 }
 
-/// The jobs of a server and the slots that bound how many run at once.
+/// Which finished timelines are kept ([`Jobs::retain`]); both `None`: all.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Retention {
+    /// Days a timeline is kept after it ended.
+    pub days: Option<f64>,
+    /// Finished timelines kept, the most recently ended.
+    pub count: Option<usize>,
+}
+
+/// The jobs of a server and the slots that bound how many run at once (cheap to clone: the
+/// clones share them).
+#[derive(Clone)]
 pub struct Jobs {
     jobs: Arc<RwLock<HashMap<String, Arc<Job>>>>,
-    /// Bytes of traced state all jobs may hold ([`super::Config::resident_budget`]).
+    /// Bytes of traced state and solved frames all jobs may hold
+    /// ([`super::Config::resident_budget`]).
     budget: Option<u64>,
+    /// Which finished timelines are kept.
+    retention: Retention,
     /// Order of creation, for listing.
-    order: Mutex<Vec<String>>,
+    order: Arc<Mutex<Vec<String>>>,
     slots: Arc<Semaphore>,
 }
 
 impl Jobs {
-    /// An empty set running at most `running` jobs at once, their traced state held within
-    /// `budget` bytes.
+    /// An empty set running at most `running` jobs at once, their traced state and solved
+    /// frames held within `budget` bytes, finished ones kept as `retention` says.
     #[must_use]
-    pub fn new(running: usize, budget: Option<u64>) -> Self {
+    pub fn new(running: usize, budget: Option<u64>, retention: Retention) -> Self {
         Self {
             jobs: Arc::new(RwLock::new(HashMap::new())),
             budget,
-            order: Mutex::new(Vec::new()),
+            retention,
+            order: Arc::new(Mutex::new(Vec::new())),
             slots: Arc::new(Semaphore::new(running.max(1))),
         }
     }
@@ -847,7 +1049,7 @@ impl Jobs {
     /// Registers `job` and starts it when a slot is free.
     pub fn start(&self, job: Arc<Job>) {
         self.insert(job.clone());
-        job.persist();
+        job.persist_or_log();
         self.schedule(job, Work::Bake);
     }
 
@@ -877,7 +1079,7 @@ impl Jobs {
             }
         }
         // What was asked for is on disk before it runs: a restart resumes it.
-        job.persist();
+        job.persist_or_log();
         self.schedule(job, work);
         Ok(true)
     }
@@ -890,7 +1092,7 @@ impl Jobs {
 
     fn schedule(&self, job: Arc<Job>, work: Work) {
         let slots = self.slots.clone();
-        let (jobs, budget) = (self.jobs.clone(), self.budget);
+        let jobs = self.clone();
         tokio::spawn(async move {
             let Ok(_permit) = slots.acquire_owned().await else {
                 return;
@@ -903,14 +1105,52 @@ impl Jobs {
                 job.fail(format!("the job stopped unexpectedly: {e}"));
             }
             job.touch();
-            within_budget(&jobs, budget);
+            jobs.enforce_budget();
+            jobs.retain();
         });
     }
 
-    /// Drops finished jobs' traced state, least recently used first, until all jobs' fits the
-    /// budget (running jobs' counts, and is never dropped).
+    /// Removes the finished timelines that `retention` does not keep: those ended more than
+    /// its days ago, and those past its count (the most recently ended kept); each logged.
+    pub fn retain(&self) {
+        let Retention { days, count } = self.retention;
+        if days.is_none() && count.is_none() {
+            return;
+        }
+        let now = unix_seconds(SystemTime::now());
+        let mut ended: Vec<(u64, String)> = (self.all().iter())
+            .filter_map(|j| Some((j.ended()?, j.id.clone())))
+            .collect();
+        // Newest first; among equal times, the later created first.
+        ended.reverse();
+        ended.sort_by_key(|(at, _)| std::cmp::Reverse(*at));
+        for (kept, (at, id)) in ended.into_iter().enumerate() {
+            let age_days = now.saturating_sub(at) as f64 / 86_400.0;
+            let reason = match (count, days) {
+                (Some(count), _) if kept >= count => {
+                    format!("past the {count} most recently ended timelines kept")
+                }
+                (_, Some(days)) if age_days > days => {
+                    format!("ended {age_days:.2} days ago, past the {days} days kept")
+                }
+                _ => continue,
+            };
+            if self.remove(&id).is_some() {
+                tracing::info!(%id, %reason, "removed a finished timeline (retention)");
+            }
+        }
+    }
+
+    /// Drops finished jobs' traced state and solved frames, least recently used first, until
+    /// all jobs' fit the budget (running jobs' count, and are never dropped).
     pub fn enforce_budget(&self) {
         within_budget(&self.jobs, self.budget);
+    }
+
+    /// The retention the jobs are kept with.
+    #[must_use]
+    pub fn retention(&self) -> Retention {
+        self.retention
     }
 
     /// The job with this id.
@@ -948,7 +1188,10 @@ fn within_budget(jobs: &RwLock<HashMap<String, Arc<Job>>>, budget: Option<u64>) 
         return;
     };
     let mut held: Vec<(Instant, usize, &Arc<Job>)> = (jobs.iter())
-        .filter_map(|j| Some((*j.used.lock().ok()?, j.traced_bytes()?, j)))
+        .filter_map(|j| {
+            let bytes = j.traced_bytes().unwrap_or(0) + j.solved_bytes().unwrap_or(0);
+            Some((*j.used.lock().ok()?, bytes, j)).filter(|_| bytes > 0)
+        })
         .collect();
     let mut total: u64 = held.iter().map(|(_, b, _)| *b as u64).sum();
     held.sort_by_key(|(used, _, _)| *used);
@@ -1028,13 +1271,16 @@ impl Job {
         };
         // The solves' iterations per frame, for the frames solved for the current version.
         let version = job.version();
-        let iterations: Vec<Option<usize>> = (job.frames().iter())
-            .map(|r| {
-                r.as_ref()
-                    .filter(|(v, _)| *v == version)
-                    .map(|(_, s)| s.iterations)
-            })
-            .collect();
+        let iterations: Vec<Option<usize>> = match job.results.read() {
+            Ok(results) => (results.iter())
+                .map(|r| match r {
+                    Some((v, Held::Memory(s))) if *v == version => Some(s.iterations),
+                    Some((v, Held::Stored(iterations))) if *v == version => *iterations,
+                    _ => None,
+                })
+                .collect(),
+            Err(_) => Vec::new(),
+        };
         let mut doc = json!({
             "id": job.id,
             "status": status,
@@ -1052,15 +1298,13 @@ impl Job {
             "timings": timings,
             "memory": memory.map(|(hits, bytes)| {
                 // The bake's, and the solved frames' kept for serving.
-                let solved: usize = (job.frames().iter().flatten())
-                    .map(|(_, s)| s.bytes())
-                    .sum();
-                json!({"hits": hits, "bytes": bytes + solved})
+                json!({"hits": hits, "bytes": bytes + job.solved_bytes().unwrap_or(0)})
             }),
             "warnings": job.warnings(),
             "restarts": job.restarts,
             "rebuild_seconds": job.rebuilt.lock().ok().and_then(|r| *r),
             "traced_in_memory": job.bake.try_read().map_or(true, |b| b.is_some()),
+            "solved_in_memory": job.solved_bytes().is_some(),
         });
         if let Some(error) = error {
             doc["error"] = json!(error);

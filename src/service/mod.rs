@@ -28,6 +28,7 @@ use axum::{Json, Router};
 use serde_json::json;
 
 pub use error::ApiError;
+pub use jobs::Retention;
 use jobs::{Job, Jobs, Status, Work};
 use query::{NoParameters, RefineQuery, StatsQuery, StrictQuery};
 
@@ -55,8 +56,11 @@ pub struct Config {
     /// Bytes of traced state (lines, tallies, direct light) all timelines may hold: over it,
     /// finished timelines' traced state is dropped, least recently used first, and traced again
     /// from the stored scene when needed (only timelines whose scene is stored: with a data
-    /// directory). `None`: no limit.
+    /// directory). `None`: no limit. Solved frames count too: over it, those of finished
+    /// timelines are dropped from memory and served from the data directory.
     pub resident_budget: Option<u64>,
+    /// Which finished timelines are kept (in memory and on disk): by age, by count, or both.
+    pub retention: Retention,
 }
 
 impl Default for Config {
@@ -69,6 +73,7 @@ impl Default for Config {
             data_dir: None,
             max_iterations: SolveParams::default().max_iterations,
             resident_budget: None,
+            retention: Retention::default(),
         }
     }
 }
@@ -91,7 +96,7 @@ impl AppState {
     /// that were queued or running start again from their stored scene when [`serve`] starts
     /// (or, without one, come back `failed`: interrupted).
     pub fn new(config: Config) -> std::io::Result<Self> {
-        let jobs = Jobs::new(config.max_running, config.resident_budget);
+        let jobs = Jobs::new(config.max_running, config.resident_budget, config.retention);
         let store = config
             .data_dir
             .as_deref()
@@ -99,23 +104,33 @@ impl AppState {
             .transpose()?;
         let mut pending = Vec::new();
         if let Some(store) = &store {
-            for (record, frames) in store.load_all() {
-                let source = (store.load_query(&record.id))
+            for mut saved in store.load_all() {
+                // (A damaged request is in `saved.damage` already.)
+                let source = (store.load_query(&saved.id).ok().flatten())
                     .and_then(|query| settings_of(&query, &config.limits));
-                let unfinished = frames.is_none()
-                    && ["queued", "tracing", "solving"].contains(&record.status.as_str());
-                if unfinished
-                    && let Some(settings) = &source
-                    && let Some(job) = resumed(store, &record, settings, &config)
-                {
-                    let job = Arc::new(job);
-                    jobs.insert(job.clone());
-                    pending.push(job);
-                    continue;
+                let unfinished = (saved.record.as_ref()).filter(|r| {
+                    saved.damage.is_none()
+                        && ["queued", "tracing", "solving"].contains(&r.status.as_str())
+                });
+                if let (Some(record), Some(settings)) = (unfinished, &source) {
+                    match resumed(store, record, settings, &config) {
+                        Ok(job) => {
+                            let job = Arc::new(job);
+                            jobs.insert(job.clone());
+                            pending.push(job);
+                            continue;
+                        }
+                        Err(damage) => saved.damage = Some(damage),
+                    }
                 }
-                let job = Arc::new(Job::restored(record, frames, Some(store.clone()), source));
-                if job.status() == Status::Failed {
-                    job.persist();
+                if let Some(damage) = &saved.damage {
+                    tracing::error!(id = %saved.id, %damage, "a timeline's files are damaged");
+                }
+                let damaged = saved.damage.is_some();
+                let job = Arc::new(Job::restored(saved, Some(store.clone()), source));
+                if !damaged && job.status() == Status::Failed {
+                    // Interrupted, with no scene to start again from: said so on disk too.
+                    job.persist_or_log();
                 }
                 jobs.insert(job);
             }
@@ -134,7 +149,7 @@ impl AppState {
             std::mem::take(&mut *self.0.pending.lock().unwrap_or_else(|e| e.into_inner()));
         for job in pending {
             tracing::info!(id = %job.id, "resuming a job the server stopped while it ran");
-            job.persist();
+            job.persist_or_log();
             self.0.jobs.resume(job);
         }
     }
@@ -150,15 +165,23 @@ fn settings_of(query: &str, limits: &Limits) -> Option<crate::params::BakeSettin
 }
 
 /// The job of `record`, which was queued or running when the server stopped, made again from
-/// its stored scene and request, with the refinements and lighting it had been asked for.
+/// its stored scene and request, with the refinements and lighting it had been asked for; what
+/// stops it if its scene cannot be read or loaded.
 fn resumed(
     store: &store::Store,
     record: &store::Record,
     settings: &crate::params::BakeSettings,
     config: &Config,
-) -> Option<Job> {
-    let bytes = store.load_scene(&record.id).ok()?;
-    let scene = loader::load(&bytes, &settings.load).ok()?;
+) -> Result<Job, String> {
+    let kept = format!(
+        " (its files are kept in {})",
+        store.dir(&record.id).display()
+    );
+    let bytes = store
+        .load_scene(&record.id)
+        .map_err(|e| format!("{e}{kept}"))?;
+    let scene = loader::load(&bytes, &settings.load)
+        .map_err(|e| format!("the stored scene does not load: {e}{kept}"))?;
     let auto = settings.adaptive(scene.patches.len());
     let table = crate::output::patch_table(&scene);
     let solve = SolveParams {
@@ -175,11 +198,10 @@ fn resumed(
         table,
         Some(store.clone()),
     );
-    Some(
-        job.with_auto(auto)
-            .with_source(settings.clone())
-            .resumed(record),
-    )
+    Ok(job
+        .with_auto(auto)
+        .with_source(settings.clone())
+        .resumed(record))
 }
 
 /// The router.
@@ -243,9 +265,21 @@ pub async fn serve(
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> std::io::Result<()> {
     state.resume_pending();
-    axum::serve(listener, app(state))
+    // Retention by age is applied every minute, and by count (and age) whenever a job ends.
+    let jobs = state.0.jobs.clone();
+    let sweep = tokio::spawn(async move {
+        let mut every = tokio::time::interval(std::time::Duration::from_secs(60));
+        loop {
+            every.tick().await;
+            let jobs = jobs.clone();
+            let _ = tokio::task::spawn_blocking(move || jobs.retain()).await;
+        }
+    });
+    let served = axum::serve(listener, app(state))
         .with_graceful_shutdown(shutdown)
-        .await
+        .await;
+    sweep.abort();
+    served
 }
 
 fn new_id() -> String {
@@ -255,31 +289,39 @@ fn new_id() -> String {
 }
 
 /// `GET /healthz`: liveness, and what the service holds: its resident memory, the traced
-/// state in memory against the budget, the timelines (and how many have their traced state in
-/// memory), the data directory's size.
+/// state and solved frames in memory against the budget, the timelines (how many have their
+/// traced state or frames in memory, how many are in the data directory), the data
+/// directory's size and the retention it is kept with.
 async fn healthz(
     State(state): State<AppState>,
     _: StrictQuery<NoParameters>,
 ) -> Json<serde_json::Value> {
     let jobs = state.0.jobs.all();
     let traced: Vec<usize> = jobs.iter().filter_map(|j| j.traced_bytes()).collect();
+    let solved: Vec<usize> = jobs.iter().filter_map(|j| j.solved_bytes()).collect();
     let store = state.0.store.clone();
+    let on_disk = if store.is_some() { jobs.len() } else { 0 };
     let data_bytes = tokio::task::spawn_blocking(move || store.map(|s| s.bytes()))
         .await
         .ok()
         .flatten();
+    let retention = state.0.jobs.retention();
     Json(json!({
         "status": "ok",
         "memory": {
             "resident_bytes": resident_bytes(),
             "traced_bytes": traced.iter().sum::<usize>(),
-            "traced_budget_bytes": state.0.config.resident_budget,
+            "solved_bytes": solved.iter().sum::<usize>(),
+            "budget_bytes": state.0.config.resident_budget,
         },
         "timelines": {
             "total": jobs.len(),
             "traced_in_memory": traced.len(),
+            "solved_in_memory": solved.len(),
+            "on_disk": on_disk,
         },
         "data_dir_bytes": data_bytes,
+        "retention": {"days": retention.days, "count": retention.count},
     }))
 }
 
@@ -338,8 +380,18 @@ async fn create_timeline(
             tokio::task::spawn_blocking(move || store.save_source(&key, &posted, &query)).await;
         match saved {
             Ok(Ok(())) => job = job.with_source(settings),
-            Ok(Err(e)) => tracing::error!(%id, error = %e, "could not store the scene"),
-            Err(e) => tracing::error!(%id, error = %e, "could not store the scene"),
+            Ok(Err(e)) => {
+                tracing::error!(%id, error = %e, "could not store the scene");
+                let removed = state.0.store.as_ref().map(|s| s.remove(&id));
+                if let Some(Err(e)) = removed {
+                    tracing::error!(%id, error = %e, "could not remove what was stored");
+                }
+                return Err(ApiError::Storage(format!(
+                    "the scene could not be stored in the service's data directory ({e}): \
+                     nothing was accepted"
+                )));
+            }
+            Err(e) => return Err(ApiError::Internal(format!("storing the scene: {e}"))),
         }
     }
     let job = Arc::new(job);
