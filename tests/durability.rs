@@ -164,8 +164,8 @@ fn kill_9_loses_nothing_finished_and_resumes_what_ran_to_the_same_result() {
         if status["status"] == "tracing" && status["progress"]["lines_traced"].as_u64() > Some(0) {
             break;
         }
-        assert_eq!(
-            status["status"], "queued",
+        assert!(
+            ["queued", "tracing"].contains(&status["status"].as_str().unwrap()),
             "the job was not seen tracing: {status}"
         );
         assert!(start.elapsed() < HANG);
@@ -226,7 +226,7 @@ fn forty_jobs_stay_within_the_resident_budget_and_all_still_relight_and_refine()
     /// allocator slack (glibc keeps freed pages of its arenas until they are trimmed).
     const SLACK_MIB: u64 = 40;
     let seeds = 1..=4u64;
-    let query = |seed: u64| format!("lines=20000&fps=6&seed={seed}");
+    let query = |seed: u64| format!("lines=40000&fps=6&seed={seed}");
     let light = br#"{"materials": [{"material": "light", "emission": [6, 6, 6]}]}"#;
     let relight = |server: &Server, id: &str| {
         let path = format!("/v1/timelines/{id}/materials");
@@ -284,7 +284,7 @@ fn forty_jobs_stay_within_the_resident_budget_and_all_still_relight_and_refine()
     }
     assert!(
         40 * one_job > 8 * budget,
-        "the jobs are too small to test the budget"
+        "the jobs are too small to test the budget: {one_job} bytes each"
     );
     let health = server.get("/healthz");
     assert!(
