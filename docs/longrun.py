@@ -8,7 +8,8 @@ Starts `radiosity serve` (the release build) with a fresh data directory and pos
 JOBS times, one after the other. Meanwhile it samples the server's resident memory and what
 `/healthz` reports every half second, and times GETs of finished timelines throughout: a
 status, a frame (binary) and, now and then, a preview (which may trace a dropped timeline
-again). Writes docs/longrun.json and plots docs/longrun.png (with matplotlib, if present).
+again). Writes docs/longrun.json and plots docs/longrun.png (with matplotlib, if present;
+Debian's python3-matplotlib for /usr/bin/python3), or --out PREFIX's.
 """
 
 import argparse
@@ -56,8 +57,11 @@ def main():
     ap.add_argument("jobs", type=int)
     ap.add_argument("--scene", default="scenes/level.gltf")
     ap.add_argument("--query", default="fps=12")
-    ap.add_argument("serve", nargs="*")
-    args = ap.parse_args()
+    ap.add_argument("--out", default="docs/longrun", help="writes OUT.json and OUT.png")
+    argv = sys.argv[1:]
+    serve = argv[argv.index("--") + 1:] if "--" in argv else []
+    args = ap.parse_args(argv[:argv.index("--")] if "--" in argv else argv)
+    args.serve = serve
     binary = os.path.join(ROOT, "target/release/radiosity")
     data = tempfile.mkdtemp(prefix="radiosity-longrun-")
     port = free_port()
@@ -171,12 +175,12 @@ def main():
         },
     }
     print(json.dumps(summary, indent=2))
-    with open(os.path.join(ROOT, "docs/longrun.json"), "w") as f:
-        json.dump({"summary": summary, "samples": samples, "latencies": latencies}, f)
-    plot(summary, samples, latencies)
+    with open(os.path.join(ROOT, args.out + ".json"), "w") as f:
+        json.dump({"summary": summary}, f, indent=2)
+    plot(summary, samples, latencies, args.out + ".png")
 
 
-def plot(summary, samples, latencies):
+def plot(summary, samples, latencies, out):
     try:
         import matplotlib
         matplotlib.use("Agg")
@@ -203,7 +207,7 @@ def plot(summary, samples, latencies):
     b.set_xlabel("seconds")
     b.legend(loc="upper left")
     fig.tight_layout()
-    fig.savefig(os.path.join(ROOT, "docs/longrun.png"), dpi=90)
+    fig.savefig(os.path.join(ROOT, out), dpi=90)
 
 
 if __name__ == "__main__":

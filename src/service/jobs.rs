@@ -8,6 +8,7 @@ use std::time::{Instant, SystemTime};
 
 use serde::Serialize;
 use serde_json::json;
+use serde_json::value::RawValue;
 use tokio::sync::{Semaphore, watch};
 
 use super::store::{Lighting, Record, Saved, Store, unix_seconds};
@@ -120,7 +121,8 @@ pub struct Job {
     pub warnings: Vec<String>,
     /// The patch table, as served (replaced when `auto` cuts the patches, before any frame is
     /// solved).
-    pub patch_table: RwLock<Arc<serde_json::Value>>,
+    /// Kept as its JSON text: a parsed document holds ten times the bytes, for every timeline.
+    pub patch_table: RwLock<Arc<RawValue>>,
     /// Cut the patches after tracing where the light needs them (`patch_size=auto`).
     pub auto: Option<Adaptive>,
     /// Lines and seed asked for at creation.
@@ -168,6 +170,12 @@ pub struct Job {
     rebuilt: Mutex<Option<f64>>,
     /// When the traced state was last used (the least recently used is dropped first).
     used: Mutex<Instant>,
+}
+
+/// `table` as JSON text.
+fn raw_table(table: &serde_json::Value) -> Arc<RawValue> {
+    let raw = serde_json::value::to_raw_value(table);
+    Arc::from(raw.unwrap_or_else(|_| RawValue::NULL.to_owned()))
 }
 
 /// A punctual light as relighting sees it: its name and power.
@@ -225,7 +233,7 @@ impl Job {
             warnings: scene.warnings.clone(),
             scene: Mutex::new(Some(scene)),
             frame_times,
-            patch_table: RwLock::new(Arc::new(patch_table)),
+            patch_table: RwLock::new(raw_table(&patch_table)),
             auto: None,
             lines_total: AtomicU64::new(lines.lines),
             lines,
@@ -336,7 +344,7 @@ impl Job {
             frame_times: record.frame_times,
             patches: AtomicUsize::new(record.patches),
             warnings: record.warnings,
-            patch_table: RwLock::new(Arc::new(record.patch_table)),
+            patch_table: RwLock::new(raw_table(&record.patch_table)),
             auto: None,
             lines: LineParams {
                 lines: record.lines,
@@ -408,7 +416,7 @@ impl Job {
             sky: self.solve.sky,
             timings: [timings.load, timings.trace, timings.solve],
             memory,
-            patch_table: self.table().as_ref().clone(),
+            patch_table: serde_json::from_str(self.table().get()).unwrap_or_default(),
             refinements: self
                 .refinements
                 .lock()
@@ -560,11 +568,9 @@ impl Job {
 
     /// The patch table, as served.
     #[must_use]
-    pub fn table(&self) -> Arc<serde_json::Value> {
-        self.patch_table
-            .read()
-            .map(|t| t.clone())
-            .unwrap_or_default()
+    pub fn table(&self) -> Arc<RawValue> {
+        let table = self.patch_table.read();
+        table.map_or_else(|_| raw_table(&serde_json::Value::Null), |t| t.clone())
     }
 
     /// Asks a running job to stop; it ends `cancelled`.
@@ -854,8 +860,17 @@ impl Job {
                 s.ended = Some(unix_seconds(SystemTime::now()));
             }
         }
+        // On disk as done before anyone can see it done: a client that saw it done finds it
+        // done after a crash, and no later write of this run can undo what it did with the
+        // files since.
+        if let Some(store) = self.store.as_ref().filter(|_| !self.status().is_final()) {
+            let mut record = self.record();
+            record.status = Status::Done.to_string();
+            if let Err(e) = store.save_record(&record) {
+                tracing::error!(id = %self.id, error = %e, "could not save the record");
+            }
+        }
         self.set_status(Status::Done);
-        self.persist_or_log();
         self.solved.send_modify(|_| {});
     }
 
@@ -870,7 +885,7 @@ impl Job {
             adaptive::adapt(&mut bake, auto, &self.solve, &self.control)?;
             let table = crate::output::patch_table(&bake.scene);
             if let Ok(mut t) = self.patch_table.write() {
-                *t = Arc::new(table);
+                *t = raw_table(&table);
             }
             self.patches
                 .store(bake.scene.patches.len(), Ordering::Release);

@@ -502,8 +502,13 @@ async fn timeline_patches(
     State(state): State<AppState>,
     Path(id): Path<String>,
     _: StrictQuery<NoParameters>,
-) -> Result<Json<serde_json::Value>, ApiError> {
-    Ok(Json(job(&state, &id)?.table().as_ref().clone()))
+) -> Result<Response, ApiError> {
+    let table = job(&state, &id)?.table();
+    Ok((
+        [(header::CONTENT_TYPE, "application/json")],
+        table.get().to_owned(),
+    )
+        .into_response())
 }
 
 /// The answer to a refinement or relighting: the job runs again for a new version.
