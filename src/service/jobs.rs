@@ -1023,7 +1023,7 @@ pub enum Work {
     Relight,
 }
 
-/// Which finished timelines are kept ([`Jobs::retain`]); both `None`: all.
+/// Which finished timelines are kept (by age, by count, or both); both `None`: all.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Retention {
     /// Days a timeline is kept after it ended.
