@@ -25,6 +25,7 @@
 
 use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
+use std::sync::PoisonError;
 use std::time::SystemTime;
 
 use serde::{Deserialize, Serialize};
@@ -258,10 +259,12 @@ fn decode_frame(frame: usize, patches: usize, bytes: &[u8]) -> std::io::Result<F
     })
 }
 
-/// The data directory.
+/// The data directory (cheap to clone: the clones share it).
 #[derive(Clone, Debug)]
 pub struct Store {
     root: PathBuf,
+    /// Held while a file is written: two writers of one file would share its temporary file.
+    writing: std::sync::Arc<std::sync::Mutex<()>>,
 }
 
 impl Store {
@@ -270,6 +273,7 @@ impl Store {
         std::fs::create_dir_all(root)?;
         Ok(Self {
             root: root.to_path_buf(),
+            writing: std::sync::Arc::default(),
         })
     }
 
@@ -282,7 +286,8 @@ impl Store {
     /// Writes `bytes` to `path` so that a crash or a full disk leaves either the file before
     /// or the new one: a temporary file, flushed to the disk, renamed over it (the temporary
     /// file removed if anything fails).
-    fn write(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    fn write(&self, path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+        let _one_at_a_time = self.writing.lock().unwrap_or_else(PoisonError::into_inner);
         let tmp = path.with_extension("tmp");
         let written = std::fs::File::create(&tmp)
             .and_then(|mut file| {
@@ -317,19 +322,19 @@ impl Store {
         let dir = self.dir(&record.id);
         std::fs::create_dir_all(&dir)?;
         let json = serde_json::to_vec(record).map_err(std::io::Error::other)?;
-        Self::write(&dir.join("job.json"), &checked(&json))
+        self.write(&dir.join("job.json"), &checked(&json))
     }
 
     /// Saves the scene as posted and the query string it was posted with.
     pub fn save_source(&self, id: &str, scene: &[u8], query: &str) -> std::io::Result<()> {
         let dir = self.dir(id);
         std::fs::create_dir_all(&dir)?;
-        Self::write(&dir.join("scene.bin"), &checked(scene))?;
+        self.write(&dir.join("scene.bin"), &checked(scene))?;
         let request = serde_json::to_vec(&Request {
             query: query.to_string(),
         })
         .map_err(std::io::Error::other)?;
-        Self::write(&dir.join("request.json"), &checked(&request))
+        self.write(&dir.join("request.json"), &checked(&request))
     }
 
     /// The query string a timeline was posted with: `None` if its source is not stored.
@@ -369,7 +374,7 @@ impl Store {
         }
         let dir = self.dir(id);
         std::fs::create_dir_all(&dir)?;
-        Self::write(&dir.join("frames.bin"), &out)
+        self.write(&dir.join("frames.bin"), &out)
     }
 
     /// Frame `frame` of timeline `id` as `frames.bin` holds it, read alone, and the version it
