@@ -441,7 +441,8 @@ impl Store {
     /// layout; nothing if it is in it.
     fn upgrade_frames(&self, record: &Record) -> std::io::Result<()> {
         let path = self.dir(&record.id).join("frames.bin");
-        let bytes = std::fs::read(&path)?;
+        let bytes = std::fs::read(&path)
+            .map_err(|e| damaged("frames.bin", format!("it cannot be read: {e}")))?;
         if bytes.starts_with(FRAMES) {
             return Ok(());
         }
