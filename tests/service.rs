@@ -1444,6 +1444,23 @@ async fn over_the_resident_budget_finished_timelines_are_traced_again_when_neede
     }
 }
 
+/// Timelines of sample `name` posted with each of `queries` in turn, each waited for until it
+/// is done: their ids.
+async fn done_timelines(
+    client: &reqwest::Client,
+    base: &str,
+    queries: impl Iterator<Item = String>,
+    name: &str,
+) -> Vec<String> {
+    let mut ids = Vec::new();
+    for query in queries {
+        let (id, _) = create(client, base, &query, name).await;
+        assert_eq!(wait(client, base, &id, HANG).await["status"], "done");
+        ids.push(id);
+    }
+    ids
+}
+
 /// Flips one bit of the byte at `at` (from the end if negative) of `path`.
 fn flip(path: &std::path::Path, at: i64) {
     let mut bytes = std::fs::read(path).unwrap();
@@ -1457,13 +1474,8 @@ async fn damaged_files_are_reported_never_served_and_kept() {
     let (dir, config) = fresh_data_dir("damage");
     let first = start(config.clone()).await;
     let client = reqwest::Client::new();
-    let mut ids = Vec::new();
-    for seed in 1..=5 {
-        let query = format!("lines=20000&fps=4&seed={seed}");
-        let (id, _) = create(&client, &first, &query, "cornell_moving.gltf").await;
-        assert_eq!(wait(&client, &first, &id, HANG).await["status"], "done");
-        ids.push(id);
-    }
+    let queries = (1..=5).map(|seed| format!("lines=20000&fps=4&seed={seed}"));
+    let ids = done_timelines(&client, &first, queries, "cornell_moving.gltf").await;
     let [
         flipped_frame,
         cut_frames,
@@ -1613,13 +1625,8 @@ async fn retention_removes_finished_timelines_past_a_count_or_an_age() {
     })
     .await;
     let client = reqwest::Client::new();
-    let mut ids = Vec::new();
-    for seed in 1..=3 {
-        let query = format!("lines=5000&fps=2&seed={seed}");
-        let (id, _) = create(&client, &counted, &query, "cornell_box.gltf").await;
-        assert_eq!(wait(&client, &counted, &id, HANG).await["status"], "done");
-        ids.push(id);
-    }
+    let queries = (1..=3).map(|seed| format!("lines=5000&fps=2&seed={seed}"));
+    let ids = done_timelines(&client, &counted, queries, "cornell_box.gltf").await;
     // Removed once the third has ended: the oldest, from memory and disk.
     let gone = |base: String, id: String| {
         let client = client.clone();

@@ -483,14 +483,15 @@ impl Job {
         Ok(())
     }
 
-    /// Solver iterations of each frame solved so far.
+    /// Solver iterations of each frame solved for the current version so far.
     fn iterations(&self) -> Vec<Option<usize>> {
+        let version = self.version();
         let results = self.results.read().unwrap_or_else(PoisonError::into_inner);
         (results.iter())
             .map(|r| match r {
-                Some((_, Held::Memory(s))) => Some(s.iterations),
-                Some((_, Held::Stored(iterations))) => *iterations,
-                None => None,
+                Some((v, Held::Memory(s))) if *v == version => Some(s.iterations),
+                Some((v, Held::Stored(iterations))) if *v == version => *iterations,
+                _ => None,
             })
             .collect()
     }
@@ -1286,16 +1287,7 @@ impl Job {
         };
         // The solves' iterations per frame, for the frames solved for the current version.
         let version = job.version();
-        let iterations: Vec<Option<usize>> = match job.results.read() {
-            Ok(results) => (results.iter())
-                .map(|r| match r {
-                    Some((v, Held::Memory(s))) if *v == version => Some(s.iterations),
-                    Some((v, Held::Stored(iterations))) if *v == version => *iterations,
-                    _ => None,
-                })
-                .collect(),
-            Err(_) => Vec::new(),
-        };
+        let iterations = job.iterations();
         let mut doc = json!({
             "id": job.id,
             "status": status,
