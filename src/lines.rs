@@ -33,7 +33,7 @@ const MIN_COMPONENT: f64 = 1e-6;
 pub const REPLICAS: u32 = 16;
 
 /// A batch of bundles: B directions and a grid cell area.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Batch {
     /// Seed of the whole line set.
     pub seed: u64,

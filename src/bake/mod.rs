@@ -4,6 +4,7 @@
 //! reflectance per material — re-solves from the kept tallies without tracing a line.
 
 pub mod gaps;
+mod stored;
 
 use std::ops::ControlFlow;
 use std::sync::Arc;

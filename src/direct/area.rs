@@ -104,7 +104,7 @@ impl Sampling {
 pub type Rgb = [f64; 3];
 
 /// The direct light of the sampled emitting materials, per patch and per frame.
-#[derive(Clone, Debug, Default)]
+#[derive(Clone, Debug, Default, serde::Serialize, serde::Deserialize)]
 pub struct AreaLights {
     /// The sampled emitting materials (indices into the scene's).
     materials: Vec<u32>,
@@ -128,7 +128,7 @@ pub struct AreaLights {
 }
 
 /// A patch's form factor to one cluster.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 struct Pair {
     cluster: u32,
     value: f32,

@@ -53,7 +53,7 @@ const SHADOW_EPSILON: f32 = 1e-5;
 
 /// The direct irradiance of every frame, per light and patch, shared between frames where
 /// nothing it depends on changes.
-#[derive(Clone, Debug, Default)]
+#[derive(Clone, Debug, Default, serde::Serialize, serde::Deserialize)]
 pub struct DirectLight {
     /// Per light: for each frame, its entry in that light's `terms`. A light that does not move
     /// over static geometry has one entry for the whole timeline, whatever the others do.

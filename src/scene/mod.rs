@@ -18,7 +18,7 @@ use serde::Serialize;
 
 /// Which face of a surface a patch is. A one-sided material gives only a front patch; a
 /// double-sided one gives a front and a back patch (METHOD.md §3).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Side {
     /// The face the triangle's winding points to (counter-clockwise seen from it).
@@ -28,7 +28,7 @@ pub enum Side {
 }
 
 /// Where a patch came from in the source file, so that clients can map results back.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, serde::Deserialize)]
 pub struct Provenance {
     /// Index of the node that instances the mesh.
     pub node: u32,
@@ -43,7 +43,7 @@ pub struct Provenance {
 
 /// A patch: one face of one (possibly subdivided) triangle, or of several coplanar ones merged
 /// ([`refine::merge`]); the unit radiosity is solved for.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
 pub struct Patch {
     /// The source triangle this patch is (part of); a merged patch's first member's.
     pub source: Provenance,
@@ -103,7 +103,7 @@ impl Material {
 /// The patches on the two faces of a traced triangle. A line hitting the front face of the
 /// triangle deposits on `front`; hitting the back, on `back`, or nowhere (absorbed) when the
 /// material is one-sided.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct Faces {
     /// Patch on the front face.
     pub front: u32,
@@ -113,7 +113,7 @@ pub struct Faces {
 
 /// Indexed triangles with the patches on their faces. Triangles that share an edge share the
 /// vertex indices of that edge, so the tracer sees bit-identical edge positions (watertightness).
-#[derive(Clone, Debug, Default)]
+#[derive(Clone, Debug, Default, serde::Serialize, serde::Deserialize)]
 pub struct TriangleMesh {
     /// Vertex positions; their space depends on the owner (normalised space for static geometry,
     /// object space for a rigid object, unused for a deforming one).
@@ -125,7 +125,7 @@ pub struct TriangleMesh {
 }
 
 /// A transform-animated or deforming part of the scene (one node of the source file).
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
 pub struct MovingObject {
     /// The node this object is.
     pub node: u32,
@@ -137,7 +137,7 @@ pub struct MovingObject {
 }
 
 /// How a moving object's geometry changes with the frame.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
 pub enum Motion {
     /// One set of triangles and a transform per frame.
     Rigid {
@@ -151,7 +151,7 @@ pub enum Motion {
 
 /// Everything needed to pose a skinned or morphing mesh at any frame, without storing frames ×
 /// vertices: the memory grows with the vertices and with joints × frames.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
 pub struct Deformation {
     /// Rest positions of the source vertices, in the mesh's own space.
     pub base: Vec<DVec3>,
@@ -168,7 +168,7 @@ pub struct Deformation {
 }
 
 /// Linear-blend skinning data of a deforming mesh.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
 pub struct SkinBinding {
     /// Start of each source vertex's influences in `influences` (length = vertices + 1).
     pub offsets: Vec<u32>,
@@ -248,7 +248,7 @@ impl MovingObject {
 }
 
 /// The frames of the timeline: frame `f` is at time `start + f / fps`.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Frames {
     /// Time of frame 0, in seconds.
     pub start: f64,
@@ -268,7 +268,7 @@ impl Frames {
 
 /// The map between the scene's own units and normalised space, where the bounding sphere of the
 /// whole animation is the unit sphere: `p_normalised = (p - center) / radius`.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Normalisation {
     /// Centre of the bounding sphere, in scene units.
     pub center: DVec3,
@@ -292,7 +292,7 @@ impl Normalisation {
 }
 
 /// An axis-aligned box.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Bounds {
     /// Smallest corner.
     pub min: DVec3,
@@ -324,7 +324,7 @@ impl Bounds {
 
 /// How a camera projects, with glTF's conventions: the camera looks down its local −Z with +Y
 /// up. Distances are in the space the camera is placed in.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub enum Projection {
     /// Perspective.
     Perspective {
@@ -350,7 +350,7 @@ pub enum Projection {
 
 /// The scene's camera (the first camera node of the scene), for previews: the viewpoint the
 /// scene's author chose.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct SceneCamera {
     /// Name of the camera node, if any.
     pub name: Option<String>,
@@ -405,7 +405,7 @@ impl SceneCamera {
 /// distance d from a point light of intensity I, tilted by θ, receives the irradiance
 /// E = I·cos θ / d² (lux); a diffuse surface of reflectance ρ then leaves with the radiance
 /// ρ·E/π (cd/m², nits), the unit the scene's emissive surfaces are read in.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Light {
     /// The node the light is attached to.
     pub node: u32,
@@ -426,7 +426,7 @@ pub struct Light {
 }
 
 /// What kind of punctual light.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub enum LightKind {
     /// Emits equally in every direction from a point.
     Point,
@@ -476,7 +476,7 @@ impl Light {
 }
 
 /// A loaded scene, ready for the engine.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
 pub struct Scene {
     /// Materials, indexed by [`Patch::material`].
     pub materials: Vec<Material>,

@@ -247,7 +247,7 @@ pub fn solve_lit_from(
 /// The patches a solve answers for, each the group of some of the patches it solves (the
 /// pieces of [`crate::bake::Bake::split`]): the answer for a group is the mean of its pieces
 /// over its area, and its error bar the spread of that mean between the replicas.
-#[derive(Clone, Debug, Default)]
+#[derive(Clone, Debug, Default, serde::Serialize, serde::Deserialize)]
 pub struct Groups {
     /// The group of each piece.
     of: Vec<u32>,

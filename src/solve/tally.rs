@@ -212,7 +212,7 @@ fn merge(a: &[(u64, i64)], b: &[(u64, i64)]) -> Entries {
 /// The tallies of a timeline: the static counts, and what each frame's moving objects change,
 /// recomputed when a frame is solved from the lines they touch (cheaper to redo than to keep:
 /// a frame's changes take more memory than the moving crossings they come from).
-#[derive(Clone, Debug, Default)]
+#[derive(Clone, Debug, Default, serde::Serialize, serde::Deserialize)]
 pub struct Tallies {
     /// Segment counts of every line's static crossings: the tallies of a frame without its
     /// moving objects.
@@ -236,7 +236,7 @@ pub struct Tallies {
 }
 
 /// One frame's tallies, assembled.
-#[derive(Clone, Debug, Default, PartialEq)]
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct FrameTally {
     /// Crossings of each patch's visible part (the row sums of `S` without [`HIDDEN`]): its
     /// `N_i`.

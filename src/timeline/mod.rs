@@ -71,7 +71,7 @@ impl std::str::FromStr for Preset {
 }
 
 /// A crossing with a moving object, tagged with its frame: 12 bytes.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct FrameHit {
     /// The frame the crossing belongs to.
     pub frame: u32,
@@ -80,7 +80,7 @@ pub struct FrameHit {
 }
 
 /// A batch of lines in the list and where its lines start.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
 struct BatchLines {
     batch: Batch,
     /// Number of lines of each bundle, in bundle order.
@@ -88,6 +88,7 @@ struct BatchLines {
 }
 
 /// The intersection list of a timeline.
+#[derive(serde::Serialize, serde::Deserialize)]
 pub struct IntersectionList {
     batches: Vec<BatchLines>,
     /// The first line of every bundle of every batch, in line order, with the bundle's

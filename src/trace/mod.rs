@@ -26,7 +26,7 @@ pub use coincident::Surfaces;
 use triangle::ShearedLine;
 
 /// One crossing of a line with a traced triangle: 8 bytes.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Hit {
     /// Distance along the line from its starting point (normalised units).
     pub t: f32,
