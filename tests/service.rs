@@ -628,11 +628,14 @@ async fn finished_results_survive_a_restart_and_unfinished_jobs_resume() {
     let before: Value = get_json(&client, frame(&first, &done)).await;
     let patches: Value = get_json(&client, format!("{first}/v1/timelines/{done}/patches")).await;
     // A job the server stops while it traces: made so by its files (a finished job's, with
-    // its status set back to tracing and its frames gone), so the test does not race it. It
-    // was refined and relit first: both are done again when it resumes.
+    // its status set back to tracing, its frames gone and its traced state the one from
+    // before its refinement), so the test does not race it. It was refined and relit first:
+    // both are done again when it resumes (the refinement traced on the state read back).
     let query = "lines=20000&fps=4&seed=5&patch_size=auto";
     let (cut, _) = create(&client, &first, query, "cornell_moving.gltf").await;
     assert_eq!(wait(&client, &first, &cut, HANG).await["status"], "done");
+    let traced = dir.join(&cut).join("traced.bin");
+    let unrefined = std::fs::read(&traced).unwrap();
     let refine = format!("{first}/v1/timelines/{cut}/lines?add=5000");
     assert_eq!(client.post(refine).send().await.unwrap().status(), 202);
     assert_eq!(wait(&client, &first, &cut, HANG).await["status"], "done");
@@ -644,6 +647,12 @@ async fn finished_results_survive_a_restart_and_unfinished_jobs_resume() {
     saved["status"] = "tracing".into();
     std::fs::write(&record, saved.to_string()).unwrap();
     std::fs::remove_file(dir.join(&cut).join("frames.bin")).unwrap();
+    assert_ne!(
+        std::fs::read(&traced).unwrap(),
+        unrefined,
+        "not saved refined"
+    );
+    std::fs::write(&traced, unrefined).unwrap();
 
     // A second server on the same data directory: the restart.
     let second = start(config).await;
@@ -662,8 +671,8 @@ async fn finished_results_survive_a_restart_and_unfinished_jobs_resume() {
     assert_eq!(resumed["progress"]["lines_total"], 25_000);
     assert_eq!(clean, get_json(&client, frame(&second, &cut)).await);
 
-    // The restored timeline is traced again from its stored scene when a route needs it:
-    // previews, statistics, and a relight that gives what the never-restarted server gives.
+    // The restored timeline's traced state is read back when a route needs it: previews,
+    // statistics, and a relight that gives what the never-restarted server gives.
     let preview = client
         .get(format!("{second}/v1/timelines/{done}/frames/0/preview.png"))
         .send()
@@ -675,6 +684,7 @@ async fn finished_results_survive_a_restart_and_unfinished_jobs_resume() {
         rebuilt["rebuild_seconds"].as_f64().unwrap() > 0.0,
         "{rebuilt}"
     );
+    assert_eq!(rebuilt["rebuilt_from"], "traced_state", "{rebuilt}");
     let stats = client
         .get(format!("{second}/v1/timelines/{done}/stats?frame=0"))
         .send()
@@ -1368,7 +1378,12 @@ async fn over_the_resident_budget_finished_timelines_are_traced_again_when_neede
         ..budget
     })
     .await;
-    let reference = start(reference).await;
+    // The reference keeps every timeline in memory, and writes no traced state.
+    let reference = start(Config {
+        traced_files: false,
+        ..reference
+    })
+    .await;
     let client = reqwest::Client::new();
     let mut ids = [Vec::new(), Vec::new()];
     for (base, ids) in [&budget, &reference].into_iter().zip(&mut ids) {
@@ -1412,7 +1427,7 @@ async fn over_the_resident_budget_finished_timelines_are_traced_again_when_neede
     let status = get_json(&client, format!("{budget}/v1/timelines/{}", ids[0][0])).await;
     assert_eq!(status["traced_in_memory"], false, "{status}");
 
-    // A preview traces it again, and the budget drops it after.
+    // A preview reads its traced state back, and the budget drops it after.
     let preview = format!("{budget}/v1/timelines/{}/frames/2/preview.png", ids[0][0]);
     assert_eq!(client.get(preview).send().await.unwrap().status(), 200);
     let status = get_json(&client, format!("{budget}/v1/timelines/{}", ids[0][0])).await;
@@ -1420,10 +1435,15 @@ async fn over_the_resident_budget_finished_timelines_are_traced_again_when_neede
         status["rebuild_seconds"].as_f64().unwrap() > 0.0,
         "{status}"
     );
+    assert_eq!(status["rebuilt_from"], "traced_state", "{status}");
     let health = get_json(&client, format!("{budget}/healthz")).await;
     assert_eq!(health["timelines"]["traced_in_memory"], 0, "{health}");
 
-    // Relit and refined after eviction, the numbers are the kept server's.
+    // Relit and refined after eviction, the numbers are the kept server's: one timeline
+    // without its traced state on disk (traced again from its scene, and saved), one refined
+    // on the state read back, then relit on that state read back again.
+    let traced = |id: &str| dirs[0].join(id).join("traced.bin");
+    std::fs::remove_file(traced(&ids[0][1])).unwrap();
     let relight = r#"{"materials": [{"material": "light", "emission": [5, 5, 5]}]}"#;
     let mut after = [Vec::new(), Vec::new()];
     for ((base, ids), after) in [&budget, &reference].into_iter().zip(&ids).zip(&mut after) {
@@ -1434,11 +1454,28 @@ async fn over_the_resident_budget_finished_timelines_are_traced_again_when_neede
         assert_eq!(client.post(url).send().await.unwrap().status(), 202);
         for id in &ids[1..] {
             assert_eq!(wait(&client, base, id, HANG).await["status"], "done");
+        }
+        let url = format!("{base}/v1/timelines/{}/materials", ids[2]);
+        let response = client.post(url).body(relight).send().await.unwrap();
+        assert_eq!(response.status(), 202);
+        for id in &ids[1..] {
+            let status = wait(&client, base, id, HANG).await;
+            assert_eq!(status["status"], "done");
+            after.push(status["rebuilt_from"].clone());
             let frame = format!("{base}/v1/timelines/{id}/frames/3");
             after.push(get_json(&client, frame).await);
         }
     }
-    assert_eq!(after[0], after[1]);
+    // What the budget server's were rebuilt from; the kept server's never were.
+    assert_eq!(after[0][0], "scene");
+    assert_eq!(after[0][2], "traced_state");
+    assert!(after[1][0].is_null() && after[1][2].is_null());
+    assert_eq!([&after[0][1], &after[0][3]], [&after[1][1], &after[1][3]]);
+    assert!(traced(&ids[0][1]).exists(), "traced again, not saved");
+    for id in &ids[1] {
+        assert!(dirs[1].join(id).join("job.json").exists());
+        assert!(!dirs[1].join(id).join("traced.bin").exists(), "written");
+    }
     for dir in dirs {
         let _ = std::fs::remove_dir_all(dir);
     }
@@ -1474,13 +1511,14 @@ async fn damaged_files_are_reported_never_served_and_kept() {
     let (dir, config) = fresh_data_dir("damage");
     let first = start(config.clone()).await;
     let client = reqwest::Client::new();
-    let queries = (1..=5).map(|seed| format!("lines=20000&fps=4&seed={seed}"));
+    let queries = (1..=6).map(|seed| format!("lines=20000&fps=4&seed={seed}"));
     let ids = done_timelines(&client, &first, queries, "cornell_moving.gltf").await;
     let [
         flipped_frame,
         cut_frames,
         flipped_record,
         flipped_scene,
+        flipped_traced,
         intact,
     ] = ids.clone().try_into().unwrap();
     let frame = |base: &str, id: &str, f: usize| format!("{base}/v1/timelines/{id}/frames/{f}");
@@ -1492,7 +1530,10 @@ async fn damaged_files_are_reported_never_served_and_kept() {
     let bytes = std::fs::read(&frames).unwrap();
     std::fs::write(&frames, &bytes[..bytes.len() - 1]).unwrap();
     flip(&dir.join(&flipped_record).join("job.json"), 200);
+    // (The scene is read only when no traced state is.)
     flip(&dir.join(&flipped_scene).join("scene.bin"), 1000);
+    std::fs::remove_file(dir.join(&flipped_scene).join("traced.bin")).unwrap();
+    flip(&dir.join(&flipped_traced).join("traced.bin"), -1000);
     let files = |id: &str| {
         let mut files: Vec<(String, Vec<u8>)> = std::fs::read_dir(dir.join(id))
             .unwrap()
@@ -1507,7 +1548,7 @@ async fn damaged_files_are_reported_never_served_and_kept() {
         files.sort();
         files
     };
-    let damaged_files: Vec<_> = ids[..4].iter().map(|id| files(id)).collect();
+    let damaged_files: Vec<_> = ids[..5].iter().map(|id| files(id)).collect();
 
     // The server starts, and serves what is whole.
     let second = start(config).await;
@@ -1516,7 +1557,7 @@ async fn damaged_files_are_reported_never_served_and_kept() {
         get_json(&client, frame(&second, &intact, 4)).await
     );
     let listed: Value = get_json(&client, format!("{second}/v1/timelines")).await;
-    assert_eq!(listed["timelines"].as_array().unwrap().len(), 5, "{listed}");
+    assert_eq!(listed["timelines"].as_array().unwrap().len(), 6, "{listed}");
     let failed = |status: &Value, words: &[&str]| {
         assert_eq!(status["status"], "failed", "{status}");
         let error = status["error"].as_str().unwrap();
@@ -1529,7 +1570,8 @@ async fn damaged_files_are_reported_never_served_and_kept() {
     failed(&status, &["frames.bin is damaged", "bytes of", "kept in"]);
     let status = get_json(&client, format!("{second}/v1/timelines/{flipped_record}")).await;
     failed(&status, &["job.json is damaged", "checksum"]);
-    // Found when read: a frame's numbers, the scene traced again for a preview.
+    // Found when read: a frame's numbers, the scene traced again and the traced state read
+    // back for a preview.
     let whole = get_json(&client, frame(&second, &flipped_frame, 0)).await;
     assert_eq!(whole["frame"], 0, "{whole}");
     let status = get_json(&client, format!("{second}/v1/timelines/{flipped_frame}")).await;
@@ -1560,14 +1602,19 @@ async fn damaged_files_are_reported_never_served_and_kept() {
     assert_eq!(response.status(), 409);
     let status = get_json(&client, format!("{second}/v1/timelines/{flipped_scene}")).await;
     failed(&status, &["scene.bin is damaged", "checksum"]);
-    for id in &ids[..4] {
+    let preview = format!("{second}/v1/timelines/{flipped_traced}/frames/0/preview.png");
+    let response = client.get(preview).send().await.unwrap();
+    assert_eq!(response.status(), 409);
+    let status = get_json(&client, format!("{second}/v1/timelines/{flipped_traced}")).await;
+    failed(&status, &["traced.bin is damaged", "checksum"]);
+    for id in &ids[..5] {
         let relight = format!("{second}/v1/timelines/{id}/materials");
         let body = r#"{"materials": [{"material": "light", "emission": [5, 5, 5]}]}"#;
         let response = client.post(relight).body(body).send().await.unwrap();
         assert_eq!(response.status(), 409, "{id}");
     }
     // Every damaged file is kept as it was, for inspection.
-    let after: Vec<_> = ids[..4].iter().map(|id| files(id)).collect();
+    let after: Vec<_> = ids[..5].iter().map(|id| files(id)).collect();
     assert!(
         after == damaged_files,
         "the damaged timelines' files changed"

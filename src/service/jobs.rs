@@ -2,7 +2,7 @@
 
 use std::collections::HashMap;
 use std::ops::ControlFlow;
-use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, PoisonError, RwLock};
 use std::time::{Instant, SystemTime};
 
@@ -11,7 +11,7 @@ use serde_json::json;
 use serde_json::value::RawValue;
 use tokio::sync::{Semaphore, watch};
 
-use super::store::{Lighting, Record, Saved, Store, unix_seconds};
+use super::store::{Lighting, Record, Saved, Store, Traced, unix_seconds};
 use crate::adaptive::{self, Adaptive};
 use crate::bake::Bake;
 use crate::control::{Control, Stop};
@@ -19,6 +19,26 @@ use crate::params::BakeSettings;
 use crate::scene::{Material, Scene};
 use crate::solve::{FrameSolution, NotConverged, SolveParams};
 use crate::timeline::LineParams;
+
+/// What a job's traced state was last rebuilt from when it was needed and not in memory.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Rebuilt {
+    /// Read back from the data directory (`traced.bin`), with any refinement it lacked traced.
+    TracedState,
+    /// Traced again from the stored scene.
+    Scene,
+}
+
+impl Rebuilt {
+    /// As the status document names it.
+    #[must_use]
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::TracedState => "traced_state",
+            Self::Scene => "scene",
+        }
+    }
+}
 
 /// Where a job is in its life.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
@@ -166,8 +186,11 @@ pub struct Job {
     refinements: Mutex<Vec<u64>>,
     /// Times the job was started again after the server stopped while it ran.
     restarts: u32,
-    /// Seconds the last rebuild of the traced state took; its lock makes rebuilds one at a time.
-    rebuilt: Mutex<Option<f64>>,
+    /// Seconds the last rebuild of the traced state took, and what it was rebuilt from; its
+    /// lock makes rebuilds one at a time.
+    rebuilt: Mutex<Option<(f64, Rebuilt)>>,
+    /// Whether the traced state in memory is the one in the data directory's `traced.bin`.
+    traced_saved: AtomicBool,
     /// When the traced state was last used (the least recently used is dropped first).
     used: Mutex<Instant>,
 }
@@ -260,6 +283,7 @@ impl Job {
             refinements: Mutex::new(Vec::new()),
             restarts: 0,
             rebuilt: Mutex::new(None),
+            traced_saved: AtomicBool::new(false),
             used: Mutex::new(Instant::now()),
         }
     }
@@ -385,6 +409,7 @@ impl Job {
             refinements: Mutex::new(record.refinements),
             restarts: record.restarts,
             rebuilt: Mutex::new(None),
+            traced_saved: AtomicBool::new(false),
             used: Mutex::new(Instant::now()),
             // Without its lighting, a job cannot be relit: it is not rebuilt either.
             source: source.filter(|_| record.lighting.is_some()),
@@ -720,14 +745,45 @@ impl Job {
             return Ok(());
         }
         let started = Instant::now();
-        let bake = self.rebuild()?;
+        let (bake, from, refinements) = self.rebuild()?;
         let seconds = started.elapsed().as_secs_f64();
-        tracing::info!(id = %self.id, seconds, "rebuilt the traced scene");
-        *rebuilt = Some(seconds);
-        if let Ok(mut slot) = self.bake.write() {
+        tracing::info!(id = %self.id, seconds, from = from.as_str(), "rebuilt the traced scene");
+        *rebuilt = Some((seconds, from));
+        if from == Rebuilt::Scene {
+            self.keep_traced(&bake, refinements);
+        }
+        // A refinement that started meanwhile found the slot empty and traced its own state,
+        // with more lines: that one is kept.
+        if let Ok(mut slot) = self.bake.write()
+            && slot.is_none()
+        {
             *slot = Some(bake);
         }
         Ok(())
+    }
+
+    /// Saves `bake`, which has the first `refinements` refinements, as the timeline's
+    /// `traced.bin` unless it is there already (a failure is logged: the state can be traced
+    /// again from the stored scene).
+    fn keep_traced(&self, bake: &Bake, refinements: usize) {
+        let Some(store) = self.store.as_ref().filter(|_| self.source.is_some()) else {
+            return;
+        };
+        if self.traced_saved.load(Ordering::Acquire) {
+            return;
+        }
+        let started = Instant::now();
+        match store.save_traced(&self.id, refinements, bake) {
+            Ok(bytes) => {
+                let seconds = started.elapsed().as_secs_f64();
+                tracing::info!(id = %self.id, bytes, seconds, "saved the traced state");
+                self.traced_saved.store(bytes > 0, Ordering::Release);
+            }
+            Err(e) => tracing::warn!(
+                id = %self.id, error = %e,
+                "could not save the traced state: it will be traced again when it is needed"
+            ),
+        }
     }
 
     /// Whether a finished job can run again: its traced scene is kept, or can be rebuilt from
@@ -785,22 +841,25 @@ impl Job {
             Work::Bake => {
                 let scene = self.scene.lock().ok().and_then(|mut s| s.take());
                 self.set_status(Status::Tracing);
+                self.traced_saved.store(false, Ordering::Release);
                 Some(match scene {
-                    Some(scene) => self.trace(scene),
-                    // Resumed after a restart: the scene is read again.
-                    None => self.rebuild(),
+                    Some(scene) if self.restarts == 0 => self.trace(scene, &[]),
+                    // Resumed after a restart: read back (if it had been traced, and refined
+                    // since) or traced again.
+                    _ => self.rebuild().map(|(bake, ..)| bake),
                 })
             }
             Work::Refine(lines) => {
                 self.set_status(Status::Tracing);
+                self.traced_saved.store(false, Ordering::Release);
                 // (Its lines are counted, and kept in the record, by [`Jobs::rerun`].)
                 let taken = self.bake.write().ok().and_then(|mut b| b.take());
                 Some(match taken {
                     Some(mut bake) => {
                         (bake.refine(lines, &self.control).map(|()| bake)).map_err(Stop::from)
                     }
-                    // Not in memory: traced again, this refinement included.
-                    None => self.rebuild(),
+                    // Not in memory: read back or traced again, this refinement included.
+                    None => self.rebuild().map(|(bake, ..)| bake),
                 })
             }
             Work::Relight => {
@@ -855,6 +914,13 @@ impl Job {
                 "the solved frames could not be saved in the data directory: {e}"
             ));
         }
+        // No one reruns the job before it is done: its state has every refinement listed.
+        let refinements = self.refinements.lock().map_or(0, |r| r.len());
+        if let Ok(slot) = self.bake.read()
+            && let Some(bake) = slot.as_ref()
+        {
+            self.keep_traced(bake, refinements);
+        }
         if let Ok(mut s) = self.state.lock() {
             s.found = found;
             if !s.status.is_final() {
@@ -876,67 +942,118 @@ impl Job {
     }
 
     /// Traces `scene` as the job asks: its lines, `auto`'s cuts (the patch table replaced),
-    /// the pieces, then each refinement in order.
-    fn trace(&self, scene: Scene) -> Result<Bake, Stop> {
+    /// the pieces, then each of `refinements` in order.
+    fn trace(&self, scene: Scene, refinements: &[u64]) -> Result<Bake, Stop> {
         // A job read back from disk has its request's, for the scene as loaded.
         let auto = (self.auto)
             .or_else(|| (self.source.as_ref()).and_then(|s| s.adaptive(scene.patches.len())));
         let mut bake = Bake::trace_with(scene, &self.lines, &self.control)?;
         if let Some(auto) = &auto {
             adaptive::adapt(&mut bake, auto, &self.solve, &self.control)?;
-            let table = crate::output::patch_table(&bake.scene);
-            if let Ok(mut t) = self.patch_table.write() {
-                *t = raw_table(&table);
-            }
-            self.patches
-                .store(bake.scene.patches.len(), Ordering::Release);
+            self.set_patches(&bake.scene);
         }
         bake.split(&self.solve, &self.control)?;
-        let refinements = self
-            .refinements
-            .lock()
-            .map(|r| r.clone())
-            .unwrap_or_default();
-        for lines in refinements {
+        for &lines in refinements {
             bake.refine(lines, &self.control)?;
         }
         Ok(bake)
     }
 
-    /// The traced state rebuilt from the stored scene and request: the same lines, cuts,
-    /// pieces and refinements, so the same tallies as when it was first traced (the lines are
-    /// deterministic).
-    fn rebuild(&self) -> Result<Bake, Stop> {
-        let (Some(store), Some(settings)) = (&self.store, &self.source) else {
+    /// The traced state rebuilt: read back from the data directory's `traced.bin` (the
+    /// refinements it lacks traced), or traced again from the stored scene and request (the
+    /// same lines, cuts, pieces and refinements, so the same tallies as when it was first
+    /// traced: the lines are deterministic). With what it was rebuilt from and the number of
+    /// refinements it has.
+    fn rebuild(&self) -> Result<(Bake, Rebuilt, usize), Stop> {
+        let Some(store) = &self.store else {
             return Err(Stop::Failed(
                 "the job has no traced scene, and its scene is not stored".into(),
             ));
         };
-        let bytes = store.load_scene(&self.id).map_err(|e| {
-            let reason = format!(
-                "the stored scene cannot be read: {e} (its files are kept in {})",
-                store.dir(&self.id).display()
-            );
-            if e.kind() == std::io::ErrorKind::InvalidData {
-                self.damaged(reason.clone());
+        // What the record lists now: a refinement asked for later is traced by its own run.
+        let refinements = self
+            .refinements
+            .lock()
+            .map(|r| r.clone())
+            .unwrap_or_default();
+        let kept = || format!("(its files are kept in {})", store.dir(&self.id).display());
+        let read = match store.load_traced(&self.id) {
+            Ok(Traced::Read {
+                bake,
+                refinements: had,
+            }) if had <= refinements.len() => {
+                let mut bake = *bake;
+                // A job resumed after a restart serves the patches its first run cut.
+                if self.auto.is_some() {
+                    self.set_patches(&bake.scene);
+                }
+                for &lines in &refinements[had..] {
+                    bake.refine(lines, &self.control)?;
+                }
+                self.traced_saved
+                    .store(had == refinements.len(), Ordering::Release);
+                Some((bake, Rebuilt::TracedState))
             }
-            Stop::Failed(reason)
-        })?;
-        let scene = crate::loader::load(&bytes, &settings.load)
-            .map_err(|e| Stop::Failed(format!("the stored scene does not load: {e}")))?;
-        let bake = self.trace(scene)?;
+            // Of a refinement the record does not list (its record was not written).
+            Ok(Traced::Read { .. }) => None,
+            Ok(Traced::Missing) => None,
+            Ok(Traced::OtherBuild) => {
+                tracing::info!(id = %self.id, "traced.bin was written by another build: traced again");
+                None
+            }
+            Err(e) => {
+                let reason = format!("{e} {}", kept());
+                if e.kind() == std::io::ErrorKind::InvalidData {
+                    self.damaged(reason.clone());
+                }
+                return Err(Stop::Failed(reason));
+            }
+        };
+        let (bake, from) = match read {
+            Some(read) => read,
+            None => {
+                self.traced_saved.store(false, Ordering::Release);
+                let Some(settings) = &self.source else {
+                    return Err(Stop::Failed(
+                        "the job has no traced scene, and its scene is not stored".into(),
+                    ));
+                };
+                let bytes = store.load_scene(&self.id).map_err(|e| {
+                    let reason = format!("the stored scene cannot be read: {e} {}", kept());
+                    if e.kind() == std::io::ErrorKind::InvalidData {
+                        self.damaged(reason.clone());
+                    }
+                    Stop::Failed(reason)
+                })?;
+                let scene = crate::loader::load(&bytes, &settings.load)
+                    .map_err(|e| Stop::Failed(format!("the stored scene does not load: {e}")))?;
+                (self.trace(scene, &refinements)?, Rebuilt::Scene)
+            }
+        };
         // The frames solved are per patch: a rebuild that made other patches cannot serve them.
         let (made, expected) = (
             bake.scene.patches.len(),
             self.patches.load(Ordering::Acquire),
         );
         if made != expected {
+            let what = match from {
+                Rebuilt::TracedState => "the traced state read back",
+                Rebuilt::Scene => "the stored scene, traced again,",
+            };
             return Err(Stop::Failed(format!(
-                "the stored scene, traced again, has {made} patches, not the {expected} of its \
-                 frames"
+                "{what} has {made} patches, not the {expected} of its frames"
             )));
         }
-        Ok(bake)
+        Ok((bake, from, refinements.len()))
+    }
+
+    /// Serves `scene`'s patches: `auto` cut them.
+    fn set_patches(&self, scene: &Scene) {
+        let table = crate::output::patch_table(scene);
+        if let Ok(mut t) = self.patch_table.write() {
+            *t = raw_table(&table);
+        }
+        (self.patches).store(scene.patches.len(), Ordering::Release);
     }
 
     /// Records what tracing took.
@@ -1288,6 +1405,7 @@ impl Job {
         // The solves' iterations per frame, for the frames solved for the current version.
         let version = job.version();
         let iterations = job.iterations();
+        let rebuilt = job.rebuilt.lock().ok().and_then(|r| *r);
         let mut doc = json!({
             "id": job.id,
             "status": status,
@@ -1309,7 +1427,8 @@ impl Job {
             }),
             "warnings": job.warnings(),
             "restarts": job.restarts,
-            "rebuild_seconds": job.rebuilt.lock().ok().and_then(|r| *r),
+            "rebuild_seconds": rebuilt.map(|(seconds, _)| seconds),
+            "rebuilt_from": rebuilt.map(|(_, from)| from.as_str()),
             "traced_in_memory": job.bake.try_read().map_or(true, |b| b.is_some()),
             "solved_in_memory": job.solved_bytes().is_some(),
         });

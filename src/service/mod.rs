@@ -61,6 +61,9 @@ pub struct Config {
     pub resident_budget: Option<u64>,
     /// Which finished timelines are kept (in memory and on disk): by age, by count, or both.
     pub retention: Retention,
+    /// Whether traced state is written to the data directory, to be read back instead of
+    /// traced again when it is needed and not in memory.
+    pub traced_files: bool,
 }
 
 impl Default for Config {
@@ -74,6 +77,7 @@ impl Default for Config {
             max_iterations: SolveParams::default().max_iterations,
             resident_budget: None,
             retention: Retention::default(),
+            traced_files: true,
         }
     }
 }
@@ -101,7 +105,8 @@ impl AppState {
             .data_dir
             .as_deref()
             .map(store::Store::open)
-            .transpose()?;
+            .transpose()?
+            .map(|s| s.with_traced_files(config.traced_files));
         let mut pending = Vec::new();
         if let Some(store) = &store {
             for mut saved in store.load_all() {

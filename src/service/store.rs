@@ -8,10 +8,15 @@
 //!   asked for, the materials and lights as relit, and when the job was created and ended;
 //! - once done, `frames.bin`: every frame's radiance, standard error (−1 where unsampled) and
 //!   samples, little-endian f64/u64, so that the numbers served after a restart are
-//!   bit-identical; a frame is read alone (at a fixed offset) when it is served from disk.
+//!   bit-identical; a frame is read alone (at a fixed offset) when it is served from disk;
+//! - once traced, `traced.bin`: the traced state (the intersection list, tallies, scenes as cut,
+//!   direct light; [`Bake::write_bytes`]) with the refinements it has, read back instead of
+//!   tracing again when the state is needed and not in memory. Only the build that wrote it
+//!   reads it (the encoding does not describe itself); another build traces again from
+//!   `scene.bin` and writes its own.
 //!
-//! Every file is checked: `scene.bin`, `request.json` and `job.json` start with a 24-byte
-//! header (`RADSTOR1`, the payload's length as u64, its CRC-32 as u32, 4 zero bytes; the JSON
+//! Every file is checked: `scene.bin`, `request.json`, `job.json` and `traced.bin` start with a
+//! 24-byte header (`RADSTOR1`, the payload's length as u64, its CRC-32 as u32, 4 zero bytes; the JSON
 //! follows it as it is); `frames.bin` starts with a 40-byte header (`RADFRMS2`, frames, patches
 //! and result version as u64, the CRC-32 of those 32 bytes, 4 zero bytes) and ends each frame
 //! with its CRC-32. A file that does not match is reported with what is wrong, never read as
@@ -30,12 +35,18 @@ use std::time::SystemTime;
 
 use serde::{Deserialize, Serialize};
 
+use crate::bake::Bake;
 use crate::solve::FrameSolution;
 
 /// First bytes of a checked file.
 const CHECKED: &[u8; 8] = b"RADSTOR1";
 /// Bytes of a checked file's header.
 const CHECKED_HEADER: usize = 24;
+/// First bytes of `traced.bin`'s payload.
+const TRACED: &[u8; 8] = b"RADTRCD1";
+/// Bytes of `traced.bin`'s own header in its payload: [`TRACED`], the build that wrote it
+/// ([`build`]), the refinements its state has (u64).
+const TRACED_HEADER: usize = 8 + 12 + 8;
 /// First bytes of `frames.bin`.
 const FRAMES: &[u8; 8] = b"RADFRMS2";
 /// Bytes of `frames.bin`'s header.
@@ -140,12 +151,68 @@ fn damaged(name: &str, what: impl std::fmt::Display) -> std::io::Error {
 /// `payload` with the header of a checked file before it.
 fn checked(payload: &[u8]) -> Vec<u8> {
     let mut out = Vec::with_capacity(CHECKED_HEADER + payload.len());
-    out.extend_from_slice(CHECKED);
-    out.extend_from_slice(&(payload.len() as u64).to_le_bytes());
-    out.extend_from_slice(&crc32fast::hash(payload).to_le_bytes());
-    out.extend_from_slice(&[0; 4]);
+    out.resize(CHECKED_HEADER, 0);
     out.extend_from_slice(payload);
+    sealed(out)
+}
+
+/// `out`, a checked file's header's bytes (any) then its payload, with the header written.
+fn sealed(mut out: Vec<u8>) -> Vec<u8> {
+    let payload = &out[CHECKED_HEADER..];
+    let (length, crc) = (payload.len() as u64, crc32fast::hash(payload));
+    out[..8].copy_from_slice(CHECKED);
+    out[8..16].copy_from_slice(&length.to_le_bytes());
+    out[16..20].copy_from_slice(&crc.to_le_bytes());
+    out[20..24].fill(0);
     out
+}
+
+/// The running build's identity: the CRC-32 and length of its executable (`None` if it cannot
+/// be read: no traced state is then kept on disk). Read once.
+fn build() -> Option<[u8; 12]> {
+    static BUILD: std::sync::OnceLock<Option<[u8; 12]>> = std::sync::OnceLock::new();
+    *BUILD.get_or_init(|| {
+        // The running executable, even if a newer one was installed over it since.
+        let path = Path::new("/proc/self/exe");
+        let path = if path.exists() {
+            path.to_path_buf()
+        } else {
+            std::env::current_exe().ok()?
+        };
+        let mut file = std::fs::File::open(path).ok()?;
+        let (mut hasher, mut length) = (crc32fast::Hasher::new(), 0u64);
+        let mut buffer = vec![0; 1 << 20];
+        loop {
+            match file.read(&mut buffer) {
+                Ok(0) => break,
+                Ok(n) => {
+                    hasher.update(&buffer[..n]);
+                    length += n as u64;
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(_) => return None,
+            }
+        }
+        let mut id = [0; 12];
+        id[..4].copy_from_slice(&hasher.finalize().to_le_bytes());
+        id[4..].copy_from_slice(&length.to_le_bytes());
+        Some(id)
+    })
+}
+
+/// What [`Store::load_traced`] found.
+pub enum Traced {
+    /// No traced state on disk.
+    Missing,
+    /// A traced state written by another build, which this one cannot read.
+    OtherBuild,
+    /// The traced state, and how many of the timeline's refinements it has.
+    Read {
+        /// The state, its tracers built again.
+        bake: Box<Bake>,
+        /// Refinements it has (the first ones of the record's).
+        refinements: usize,
+    },
 }
 
 /// The payload of checked file `name` (its bytes as they are if it has no header: a file of a
@@ -265,6 +332,8 @@ pub struct Store {
     root: PathBuf,
     /// Held while a file is written: two writers of one file would share its temporary file.
     writing: std::sync::Arc<std::sync::Mutex<()>>,
+    /// Whether traced state is written ([`Store::save_traced`]).
+    traced_files: bool,
 }
 
 impl Store {
@@ -274,7 +343,17 @@ impl Store {
         Ok(Self {
             root: root.to_path_buf(),
             writing: std::sync::Arc::default(),
+            traced_files: true,
         })
+    }
+
+    /// The same store, writing traced state if `traced_files` (it is read back either way).
+    #[must_use]
+    pub fn with_traced_files(self, traced_files: bool) -> Self {
+        Self {
+            traced_files,
+            ..self
+        }
     }
 
     /// The directory of timeline `id`.
@@ -456,6 +535,59 @@ impl Store {
         )
     }
 
+    /// Saves the traced state of timeline `id`, which has its first `refinements` refinements
+    /// (nothing, if the store writes none or this build cannot tell itself from others); its
+    /// bytes.
+    ///
+    /// # Errors
+    /// It cannot be written (the file before, if any, is left whole).
+    pub fn save_traced(&self, id: &str, refinements: usize, bake: &Bake) -> std::io::Result<u64> {
+        let Some(build) = build().filter(|_| self.traced_files) else {
+            return Ok(0);
+        };
+        let mut out = vec![0; CHECKED_HEADER];
+        out.extend_from_slice(TRACED);
+        out.extend_from_slice(&build);
+        out.extend_from_slice(&(refinements as u64).to_le_bytes());
+        let out = sealed(bake.write_bytes(out).map_err(std::io::Error::other)?);
+        let dir = self.dir(id);
+        std::fs::create_dir_all(&dir)?;
+        self.write(&dir.join("traced.bin"), &out)?;
+        Ok(out.len() as u64)
+    }
+
+    /// The traced state of timeline `id` ([`Store::save_traced`]), if this build wrote it.
+    ///
+    /// # Errors
+    /// The file cannot be read, or is damaged.
+    pub fn load_traced(&self, id: &str) -> std::io::Result<Traced> {
+        let bytes = match std::fs::read(self.dir(id).join("traced.bin")) {
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Traced::Missing),
+            bytes => bytes?,
+        };
+        if !bytes.starts_with(CHECKED) {
+            return Err(damaged("traced.bin", "its header is damaged"));
+        }
+        let payload = payload("traced.bin", &bytes)?;
+        let (Some(header), Some(state)) =
+            (payload.get(..TRACED_HEADER), payload.get(TRACED_HEADER..))
+        else {
+            return Err(damaged("traced.bin", "it is cut short"));
+        };
+        if &header[..8] != TRACED {
+            return Err(damaged("traced.bin", "it is not a traced state"));
+        }
+        if build().is_none_or(|b| header[8..20] != b) {
+            return Ok(Traced::OtherBuild);
+        }
+        let refinements = u64::from_le_bytes(header[20..28].try_into().unwrap_or_default());
+        let bake = Bake::from_bytes(state).map_err(|e| damaged("traced.bin", e))?;
+        Ok(Traced::Read {
+            bake: Box::new(bake),
+            refinements: usize::try_from(refinements).unwrap_or(usize::MAX),
+        })
+    }
+
     /// Bytes of every file in the data directory.
     #[must_use]
     pub fn bytes(&self) -> u64 {
@@ -633,6 +765,50 @@ mod tests {
             assert_eq!(format!("{read:?}"), format!("{s:?}"));
         }
         assert!(store.load_frame("t", 3).is_err());
+        let _ = std::fs::remove_dir_all(&store.root);
+    }
+
+    #[test]
+    fn a_traced_state_is_read_back_by_its_build_only_and_damage_is_detected() {
+        let store = temp_store("traced");
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/cornell_box.gltf");
+        let options = crate::loader::LoadOptions::default();
+        let scene = crate::loader::load(&std::fs::read(path).unwrap(), &options).unwrap();
+        let lines = crate::timeline::LineParams {
+            lines: 2_000,
+            seed: 3,
+        };
+        let bake = Bake::trace(scene, &lines).unwrap();
+        assert!(matches!(store.load_traced("t"), Ok(Traced::Missing)));
+        let bytes = store.save_traced("t", 2, &bake).unwrap();
+        let path = store.dir("t").join("traced.bin");
+        assert_eq!(std::fs::metadata(&path).unwrap().len(), bytes);
+        let Ok(Traced::Read {
+            bake: read,
+            refinements: 2,
+        }) = store.load_traced("t")
+        else {
+            panic!("not read back");
+        };
+        let written = |b: &Bake| b.write_bytes(Vec::new()).unwrap();
+        assert!(written(&read) == written(&bake));
+        let good = std::fs::read(&path).unwrap();
+        // Another build's (resealed, so only the build differs): not read, not damaged.
+        let mut other = good.clone();
+        other[CHECKED_HEADER + 8] ^= 1;
+        std::fs::write(&path, sealed(other)).unwrap();
+        assert!(matches!(store.load_traced("t"), Ok(Traced::OtherBuild)));
+        // A flipped bit anywhere, a cut anywhere: damaged.
+        for at in (0..good.len()).step_by(good.len() / 97 + 1) {
+            let mut bad = good.clone();
+            bad[at] ^= 0x10;
+            std::fs::write(&path, &bad).unwrap();
+            let e = store.load_traced("t").err().expect("a flipped bit read");
+            assert_eq!(e.kind(), std::io::ErrorKind::InvalidData, "{e}");
+            std::fs::write(&path, &good[..at]).unwrap();
+            let e = store.load_traced("t").err().expect("a cut file read");
+            assert!(e.to_string().contains("traced.bin is damaged"), "{e}");
+        }
         let _ = std::fs::remove_dir_all(&store.root);
     }
 
