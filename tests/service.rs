@@ -1444,6 +1444,13 @@ async fn over_the_resident_budget_finished_timelines_are_traced_again_when_neede
     // on the state read back, then relit on that state read back again.
     let traced = |id: &str| dirs[0].join(id).join("traced.bin");
     std::fs::remove_file(traced(&ids[0][1])).unwrap();
+    let exposure = async |base: &str, id: &str| -> String {
+        let preview = format!("{base}/v1/timelines/{id}/frames/1/preview.png");
+        let response = client.get(preview).send().await.unwrap();
+        assert_eq!(response.status(), 200);
+        response.headers()["x-exposure"].to_str().unwrap().to_string()
+    };
+    let before = exposure(&budget, &ids[0][2]).await;
     let relight = r#"{"materials": [{"material": "light", "emission": [5, 5, 5]}]}"#;
     let mut after = [Vec::new(), Vec::new()];
     for ((base, ids), after) in [&budget, &reference].into_iter().zip(&ids).zip(&mut after) {
@@ -1466,6 +1473,10 @@ async fn over_the_resident_budget_finished_timelines_are_traced_again_when_neede
             after.push(get_json(&client, frame).await);
         }
     }
+    // The timeline's exposure is the relit frames' (not the one kept for the frames before).
+    let relit = exposure(&budget, &ids[0][2]).await;
+    assert_ne!(relit, before);
+    assert_eq!(relit, exposure(&reference, &ids[1][2]).await);
     // What the budget server's were rebuilt from; the kept server's never were.
     assert_eq!(after[0][0], "scene");
     assert_eq!(after[0][2], "traced_state");

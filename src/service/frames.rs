@@ -218,11 +218,11 @@ async fn frame_file<E: std::fmt::Display + Send + 'static>(
 fn tone_map(job: &Job, bake: &Bake, exposure: Option<f64>) -> crate::output::ToneMap {
     match exposure {
         Some(exposure) => crate::output::ToneMap { exposure },
-        None => {
-            let solved: Vec<Arc<FrameSolution>> =
-                job.frames().into_iter().flatten().map(|(_, s)| s).collect();
-            crate::output::ToneMap::for_timeline(bake.shown(), &solved)
-        }
+        None => crate::output::ToneMap {
+            exposure: job.exposure(|solved| {
+                crate::output::ToneMap::for_timeline(bake.shown(), solved).exposure
+            }),
+        },
     }
 }
 

@@ -191,6 +191,9 @@ pub struct Job {
     rebuilt: Mutex<Option<(f64, Rebuilt)>>,
     /// Whether the traced state in memory is the one in the data directory's `traced.bin`.
     traced_saved: AtomicBool,
+    /// The timeline's exposure and the result version it is of, once every frame of that
+    /// version is solved ([`Job::exposure`]).
+    exposure: Mutex<Option<(u64, f64)>>,
     /// When the traced state was last used (the least recently used is dropped first).
     used: Mutex<Instant>,
 }
@@ -284,6 +287,7 @@ impl Job {
             restarts: 0,
             rebuilt: Mutex::new(None),
             traced_saved: AtomicBool::new(false),
+            exposure: Mutex::new(None),
             used: Mutex::new(Instant::now()),
         }
     }
@@ -410,6 +414,7 @@ impl Job {
             restarts: record.restarts,
             rebuilt: Mutex::new(None),
             traced_saved: AtomicBool::new(false),
+            exposure: Mutex::new(None),
             used: Mutex::new(Instant::now()),
             // Without its lighting, a job cannot be relit: it is not rebuilt either.
             source: source.filter(|_| record.lighting.is_some()),
@@ -641,6 +646,26 @@ impl Job {
             kept.unwrap_or_default().display()
         ));
         None
+    }
+
+    /// The timeline's exposure: `of` every frame solved so far, kept once every frame of the
+    /// current version is solved (frames dropped from memory are not read again for it).
+    pub fn exposure(&self, of: impl FnOnce(&[Arc<FrameSolution>]) -> f64) -> f64 {
+        let version = self.version();
+        let kept = *self.exposure.lock().unwrap_or_else(PoisonError::into_inner);
+        if let Some((v, exposure)) = kept
+            && v == version
+        {
+            return exposure;
+        }
+        let frames = self.frames();
+        let every = (frames.iter()).all(|f| f.as_ref().is_some_and(|(v, _)| *v == version));
+        let solved: Vec<Arc<FrameSolution>> = frames.into_iter().flatten().map(|(_, s)| s).collect();
+        let exposure = of(&solved);
+        if every {
+            *self.exposure.lock().unwrap_or_else(PoisonError::into_inner) = Some((version, exposure));
+        }
+        exposure
     }
 
     /// Every frame's solution so far with its version (a frame keeps its older version until
