@@ -1448,7 +1448,10 @@ async fn over_the_resident_budget_finished_timelines_are_traced_again_when_neede
         let preview = format!("{base}/v1/timelines/{id}/frames/1/preview.png");
         let response = client.get(preview).send().await.unwrap();
         assert_eq!(response.status(), 200);
-        response.headers()["x-exposure"].to_str().unwrap().to_string()
+        response.headers()["x-exposure"]
+            .to_str()
+            .unwrap()
+            .to_string()
     };
     let before = exposure(&budget, &ids[0][2]).await;
     let relight = r#"{"materials": [{"material": "light", "emission": [5, 5, 5]}]}"#;
@@ -1668,7 +1671,38 @@ async fn a_full_disk_fails_the_job_and_leaves_the_files_before_whole() {
         std::fs::read(dir.join(&done).join("frames.bin")).unwrap(),
         before
     );
-    let _ = std::fs::remove_dir_all(&dir);
+
+    // The disk full when the traced state is written: the job is done all the same (its
+    // traced state is traced again when it is needed).
+    let (traced, _) = create(&client, &base, "lines=20000&fps=4", "cornell_moving.gltf").await;
+    std::os::unix::fs::symlink("/dev/full", dir.join(&traced).join("traced.tmp")).unwrap();
+    assert_eq!(wait(&client, &base, &traced, HANG).await["status"], "done");
+    assert!(!dir.join(&traced).join("traced.bin").exists());
+    assert!(!dir.join(&traced).join("traced.tmp").exists());
+
+    // A scene that cannot be stored (the data directory gone, a file in its place) is refused
+    // with 507 before anything is accepted.
+    let listed = async || {
+        let list = get_json(&client, format!("{base}/v1/timelines")).await;
+        list["timelines"].as_array().unwrap().len()
+    };
+    let count = listed().await;
+    std::fs::remove_dir_all(&dir).unwrap();
+    std::fs::write(&dir, b"not a directory").unwrap();
+    let response = post(
+        &client,
+        &base,
+        "lines=20000&fps=4",
+        "model/gltf+json",
+        scene("cornell_box.gltf"),
+    )
+    .await;
+    assert_eq!(response.status(), 507);
+    let problem: Value = response.json().await.unwrap();
+    let detail = problem["detail"].as_str().unwrap();
+    assert!(detail.contains("nothing was accepted"), "{problem}");
+    assert_eq!(listed().await, count);
+    std::fs::remove_file(&dir).unwrap();
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

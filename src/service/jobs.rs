@@ -660,10 +660,12 @@ impl Job {
         }
         let frames = self.frames();
         let every = (frames.iter()).all(|f| f.as_ref().is_some_and(|(v, _)| *v == version));
-        let solved: Vec<Arc<FrameSolution>> = frames.into_iter().flatten().map(|(_, s)| s).collect();
+        let solved: Vec<Arc<FrameSolution>> =
+            frames.into_iter().flatten().map(|(_, s)| s).collect();
         let exposure = of(&solved);
         if every {
-            *self.exposure.lock().unwrap_or_else(PoisonError::into_inner) = Some((version, exposure));
+            *self.exposure.lock().unwrap_or_else(PoisonError::into_inner) =
+                Some((version, exposure));
         }
         exposure
     }
