@@ -116,10 +116,35 @@ impl Bake {
     ) -> Result<Self, TraceError> {
         let tracer = SceneTracer::new(&scene);
         let list = IntersectionList::build(&scene, &tracer, params, control)?;
+        Self::of_list((scene, tracer), list, params.seed, control)
+    }
+
+    /// The bake of `scene` whose lines, of `seed`, are `list` (traced here, or by several
+    /// machines, [`IntersectionList::merge`]): the same bake as [`Bake::trace_with`] makes of
+    /// the same lines.
+    ///
+    /// # Errors
+    /// [`TraceError::Cancelled`] if `control` is cancelled.
+    pub fn of_merged_list(
+        scene: Scene,
+        list: IntersectionList,
+        seed: u64,
+        control: &Control,
+    ) -> Result<Self, TraceError> {
+        let tracer = SceneTracer::new(&scene);
+        Self::of_list((scene, tracer), list, seed, control)
+    }
+
+    /// [`Bake::of_merged_list`] with the scene's tracer.
+    fn of_list(
+        (scene, tracer): (Scene, SceneTracer),
+        list: IntersectionList,
+        seed: u64,
+        control: &Control,
+    ) -> Result<Self, TraceError> {
         let mut tallies = Tallies::default();
         tallies.update(&list, &tracer.surfaces(), scene.patches.len());
-        let (direct, area) =
-            Self::sampled_lights(&scene, &tracer, (list.lines(), params.seed), control)?;
+        let (direct, area) = Self::sampled_lights(&scene, &tracer, (list.lines(), seed), control)?;
         let warnings = overlap_warnings(&scene, &tracer, &list);
         Ok(Self {
             scene,
@@ -128,7 +153,7 @@ impl Bake {
             tallies,
             direct,
             area,
-            seed: params.seed,
+            seed,
             warnings,
             inherited: false,
             pieces: None,

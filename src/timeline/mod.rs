@@ -88,7 +88,7 @@ struct BatchLines {
 }
 
 /// The intersection list of a timeline.
-#[derive(serde::Serialize, serde::Deserialize)]
+#[derive(Clone, serde::Serialize, serde::Deserialize)]
 pub struct IntersectionList {
     batches: Vec<BatchLines>,
     /// The first line of every bundle of every batch, in line order, with the bundle's
@@ -111,6 +111,28 @@ pub struct IntersectionList {
     weights: Vec<u8>,
     /// The scene's box the global lines were drawn against.
     bounds: Bounds,
+}
+
+/// A part of a batch of lines for one machine of several: the bundles `b` with
+/// `b % count == index` ([`IntersectionList::build_shard`]); [`IntersectionList::merge`] puts
+/// the parts together again.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct Shard {
+    /// Which part, from 0.
+    pub index: u32,
+    /// How many parts (at least 1).
+    pub count: u32,
+}
+
+impl Shard {
+    /// The whole batch.
+    pub const WHOLE: Self = Self { index: 0, count: 1 };
+
+    /// Whether bundle `bundle` is this part's.
+    #[must_use]
+    pub fn owns(self, bundle: u32) -> bool {
+        bundle % self.count == self.index
+    }
 }
 
 /// What the list holds and the memory it takes.
@@ -142,6 +164,21 @@ impl IntersectionList {
         params: &LineParams,
         control: &Control,
     ) -> Result<Self, TraceError> {
+        Self::build_shard(scene, tracer, params, Shard::WHOLE, control)
+    }
+
+    /// [`IntersectionList::build`] for `shard`'s bundles only: the others are in the list
+    /// without lines. [`IntersectionList::merge`] makes the whole list of the parts.
+    ///
+    /// # Errors
+    /// [`TraceError::Cancelled`] if `control` is cancelled.
+    pub fn build_shard(
+        scene: &Scene,
+        tracer: &SceneTracer,
+        params: &LineParams,
+        shard: Shard,
+        control: &Control,
+    ) -> Result<Self, TraceError> {
         let mut list = Self {
             batches: Vec::new(),
             bundle_starts: Vec::new(),
@@ -155,7 +192,103 @@ impl IntersectionList {
             weights: Vec::new(),
             bounds: scene.bounds,
         };
-        list.add_lines(scene, tracer, params, control)?;
+        let global = Batch::for_budget(params.lines, None, &scene.bounds, params.seed, 0);
+        list.add_batches(&[global], shard, scene, tracer, control)?;
+        list.weights = list.weights_of_lines();
+        Ok(list)
+    }
+
+    /// The list of a whole batch of lines from the lists of its `parts`
+    /// ([`IntersectionList::build_shard`] of one scene with the same lines, each part once, in
+    /// any order): the same list, to the bit, as [`IntersectionList::build`] makes.
+    ///
+    /// # Errors
+    /// What does not fit: parts of other lines or scenes, a part missing or given twice, a
+    /// list that is not a part.
+    pub fn merge(mut parts: Vec<(Shard, Self)>) -> Result<Self, String> {
+        parts.sort_by_key(|(shard, _)| shard.index);
+        let count = parts.len();
+        for (k, (shard, _)) in parts.iter().enumerate() {
+            if shard.count as usize != count || shard.index as usize != k {
+                let have: Vec<String> = (parts.iter())
+                    .map(|(s, _)| format!("{}/{}", s.index, s.count))
+                    .collect();
+                return Err(format!(
+                    "the parts are not each part of one set once: {} (part K/N for every K                      from 0 to N - 1 is needed)",
+                    have.join(", ")
+                ));
+            }
+        }
+        let Some((_, first)) = parts.first() else {
+            return Err("no part to merge".into());
+        };
+        let Some(batch) = first.batches.first().filter(|_| first.batches.len() == 1) else {
+            return Err("a part holds other than one batch of lines".into());
+        };
+        let (batch, frames, bounds) = (batch.batch, first.frames, first.bounds);
+        let bundles = batch.bundles as usize;
+        for (shard, part) in &parts {
+            let fits = part.batches.len() == 1
+                && part.batches[0].batch == batch
+                && part.batches[0].bundle_lines.len() == bundles
+                && part.bundle_starts.len() == bundles
+                && part.frames == frames
+                && part.bounds == bounds
+                && part.dense.is_empty();
+            if !fits {
+                return Err(format!(
+                    "part {}/{} is not of the lines or the scene of part 0/{count}",
+                    shard.index, shard.count
+                ));
+            }
+            let foreign = (0..batch.bundles)
+                .any(|b| !shard.owns(b) && part.batches[0].bundle_lines[b as usize] != 0);
+            if foreign {
+                return Err(format!(
+                    "part {}/{} holds lines of other parts",
+                    shard.index, shard.count
+                ));
+            }
+        }
+        let mut list = Self {
+            batches: Vec::new(),
+            bundle_starts: Vec::with_capacity(bundles),
+            frames,
+            static_offsets: vec![0],
+            static_hits: Vec::new(),
+            dynamic_offsets: vec![0],
+            dynamic_hits: Vec::new(),
+            dense: Vec::new(),
+            factor: 1,
+            weights: Vec::new(),
+            bounds,
+        };
+        let mut next = vec![0usize; count];
+        let mut bundle_lines = Vec::with_capacity(bundles);
+        let too_many = |_| "the parts hold more crossings than a list can".to_string();
+        for b in 0..bundles {
+            let (owner, part) = (b % count, &parts[b % count].1);
+            let lines = part.batches[0].bundle_lines[b] as usize;
+            list.bundle_starts
+                .push((list.lines() as u32, part.bundle_starts[b].1));
+            for l in next[owner]..next[owner] + lines {
+                let statics = &part.static_hits
+                    [part.static_offsets[l] as usize..part.static_offsets[l + 1] as usize];
+                let moving = &part.dynamic_hits
+                    [part.dynamic_offsets[l] as usize..part.dynamic_offsets[l + 1] as usize];
+                append_csr(&mut list.static_offsets, &[statics.len() as u32]).map_err(too_many)?;
+                append_csr(&mut list.dynamic_offsets, &[moving.len() as u32]).map_err(too_many)?;
+                list.static_hits.extend_from_slice(statics);
+                list.dynamic_hits.extend_from_slice(moving);
+            }
+            next[owner] += lines;
+            bundle_lines.push(lines as u32);
+        }
+        list.batches.push(BatchLines {
+            batch,
+            bundle_lines,
+        });
+        list.weights = list.weights_of_lines();
         Ok(list)
     }
 
@@ -184,7 +317,7 @@ impl IntersectionList {
                 index,
             ));
         }
-        self.add_batches(&batches, scene, tracer, control)?;
+        self.add_batches(&batches, Shard::WHOLE, scene, tracer, control)?;
         self.weights = self.weights_of_lines();
         Ok(())
     }
@@ -223,7 +356,7 @@ impl IntersectionList {
                 index += 1;
             }
         }
-        self.add_batches(&batches, scene, tracer, control)?;
+        self.add_batches(&batches, Shard::WHOLE, scene, tracer, control)?;
         (self.dense, self.factor) = (regions.to_vec(), factor);
         self.weights = self.weights_of_lines();
         Ok(())
@@ -292,13 +425,14 @@ impl IntersectionList {
     fn add_batches(
         &mut self,
         batches: &[Batch],
+        shard: Shard,
         scene: &Scene,
         tracer: &SceneTracer,
         control: &Control,
     ) -> Result<(), TraceError> {
         let mut traced = Vec::with_capacity(batches.len());
         for batch in batches {
-            traced.push(self.trace_batch(batch, scene, tracer, control)?);
+            traced.push(self.trace_batch(batch, shard, scene, tracer, control)?);
         }
         // Nothing is appended to the list until everything is traced: a cancelled or failed
         // batch leaves the list as it was.
@@ -343,6 +477,7 @@ impl IntersectionList {
     fn trace_batch(
         &self,
         batch: &Batch,
+        shard: Shard,
         scene: &Scene,
         tracer: &SceneTracer,
         control: &Control,
@@ -365,6 +500,8 @@ impl IntersectionList {
                 } else {
                     batch.bundle(k, &scene.bounds)
                 };
+                // Another part's bundle: in the list, without lines.
+                let origins = if shard.owns(k) { origins } else { Vec::new() };
                 ParallelLines::new(direction, origins)
             })
             .collect();
