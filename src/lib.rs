@@ -34,6 +34,7 @@
 //! - [`service`]: the HTTP service (axum): jobs, their status and their frames.
 //! - [`control`]: progress and cancellation of long work, shared by the bake command and the
 //!   service.
+//! - [`checked`]: files that carry their length and checksum, read back only when whole.
 //! - [`batch`]: batch baking of scenes into files (`radiosity bake`).
 //! - [`bench`](mod@bench): the measurements behind the README's figures (`radiosity bench`).
 //! - [`samples`]: the generator of the sample scenes in `scenes/`.
@@ -44,6 +45,7 @@ pub mod adaptive;
 pub mod bake;
 pub mod batch;
 pub mod bench;
+pub mod checked;
 pub mod control;
 pub mod direct;
 pub mod lines;

@@ -73,6 +73,10 @@ enum Command {
     /// summary.json, timings.json. Unchanged scenes are skipped; one failure does not stop the
     /// others; the exit status is non-zero if any failed.
     Bake(BakeArgs),
+    /// Merge the parts of a scene's bake traced on several machines (`bake SCENE --shard K/N`)
+    /// and bake on: the outputs `bake` writes for the scene, byte for byte (timings.json
+    /// aside). Takes the options the parts were traced with.
+    Merge(MergeArgs),
     /// Run the HTTP service (see api/ and the README).
     Serve(ServeArgs),
     /// Print a summary of a glTF scene: triangles, patches, static and moving objects, frames,
@@ -101,6 +105,30 @@ struct BakeArgs {
     /// Scenes or directories of scenes.
     #[arg(required = true)]
     inputs: Vec<PathBuf>,
+    /// Bake only part K of N (K from 0): with one scene file, trace only its lines' part K
+    /// (bundles b with b mod N = K) into OUT/<scene>/shard-K-of-N.part, for `radiosity merge`;
+    /// with directories or several files, bake only the scenes i (in sorted order, from 0)
+    /// with i mod N = K.
+    #[arg(long, value_name = "K/N", value_parser = parse_shard)]
+    shard: Option<radiosity::timeline::Shard>,
+    #[command(flatten)]
+    baking: BakingArgs,
+}
+
+/// The options of `radiosity merge`.
+#[derive(clap::Args)]
+struct MergeArgs {
+    /// The parts of one scene's bake (`bake SCENE --shard K/N`), every K from 0 to N - 1
+    /// once, in any order.
+    #[arg(required = true)]
+    parts: Vec<PathBuf>,
+    #[command(flatten)]
+    baking: BakingArgs,
+}
+
+/// What `bake` and `merge` bake with and write.
+#[derive(clap::Args)]
+struct BakingArgs {
     /// Output directory.
     #[arg(long)]
     out: PathBuf,
@@ -298,6 +326,28 @@ struct SamplesArgs {
     out: PathBuf,
 }
 
+/// Runs `work` (one scene's part or merge) with Ctrl-C cancelling it and its stages shown;
+/// fails with its reason.
+fn run_one(
+    out: &std::path::Path,
+    work: impl FnOnce(&radiosity::control::Control, &mut dyn FnMut(&str)) -> radiosity::batch::Outcome,
+) -> anyhow::Result<()> {
+    use radiosity::batch::Outcome;
+    let control = std::sync::Arc::new(radiosity::control::Control::default());
+    let handler = control.clone();
+    ctrlc::set_handler(move || handler.cancel()).context("the Ctrl-C handler")?;
+    let progress = radiosity::progress::Progress::new(control.clone());
+    let outcome = work(&control, &mut |line| progress.stage("", line));
+    progress.finish();
+    match outcome {
+        Outcome::Baked(path) => eprintln!("wrote {}", path.display()),
+        Outcome::Skipped(path) => eprintln!("up to date: {}", path.display()),
+        Outcome::Failed(reason) => anyhow::bail!("{reason}"),
+        Outcome::Cancelled => anyhow::bail!("interrupted: nothing written in {}", out.display()),
+    }
+    Ok(())
+}
+
 fn main() -> ExitCode {
     let cli = Cli::try_parse().unwrap_or_else(|e| with_suggestion(e).exit());
     match run(cli) {
@@ -354,6 +404,7 @@ fn with_suggestion(mut error: clap::Error) -> clap::Error {
 fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Bake(args) => args.run(),
+        Command::Merge(args) => args.run(),
         Command::Serve(args) => args.run(),
         Command::Scene(args) => args.run(),
         Command::Bench(args) => args.run(),
@@ -367,6 +418,37 @@ impl BakeArgs {
     fn run(self) -> anyhow::Result<()> {
         let Self {
             inputs,
+            shard,
+            baking,
+        } = self;
+        let (out, params) = baking.params()?;
+        match shard {
+            Some(shard) if inputs.len() == 1 && inputs[0].is_file() => {
+                run_one(&out, |control, log| {
+                    radiosity::batch::shard::trace_part(
+                        &inputs[0], &out, shard, &params, control, log,
+                    )
+                })
+            }
+            _ => bake(&inputs, shard, &out, &params),
+        }
+    }
+}
+
+impl MergeArgs {
+    fn run(self) -> anyhow::Result<()> {
+        let Self { parts, baking } = self;
+        let (out, params) = baking.params()?;
+        run_one(&out, |control, log| {
+            radiosity::batch::shard::merge(&parts, &out, &params, control, log)
+        })
+    }
+}
+
+impl BakingArgs {
+    /// The output directory and the parameters.
+    fn params(self) -> anyhow::Result<(PathBuf, radiosity::batch::BatchParams)> {
+        let Self {
             out,
             request,
             force,
@@ -390,7 +472,7 @@ impl BakeArgs {
             force,
             max_iterations: radiosity::solve::SolveParams::default().max_iterations,
         };
-        bake(&inputs, &out, &params)
+        Ok((out, params))
     }
 }
 
@@ -676,6 +758,20 @@ fn parse_exposure(s: &str) -> Result<f64, String> {
         .ok_or_else(|| format!("{s:?} is not an exposure (a finite number above 0)"))
 }
 
+/// A part `K/N` of a bake: N from 1 to 65,536, K from 0 to N - 1.
+fn parse_shard(s: &str) -> Result<radiosity::timeline::Shard, String> {
+    let wrong = || format!("{s:?} is not K/N (part K of N, K from 0 to N - 1, such as 0/4)");
+    let (k, n) = s.split_once('/').ok_or_else(wrong)?;
+    let (index, count): (u32, u32) = (
+        k.trim().parse().map_err(|_| wrong())?,
+        n.trim().parse().map_err(|_| wrong())?,
+    );
+    if count == 0 || count > 65_536 || index >= count {
+        return Err(wrong());
+    }
+    Ok(radiosity::timeline::Shard { index, count })
+}
+
 fn parse_size(s: &str) -> Result<(u32, u32), String> {
     let max = radiosity::output::preview::MAX_PREVIEW_SIDE;
     let side = |t: &str| {
@@ -717,12 +813,29 @@ fn parse_budget_gib(s: &str) -> Result<f64, String> {
 /// was cancelled; Ctrl-C cancels.
 fn bake(
     inputs: &[PathBuf],
+    shard: Option<radiosity::timeline::Shard>,
     out: &std::path::Path,
     params: &radiosity::batch::BatchParams,
 ) -> anyhow::Result<()> {
-    let scenes = radiosity::batch::scenes(inputs).context("listing the inputs")?;
+    let mut scenes = radiosity::batch::scenes(inputs).context("listing the inputs")?;
     if scenes.is_empty() {
         anyhow::bail!("no .glb or .gltf scene in the inputs");
+    }
+    if let Some(shard) = shard {
+        let all = scenes.len();
+        scenes = (scenes.into_iter().enumerate())
+            .filter(|&(i, _)| shard.owns(i as u32))
+            .map(|(_, s)| s)
+            .collect();
+        eprintln!(
+            "part {}/{}: {} of the {all} scenes",
+            shard.index,
+            shard.count,
+            scenes.len()
+        );
+        if scenes.is_empty() {
+            return Ok(());
+        }
     }
     let control = std::sync::Arc::new(radiosity::control::Control::default());
     let handler = control.clone();

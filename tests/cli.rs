@@ -679,3 +679,199 @@ fn an_exposure_given_is_the_one_used() {
     // The vertex colours follow it.
     assert_ne!(auto_glb, given_glb);
 }
+
+/// `radiosity ARGS... OPTIONS` run to success, its stderr.
+fn succeeds(args: &[&str], options: &[&str]) -> String {
+    let output = radiosity().args(args).args(options).output().unwrap();
+    let log = String::from_utf8_lossy(&output.stderr).to_string();
+    assert!(output.status.success(), "{args:?}: {log}");
+    log
+}
+
+/// `radiosity ARGS... OPTIONS` run to a failure, its stderr.
+fn fails(args: &[&str], options: &[&str]) -> String {
+    let output = radiosity().args(args).args(options).output().unwrap();
+    let log = String::from_utf8_lossy(&output.stderr).to_string();
+    assert!(!output.status.success(), "{args:?} succeeded: {log}");
+    log
+}
+
+#[test]
+fn a_bake_traced_in_parts_by_separate_processes_and_merged_is_the_single_bake() {
+    let options = [
+        "--lines",
+        "30000",
+        "--fps",
+        "4",
+        "--seed",
+        "5",
+        "--preview-size",
+        "160x120",
+    ];
+    let scene = sample("cornell_moving.gltf");
+    let scene = scene.to_str().unwrap();
+    let single = scratch("shard-single");
+    succeeds(
+        &["bake", scene, "--out", single.to_str().unwrap()],
+        &options,
+    );
+    let mut expected = files(&single.join("cornell_moving"));
+    expected.retain(|(name, _)| name != Path::new("timings.json"));
+    assert!(expected.len() > 10);
+    for count in 1..=3 {
+        let out = scratch(&format!("shard-{count}"));
+        let out_str = out.to_str().unwrap();
+        // The parts traced at once, as a cluster's machines trace them.
+        let parts: Vec<_> = (0..count)
+            .map(|k| {
+                let shard = format!("{k}/{count}");
+                radiosity()
+                    .args(["bake", scene, "--shard", &shard, "--out", out_str])
+                    .args(options)
+                    .stderr(std::process::Stdio::piped())
+                    .spawn()
+                    .unwrap()
+            })
+            .collect();
+        for part in parts {
+            let output = part.wait_with_output().unwrap();
+            let log = String::from_utf8_lossy(&output.stderr);
+            assert!(output.status.success(), "{log}");
+        }
+        let dir = out.join("cornell_moving");
+        // Given in reverse order.
+        let parts: Vec<String> = (0..count)
+            .rev()
+            .map(|k| dir.join(format!("shard-{k}-of-{count}.part")))
+            .map(|p| p.to_str().unwrap().to_string())
+            .collect();
+        let parts: Vec<&str> = parts.iter().map(String::as_str).collect();
+        succeeds(
+            &[&["merge"], &parts[..], &["--out", out_str]].concat(),
+            &options,
+        );
+        let mut merged = files(&dir);
+        merged.retain(|(name, _)| {
+            name != Path::new("timings.json") && name.extension().is_none_or(|e| e != "part")
+        });
+        let names = |f: &[(PathBuf, Vec<u8>)]| f.iter().map(|(n, _)| n.clone()).collect::<Vec<_>>();
+        assert_eq!(names(&merged), names(&expected), "{count} parts");
+        for ((name, a), (_, b)) in merged.iter().zip(&expected) {
+            assert!(a == b, "{} differs with {count} parts", name.display());
+        }
+        // The parts are kept beside the outputs.
+        assert!(Path::new(parts[0]).exists());
+        let _ = std::fs::remove_dir_all(&out);
+    }
+    let _ = std::fs::remove_dir_all(&single);
+}
+
+#[test]
+fn parts_of_another_scene_or_seed_or_a_part_missing_are_refused_by_name() {
+    let out = scratch("shard-refused");
+    let out_str = out.to_str().unwrap();
+    let options = ["--lines", "5000", "--fps", "2"];
+    let part = |scene: &str, shard: &str, extra: &[&str]| {
+        let path = sample(scene);
+        let args = [
+            "bake",
+            path.to_str().unwrap(),
+            "--shard",
+            shard,
+            "--out",
+            out_str,
+        ];
+        succeeds(&[&args[..], extra].concat(), &options);
+    };
+    part("cornell_moving.gltf", "0/2", &[]);
+    part("cornell_moving.gltf", "1/2", &[]);
+    part("cornell_box.gltf", "1/2", &[]);
+    let path = |scene: &str, k: u32| {
+        let file = out.join(scene).join(format!("shard-{k}-of-2.part"));
+        file.to_str().unwrap().to_string()
+    };
+    let (moving, boxed) = (
+        (path("cornell_moving", 0), path("cornell_moving", 1)),
+        path("cornell_box", 1),
+    );
+    let merge = |parts: &[&str], extra: &[&str]| {
+        let args = [&["merge"], parts, &["--out", out_str], extra].concat();
+        fails(&args, &options)
+    };
+    let other_scene = merge(&[&moving.0, &boxed], &[]);
+    assert!(
+        other_scene.contains("parts of different bakes"),
+        "{other_scene}"
+    );
+    let missing = merge(&[&moving.1], &[]);
+    assert!(
+        missing.contains("1/2") && missing.contains("every K"),
+        "{missing}"
+    );
+    let other_seed = merge(&[&moving.0, &moving.1], &["--seed", "2"]);
+    assert!(other_seed.contains("other parameters"), "{other_seed}");
+    // A part traced again with another seed, beside its sibling of the first seed.
+    part("cornell_moving.gltf", "1/2", &["--seed", "2"]);
+    let mixed = merge(&[&moving.0, &moving.1], &[]);
+    assert!(mixed.contains("parts of different bakes"), "{mixed}");
+    let wrong = fails(
+        &[
+            "bake",
+            moving.0.as_str(),
+            "--shard",
+            "2/2",
+            "--out",
+            out_str,
+        ],
+        &[],
+    );
+    assert!(wrong.contains("\"2/2\" is not K/N"), "{wrong}");
+    std::fs::write(&moving.1, b"not a part").unwrap();
+    let damaged = merge(&[&moving.0, &moving.1], &[]);
+    assert!(damaged.contains("not a part file"), "{damaged}");
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+#[test]
+fn a_directory_sharded_by_scene_bakes_each_scene_once() {
+    let input = scratch("shard-scenes-in");
+    let names = ["cornell_box", "cornell_moving", "parallel_squares"];
+    for name in names {
+        std::fs::copy(
+            sample(&format!("{name}.gltf")),
+            input.join(format!("{name}.gltf")),
+        )
+        .unwrap();
+    }
+    let out = scratch("shard-scenes-out");
+    let mut baked = Vec::new();
+    for k in 0..2 {
+        let part = out.join(k.to_string());
+        let shard = format!("{k}/2");
+        let args = [
+            "bake",
+            input.to_str().unwrap(),
+            "--shard",
+            &shard,
+            "--out",
+            part.to_str().unwrap(),
+        ];
+        succeeds(&args, &["--lines", "5000", "--fps", "2"]);
+        for entry in std::fs::read_dir(&part).unwrap() {
+            baked.push((k, entry.unwrap().file_name().into_string().unwrap()));
+        }
+    }
+    baked.sort_by(|a, b| a.1.cmp(&b.1));
+    // Scene i (sorted) to part i mod 2.
+    assert_eq!(
+        baked,
+        [
+            (0, "cornell_box"),
+            (1, "cornell_moving"),
+            (0, "parallel_squares")
+        ]
+        .map(|(k, n)| (k, n.to_string()))
+    );
+    let _ = std::fs::remove_dir_all(&input);
+    let _ = std::fs::remove_dir_all(&out);
+}

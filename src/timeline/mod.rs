@@ -214,7 +214,8 @@ impl IntersectionList {
                     .map(|(s, _)| format!("{}/{}", s.index, s.count))
                     .collect();
                 return Err(format!(
-                    "the parts are not each part of one set once: {} (part K/N for every K                      from 0 to N - 1 is needed)",
+                    "the parts are not each part of one set once: {} (part K/N for every K \
+                     from 0 to N - 1 is needed)",
                     have.join(", ")
                 ));
             }

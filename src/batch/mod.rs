@@ -21,6 +21,8 @@
 //! forced; a scene that fails does not stop the others. A frame whose solve does not converge
 //! fails its scene before anything is written.
 
+pub mod shard;
+
 use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -359,11 +361,17 @@ fn write_outputs(
 }
 
 /// Replaces `dir` with the complete `staging` directory: the old outputs are moved aside, the
-/// new ones renamed into place, then the old ones removed.
+/// new ones renamed into place, then the old ones removed. Parts of a sharded bake
+/// ([`shard`]) in `dir` are not outputs: they are kept, moved into the new directory.
 fn swap_in(staging: &Path, dir: &Path) -> std::io::Result<()> {
     let old = hidden(dir, "old");
     if old.exists() {
         std::fs::remove_dir_all(&old)?;
+    }
+    for file in std::fs::read_dir(dir).into_iter().flatten().flatten() {
+        if file.path().extension().is_some_and(|e| e == "part") {
+            std::fs::rename(file.path(), staging.join(file.file_name()))?;
+        }
     }
     if dir.exists() {
         std::fs::rename(dir, &old)?;
@@ -479,8 +487,27 @@ fn bake_scene(
         if frames == 1 { "" } else { "s" },
         scene.patches.len()
     ));
-    let mut bake = Bake::trace_with(scene, &settings.lines, control)?;
+    let bake = Bake::trace_with(scene, &settings.lines, control)?;
     timings.trace = lap();
+    finish(bake, timings, params, control, log)
+}
+
+/// [`bake_scene`] from its traced `bake` on (`timings` of the stages before it): its patches
+/// cut (`auto`), split into pieces, every frame solved.
+fn finish(
+    mut bake: Bake,
+    mut timings: Timings,
+    params: &BatchParams,
+    control: &Control,
+    log: &mut dyn FnMut(String),
+) -> Result<Baked, Stop> {
+    let settings = &params.settings;
+    let mut started = Instant::now();
+    let mut lap = || {
+        std::mem::replace(&mut started, Instant::now())
+            .elapsed()
+            .as_secs_f64()
+    };
     let solve = SolveParams {
         sky: settings.sky,
         max_iterations: params.max_iterations,

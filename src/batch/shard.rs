@@ -1,0 +1,236 @@
+//! One scene's bake over several machines (`radiosity bake SCENE --shard K/N`, then
+//! `radiosity merge`): each machine traces the bundles of lines `b ≡ K mod N`
+//! ([`IntersectionList::build_shard`]) and writes them as a part file; the merge puts the parts
+//! together into the list one machine traces ([`IntersectionList::merge`], to the bit) and
+//! bakes on from there as `bake` does, so its outputs are byte-identical to a single machine's
+//! (`timings.json` aside).
+//!
+//! A part, `OUT/<scene>/shard-K-of-N.part`, is a checked file ([`crate::checked`]) whose
+//! payload is `RADPART1`, the build that wrote it ([`checked::build`]: the encoding does not
+//! describe itself, so only the same build reads it), then the scene's name, the content hash
+//! of its bytes and parameters, the shard, the scene's bytes (the merge needs nothing else)
+//! and the part's crossings (the intersection list of its lines: the patches are cut after
+//! tracing where the light needs them, `patch_size=auto`, so the parts carry crossings, not
+//! tallies of patches not made yet).
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use serde::{Deserialize, Serialize};
+
+use super::{BatchParams, Outcome, Timings, content_hash, finish, write_scene};
+use crate::bake::Bake;
+use crate::checked;
+use crate::control::{Control, Stop};
+use crate::loader;
+use crate::timeline::{IntersectionList, Shard};
+use crate::trace::SceneTracer;
+
+/// First bytes of a part's payload.
+const PART: &[u8; 8] = b"RADPART1";
+/// Bytes of a part's payload before its encoded contents: [`PART`] and the build.
+const PART_HEADER: usize = 8 + 12;
+
+/// A part as written.
+#[derive(Serialize)]
+struct Written<'a> {
+    name: &'a str,
+    hash: &'a str,
+    shard: Shard,
+    scene: &'a [u8],
+    list: &'a IntersectionList,
+}
+
+/// A part as read.
+#[derive(Deserialize)]
+struct Part {
+    name: String,
+    hash: String,
+    shard: Shard,
+    scene: Vec<u8>,
+    list: IntersectionList,
+}
+
+/// The name of shard `shard`'s part.
+#[must_use]
+pub fn part_name(shard: Shard) -> String {
+    format!("shard-{}-of-{}.part", shard.index, shard.count)
+}
+
+/// The scene's name (its file's stem) and bytes, as a bake names and reads it.
+fn read_scene(path: &Path) -> Result<(String, Vec<u8>), String> {
+    let name = path
+        .file_stem()
+        .map_or_else(|| "scene".to_string(), |s| s.to_string_lossy().into_owned());
+    let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    Ok((name, bytes))
+}
+
+/// Traces `shard`'s lines of the scene at `path` with `params` into
+/// `out/<scene>/shard-K-of-N.part` (skipped if that part is there for the same content and
+/// build, unless forced). `log` receives a line as each stage starts.
+pub fn trace_part(
+    path: &Path,
+    out: &Path,
+    shard: Shard,
+    params: &BatchParams,
+    control: &Control,
+    log: &mut dyn FnMut(&str),
+) -> Outcome {
+    let (name, bytes) = match read_scene(path) {
+        Ok(read) => read,
+        Err(e) => return Outcome::Failed(e),
+    };
+    let hash = content_hash(&bytes, params);
+    let file = out.join(&name).join(part_name(shard));
+    if !params.force && read_part(&file).is_ok_and(|p| p.hash == hash && p.shard == shard) {
+        return Outcome::Skipped(file);
+    }
+    let traced = (|| {
+        control.start_stage(0);
+        log(&format!("{name}: loading"));
+        let scene =
+            loader::load(&bytes, &params.settings.load).map_err(|e| Stop::Failed(e.to_string()))?;
+        let lines = &params.settings.lines;
+        log(&format!(
+            "{name}: tracing part {}/{} of {} lines through {} frames",
+            shard.index, shard.count, lines.lines, scene.frames.count
+        ));
+        let tracer = SceneTracer::new(&scene);
+        Ok(IntersectionList::build_shard(
+            &scene, &tracer, lines, shard, control,
+        )?)
+    })();
+    let list = match traced {
+        Ok(list) => list,
+        Err(Stop::Cancelled) => return Outcome::Cancelled,
+        Err(Stop::Failed(e)) => return Outcome::Failed(e),
+    };
+    let written = Written {
+        name: &name,
+        hash: &hash,
+        shard,
+        scene: &bytes,
+        list: &list,
+    };
+    match write_part(&file, &written) {
+        Ok(()) => Outcome::Baked(file),
+        Err(e) => Outcome::Failed(format!("{}: {e}", file.display())),
+    }
+}
+
+/// Writes `part` to `file` whole or not at all (a temporary file, flushed, renamed).
+fn write_part(file: &Path, part: &Written) -> std::io::Result<()> {
+    let Some(build) = checked::build() else {
+        return Err(std::io::Error::other(
+            "this build cannot read its own executable, which identifies its parts",
+        ));
+    };
+    let mut out = vec![0; checked::HEADER];
+    out.extend_from_slice(PART);
+    out.extend_from_slice(&build);
+    let out = checked::sealed(postcard::to_extend(part, out).map_err(std::io::Error::other)?);
+    if let Some(dir) = file.parent() {
+        std::fs::create_dir_all(dir)?;
+    }
+    let tmp = file.with_extension("part.tmp");
+    let written = std::fs::File::create(&tmp)
+        .and_then(|mut f| {
+            f.write_all(&out)?;
+            f.sync_all()
+        })
+        .and_then(|()| std::fs::rename(&tmp, file));
+    if written.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    written
+}
+
+/// The part in `file`.
+fn read_part(file: &Path) -> Result<Part, String> {
+    let bytes = std::fs::read(file).map_err(|e| format!("{}: {e}", file.display()))?;
+    let what = |e: &dyn std::fmt::Display| format!("{}: {e}", file.display());
+    if !bytes.starts_with(checked::CHECKED) {
+        return Err(what(&"not a part file (made by `radiosity bake --shard`)"));
+    }
+    let payload = checked::payload("the part", &bytes).map_err(|e| what(&e))?;
+    if payload.get(..8) != Some(PART) {
+        return Err(what(&"not a part file (made by `radiosity bake --shard`)"));
+    }
+    let build = checked::build();
+    if build.is_none_or(|b| payload.get(8..PART_HEADER) != Some(&b[..])) {
+        return Err(what(
+            &"made by another build of radiosity: parts are merged by the build that traced \
+              them (the same image on every machine)",
+        ));
+    }
+    postcard::from_bytes(&payload[PART_HEADER..])
+        .map_err(|e| what(&format!("the part is damaged: {e}")))
+}
+
+/// Merges the parts in `files` (every part of one scene's lines, once each, in any order) and
+/// bakes on as [`super::bake_one`] does, into `out/<scene>/`, with `params`, which must be the
+/// parameters the parts were traced with. `log` receives a line as each stage starts.
+pub fn merge(
+    files: &[PathBuf],
+    out: &Path,
+    params: &BatchParams,
+    control: &Control,
+    log: &mut dyn FnMut(&str),
+) -> Outcome {
+    let started = Instant::now();
+    let mut parts = Vec::with_capacity(files.len());
+    for file in files {
+        match read_part(file) {
+            Ok(part) => parts.push((file, part)),
+            Err(e) => return Outcome::Failed(e),
+        }
+    }
+    let Some((first_file, first)) = parts.first() else {
+        return Outcome::Failed("no part to merge".into());
+    };
+    let (name, hash) = (first.name.clone(), first.hash.clone());
+    for (file, part) in &parts {
+        if part.hash != hash {
+            return Outcome::Failed(format!(
+                "{} and {} are parts of different bakes (another scene, or other parameters)",
+                first_file.display(),
+                file.display()
+            ));
+        }
+    }
+    let scene_bytes = std::mem::take(&mut parts[0].1.scene);
+    if content_hash(&scene_bytes, params) != hash {
+        return Outcome::Failed(format!(
+            "the parts of {name} were traced with other parameters than this merge's: give \
+             merge the options the parts were traced with"
+        ));
+    }
+    let lists = parts.into_iter().map(|(_, p)| (p.shard, p.list)).collect();
+    let list = match IntersectionList::merge(lists) {
+        Ok(list) => list,
+        Err(e) => return Outcome::Failed(format!("{name}: {e}")),
+    };
+    let dir = out.join(&name);
+    let mut log = |line: String| log(&format!("{name}: {line}"));
+    let baked = (|| {
+        control.start_stage(0);
+        log(format!("merged {} lines; loading", list.lines()));
+        let scene = loader::load(&scene_bytes, &params.settings.load)
+            .map_err(|e| Stop::Failed(e.to_string()))?;
+        let seed = params.settings.lines.seed;
+        let bake = Bake::of_merged_list(scene, list, seed, control)?;
+        let timings = Timings {
+            trace: started.elapsed().as_secs_f64(),
+            ..Timings::default()
+        };
+        finish(bake, timings, params, control, &mut log)
+    })();
+    match baked.and_then(|baked| write_scene(&dir, (&name, hash), baked, params, control, &mut log))
+    {
+        Ok(()) => Outcome::Baked(dir),
+        Err(Stop::Cancelled) => Outcome::Cancelled,
+        Err(Stop::Failed(reason)) => Outcome::Failed(reason),
+    }
+}
