@@ -1,0 +1,44 @@
+#!/usr/bin/env bash
+# A bake traced in parts by N processes on this machine and merged, against one bake of the
+# same lines (issue 18's measurement):
+#
+#   docs/shard.sh SCENE "N..." [bake options]     e.g.  docs/shard.sh scenes/level.gltf "2 4" --fps 6
+#
+# For the single bake and for each N: the seconds of the parts (all N at once), of the merge,
+# and in all; the bytes of the parts; and whether the outputs are byte-identical to the single
+# bake's (timings.json aside). The parts share this machine's cores, so the times say what
+# sharding costs (the parts' trace against one trace, the merge's reading), not what N
+# machines gain: each part traces 1/N of the lines.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+scene=$1
+counts=$2
+shift 2
+radiosity=./target/release/radiosity
+name=$(basename "${scene%.*}")
+work=$(mktemp -d)
+trap 'rm -rf "$work"' EXIT
+now() { date +%s.%N; }
+since() { python3 -c "import sys; print(f'{float(sys.argv[2]) - float(sys.argv[1]):.2f}')" "$1" "$(now)"; }
+start=$(now)
+$radiosity bake "$scene" --out "$work/single" "$@" 2>/dev/null
+echo "single: $(since "$start") s; trace $(python3 -c "import json; t = json.load(open('$work/single/$name/timings.json')); print(round(t['trace'], 2), 's of it')")"
+for n in $counts; do
+    out="$work/n$n"
+    start=$(now)
+    for k in $(seq 0 $((n - 1))); do
+        $radiosity bake "$scene" --shard "$k/$n" --out "$out" "$@" 2>/dev/null &
+    done
+    wait
+    parts=$(since "$start")
+    start=$(now)
+    $radiosity merge "$out/$name"/shard-*.part --out "$out" "$@" 2>/dev/null
+    merge=$(since "$start")
+    bytes=$(du -cb "$out/$name"/shard-*.part | tail -1 | cut -f1)
+    if diff -r -q -x '*.part' -x timings.json "$work/single/$name" "$out/$name" >/dev/null; then
+        same=identical
+    else
+        same=DIFFERENT
+    fi
+    echo "N=$n: parts $parts s (at once), merge $merge s, parts $((bytes / 1000000)) MB in all; outputs $same"
+done
