@@ -74,8 +74,8 @@ enum Command {
     /// others; the exit status is non-zero if any failed.
     Bake(BakeArgs),
     /// Merge the parts of a scene's bake traced on several machines (`bake SCENE --shard K/N`)
-    /// and bake on: the outputs `bake` writes for the scene, byte for byte (timings.json
-    /// aside). Takes the options the parts were traced with.
+    /// and bake on with what the parts were asked for: the outputs `bake` writes for the
+    /// scene, byte for byte (timings.json aside); the outputs' options are merge's own.
     Merge(MergeArgs),
     /// Run the HTTP service (see api/ and the README).
     Serve(ServeArgs),
@@ -119,14 +119,21 @@ struct BakeArgs {
 #[derive(clap::Args)]
 struct MergeArgs {
     /// The parts of one scene's bake (`bake SCENE --shard K/N`), every K from 0 to N - 1
-    /// once, in any order.
+    /// once, in any order: they carry what the bake was asked for (lines, seed, frames,
+    /// patches...).
     #[arg(required = true)]
     parts: Vec<PathBuf>,
+    /// Output directory.
+    #[arg(long)]
+    out: PathBuf,
+    /// Merge even if the outputs are up to date.
+    #[arg(long)]
+    force: bool,
     #[command(flatten)]
-    baking: BakingArgs,
+    outputs: OutputArgs,
 }
 
-/// What `bake` and `merge` bake with and write.
+/// What `bake` bakes with and writes.
 #[derive(clap::Args)]
 struct BakingArgs {
     /// Output directory.
@@ -137,6 +144,13 @@ struct BakingArgs {
     /// Bake even scenes whose outputs are up to date.
     #[arg(long)]
     force: bool,
+    #[command(flatten)]
+    outputs: OutputArgs,
+}
+
+/// The outputs `bake` and `merge` write besides `radiance.bin` and `summary.json`.
+#[derive(clap::Args)]
+struct OutputArgs {
     /// Frames written as baked glTF (baked/frame_NNNN.glb): all, none, or a list such as
     /// 0,10-20,middle,last.
     #[arg(long, default_value = "all")]
@@ -437,10 +451,15 @@ impl BakeArgs {
 
 impl MergeArgs {
     fn run(self) -> anyhow::Result<()> {
-        let Self { parts, baking } = self;
-        let (out, params) = baking.params()?;
+        let Self {
+            parts,
+            out,
+            force,
+            outputs,
+        } = self;
+        let outputs = outputs.outputs();
         run_one(&out, |control, log| {
-            radiosity::batch::shard::merge(&parts, &out, &params, control, log)
+            radiosity::batch::shard::merge(&parts, &out, (&outputs, force), control, log)
         })
     }
 }
@@ -452,6 +471,21 @@ impl BakingArgs {
             out,
             request,
             force,
+            outputs,
+        } = self;
+        let params = radiosity::batch::BatchParams {
+            settings: settings(request)?,
+            outputs: outputs.outputs(),
+            force,
+            max_iterations: radiosity::solve::SolveParams::default().max_iterations,
+        };
+        Ok((out, params))
+    }
+}
+
+impl OutputArgs {
+    fn outputs(self) -> radiosity::batch::Outputs {
+        let Self {
             glb_frames,
             preview_frames,
             preview_size,
@@ -459,20 +493,14 @@ impl BakingArgs {
             exposure,
             preview_shading,
         } = self;
-        let params = radiosity::batch::BatchParams {
-            settings: settings(request)?,
-            outputs: radiosity::batch::Outputs {
-                glb_frames,
-                preview_frames,
-                preview_size,
-                gif: !no_gif,
-                exposure,
-                shading: preview_shading,
-            },
-            force,
-            max_iterations: radiosity::solve::SolveParams::default().max_iterations,
-        };
-        Ok((out, params))
+        radiosity::batch::Outputs {
+            glb_frames,
+            preview_frames,
+            preview_size,
+            gif: !no_gif,
+            exposure,
+            shading: preview_shading,
+        }
     }
 }
 

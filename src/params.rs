@@ -152,11 +152,12 @@ pub struct BakeRequest {
 }
 
 /// A [`BakeRequest`] checked, with its defaults filled in.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct BakeSettings {
     /// What to load ([`Limits::max_frames`] and [`Limits::max_patches`] included).
     pub load: LoadOptions,
     /// How patches are made.
+    #[serde(with = "patch_size_text")]
     pub patch_size: PatchSize,
     /// The patch budget asked for, if one was (`auto` only): [`BakeSettings::adaptive`].
     pub patch_budget: Option<usize>,
@@ -319,6 +320,22 @@ impl std::fmt::Display for PatchSize {
             Self::Source => f.write_str("source"),
             Self::Length(l) => write!(f, "{l}"),
         }
+    }
+}
+
+/// A [`PatchSize`] always as its text (`auto`, `source` or the length), read back by its
+/// parser: for encodings that do not describe themselves, where the JSON form (a length as a
+/// number) cannot be told from the others.
+mod patch_size_text {
+    use super::PatchSize;
+
+    pub fn serialize<S: serde::Serializer>(size: &PatchSize, s: S) -> Result<S::Ok, S::Error> {
+        s.collect_str(size)
+    }
+
+    pub fn deserialize<'de, D: serde::Deserializer<'de>>(d: D) -> Result<PatchSize, D::Error> {
+        let text = <String as serde::Deserialize>::deserialize(d)?;
+        text.parse().map_err(serde::de::Error::custom)
     }
 }
 

@@ -117,19 +117,20 @@ fn run(script: &str, volume: &Path, env: &HashMap<String, String>, index: Option
     );
 }
 
-/// The command line takes `options` (checked on `scene`, which validates as `bake` does).
-fn options_are_taken(options: &str, scene: &Path) {
+/// `radiosity COMMAND... FILE OPTIONS` (`scene` validates options as `bake` does); its
+/// stderr, asserting it succeeded when the command is `scene`.
+fn options_are_taken(command: &[&str], options: &str, file: &Path) -> String {
     let output = Command::new(env!("CARGO_BIN_EXE_radiosity"))
-        .arg("scene")
-        .arg(scene)
+        .args(command)
+        .arg(file)
         .args(options.split_whitespace())
         .output()
         .unwrap();
-    assert!(
-        output.status.success(),
-        "{options}: {}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+    let log = String::from_utf8_lossy(&output.stderr).to_string();
+    if command == ["scene"] {
+        assert!(output.status.success(), "{options}: {log}");
+    }
+    log
 }
 
 #[test]
@@ -145,8 +146,7 @@ fn the_manifests_bake_a_scene_in_parts_and_many_scenes_by_index() {
     let (_, merge_env, merge_script) = job("merge-job.yaml", claim);
     let (scenes, scenes_env, scenes_script) = job("scenes-job.yaml", claim);
     indexed("scenes-job.yaml", &scenes, &scenes_env, &scenes_script);
-    // The merge takes the trace's scene and options.
-    assert_eq!(trace_env["OPTIONS"], merge_env["OPTIONS"]);
+    // The merge takes the trace's scene (and its options, from the parts).
     let scene = PathBuf::from(&trace_env["SCENE"]);
     assert!(scene.starts_with("/bakes/scenes"), "{}", scene.display());
     assert_eq!(
@@ -155,6 +155,7 @@ fn the_manifests_bake_a_scene_in_parts_and_many_scenes_by_index() {
     );
     assert!(trace_script.contains("--out /bakes/parts"));
     assert!(merge_script.contains("merge /bakes/parts/\"$SCENE_NAME\"/shard-*.part"));
+    assert!(merge_script.contains("--out /bakes/out $OUTPUTS"));
 
     // The Jobs' commands, on a directory for the volume and the sample level as the scene.
     let dir = scratch("volume");
@@ -163,9 +164,12 @@ fn the_manifests_bake_a_scene_in_parts_and_many_scenes_by_index() {
     let level = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/level.gltf");
     let placed = scenes_dir.join(scene.file_name().unwrap());
     std::fs::copy(&level, &placed).unwrap();
-    for env in [&trace_env, &scenes_env] {
-        options_are_taken(&env["OPTIONS"], &placed);
+    for options in [&trace_env["OPTIONS"], &scenes_env["OPTIONS"]] {
+        options_are_taken(&["scene"], options, &placed);
     }
+    // (`merge` with a scene for a part refuses it once its options are taken.)
+    let outputs = options_are_taken(&["merge", "--out", "x"], &merge_env["OUTPUTS"], &placed);
+    assert!(outputs.contains("not a part file"), "{outputs}");
     for k in 0..parts {
         run(&trace_script, &dir, &trace_env, Some(k));
     }

@@ -460,6 +460,16 @@ struct Baked {
     timings: Timings,
 }
 
+/// Seconds since the last call (the first: since it was made).
+fn stopwatch() -> impl FnMut() -> f64 {
+    let mut started = Instant::now();
+    move || {
+        std::mem::replace(&mut started, Instant::now())
+            .elapsed()
+            .as_secs_f64()
+    }
+}
+
 /// Loads the scene of `bytes`, traces it, cuts its patches (`auto`), splits them into pieces
 /// and solves every frame, stage by stage on `control`, each stage named on `log`.
 fn bake_scene(
@@ -470,12 +480,7 @@ fn bake_scene(
 ) -> Result<Baked, Stop> {
     let settings = &params.settings;
     let mut timings = Timings::default();
-    let mut started = Instant::now();
-    let mut lap = || {
-        std::mem::replace(&mut started, Instant::now())
-            .elapsed()
-            .as_secs_f64()
-    };
+    let mut lap = stopwatch();
     control.start_stage(0);
     log("loading".into());
     let scene = loader::load(bytes, &settings.load).map_err(|e| Stop::Failed(e.to_string()))?;
@@ -502,12 +507,7 @@ fn finish(
     log: &mut dyn FnMut(String),
 ) -> Result<Baked, Stop> {
     let settings = &params.settings;
-    let mut started = Instant::now();
-    let mut lap = || {
-        std::mem::replace(&mut started, Instant::now())
-            .elapsed()
-            .as_secs_f64()
-    };
+    let mut lap = stopwatch();
     let solve = SolveParams {
         sky: settings.sky,
         max_iterations: params.max_iterations,

@@ -7,9 +7,10 @@
 //!
 //! A part, `OUT/<scene>/shard-K-of-N.part`, is a checked file ([`crate::checked`]) whose
 //! payload is `RADPART1`, the build that wrote it ([`checked::build`]: the encoding does not
-//! describe itself, so only the same build reads it), then the scene's name, the content hash
-//! of its bytes and parameters, the shard, the scene's bytes (the merge needs nothing else)
-//! and the part's crossings (the intersection list of its lines: the patches are cut after
+//! describe itself, so only the same build reads it), then the scene's name, what the bake is
+//! asked for (the settings and the solver's cap: the merge takes them from the parts, and only
+//! its outputs from its own options), a hash of those and the scene's bytes, the shard, the
+//! scene's bytes and the part's crossings (the intersection list of its lines: the patches are cut after
 //! tracing where the light needs them, `patch_size=auto`, so the parts carry crossings, not
 //! tallies of patches not made yet).
 
@@ -19,11 +20,12 @@ use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
 
-use super::{BatchParams, Outcome, Timings, content_hash, finish, write_scene};
+use super::{BatchParams, Outcome, Outputs, Timings, content_hash, finish, write_scene};
 use crate::bake::Bake;
 use crate::checked;
 use crate::control::{Control, Stop};
 use crate::loader;
+use crate::params::BakeSettings;
 use crate::timeline::{IntersectionList, Shard};
 use crate::trace::SceneTracer;
 
@@ -36,6 +38,8 @@ const PART_HEADER: usize = 8 + 12;
 #[derive(Serialize)]
 struct Written<'a> {
     name: &'a str,
+    settings: &'a BakeSettings,
+    max_iterations: usize,
     hash: &'a str,
     shard: Shard,
     scene: &'a [u8],
@@ -46,6 +50,8 @@ struct Written<'a> {
 #[derive(Deserialize)]
 struct Part {
     name: String,
+    settings: BakeSettings,
+    max_iterations: usize,
     hash: String,
     shard: Shard,
     scene: Vec<u8>,
@@ -56,6 +62,18 @@ struct Part {
 #[must_use]
 pub fn part_name(shard: Shard) -> String {
     format!("shard-{}-of-{}.part", shard.index, shard.count)
+}
+
+/// What tells the parts of one bake from others': the content hash of the scene's `bytes` and
+/// what the bake is asked for, whatever the outputs.
+fn bake_hash(bytes: &[u8], settings: &BakeSettings, max_iterations: usize) -> String {
+    let params = BatchParams {
+        settings: settings.clone(),
+        outputs: Outputs::default(),
+        force: false,
+        max_iterations,
+    };
+    content_hash(bytes, &params)
 }
 
 /// The scene's name (its file's stem) and bytes, as a bake names and reads it.
@@ -82,7 +100,7 @@ pub fn trace_part(
         Ok(read) => read,
         Err(e) => return Outcome::Failed(e),
     };
-    let hash = content_hash(&bytes, params);
+    let hash = bake_hash(&bytes, &params.settings, params.max_iterations);
     let file = out.join(&name).join(part_name(shard));
     if !params.force && read_part(&file).is_ok_and(|p| p.hash == hash && p.shard == shard) {
         return Outcome::Skipped(file);
@@ -109,6 +127,8 @@ pub fn trace_part(
     };
     let written = Written {
         name: &name,
+        settings: &params.settings,
+        max_iterations: params.max_iterations,
         hash: &hash,
         shard,
         scene: &bytes,
@@ -170,12 +190,13 @@ fn read_part(file: &Path) -> Result<Part, String> {
 }
 
 /// Merges the parts in `files` (every part of one scene's lines, once each, in any order) and
-/// bakes on as [`super::bake_one`] does, into `out/<scene>/`, with `params`, which must be the
-/// parameters the parts were traced with. `log` receives a line as each stage starts.
+/// bakes on as [`super::bake_one`] does with the parameters the parts were traced with, into
+/// `out/<scene>/` with `outputs` (`force`: even if they are up to date). `log` receives a line
+/// as each stage starts.
 pub fn merge(
     files: &[PathBuf],
     out: &Path,
-    params: &BatchParams,
+    (outputs, force): (&Outputs, bool),
     control: &Control,
     log: &mut dyn FnMut(&str),
 ) -> Outcome {
@@ -200,19 +221,27 @@ pub fn merge(
             ));
         }
     }
-    let scene_bytes = std::mem::take(&mut parts[0].1.scene);
-    if content_hash(&scene_bytes, params) != hash {
-        return Outcome::Failed(format!(
-            "the parts of {name} were traced with other parameters than this merge's: give \
-             merge the options the parts were traced with"
-        ));
+    let (first_file, first) = &mut parts[0];
+    let scene_bytes = std::mem::take(&mut first.scene);
+    if bake_hash(&scene_bytes, &first.settings, first.max_iterations) != hash {
+        return Outcome::Failed(format!("{}: the part is damaged", first_file.display()));
+    }
+    let params = &BatchParams {
+        settings: first.settings.clone(),
+        outputs: outputs.clone(),
+        force,
+        max_iterations: first.max_iterations,
+    };
+    let dir = out.join(&name);
+    let hash = content_hash(&scene_bytes, params);
+    if !force && super::up_to_date(&dir, &hash) {
+        return Outcome::Skipped(dir);
     }
     let lists = parts.into_iter().map(|(_, p)| (p.shard, p.list)).collect();
     let list = match IntersectionList::merge(lists) {
         Ok(list) => list,
         Err(e) => return Outcome::Failed(format!("{name}: {e}")),
     };
-    let dir = out.join(&name);
     let mut log = |line: String| log(&format!("{name}: {line}"));
     let baked = (|| {
         control.start_stage(0);

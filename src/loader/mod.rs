@@ -37,7 +37,7 @@ pub const MAX_PATCHES: usize = 2_000_000;
 
 /// What to load from a file, and the limits that keep a hostile file from exhausting memory.
 /// The same names are used by the CLI and the HTTP API.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct LoadOptions {
     /// Frames per second of the timeline.
     pub fps: f64,

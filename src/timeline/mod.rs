@@ -19,7 +19,7 @@ use crate::scene::{Bounds, Scene};
 use crate::trace::{FrameMeshes, Hit, Line, ParallelLines, SceneTracer, Scratch, sort_by_line};
 
 /// How many lines to trace, and from which seed.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct LineParams {
     /// Total number of lines (approximately: the grids' random offsets move it by a fraction of
     /// a percent).
@@ -167,6 +167,23 @@ impl IntersectionList {
         Self::build_shard(scene, tracer, params, Shard::WHOLE, control)
     }
 
+    /// A list of no lines yet, of `frames` frames, its lines drawn against `bounds`.
+    fn empty(frames: usize, bounds: Bounds) -> Self {
+        Self {
+            batches: Vec::new(),
+            bundle_starts: Vec::new(),
+            frames,
+            static_offsets: vec![0],
+            static_hits: Vec::new(),
+            dynamic_offsets: vec![0],
+            dynamic_hits: Vec::new(),
+            dense: Vec::new(),
+            factor: 1,
+            weights: Vec::new(),
+            bounds,
+        }
+    }
+
     /// [`IntersectionList::build`] for `shard`'s bundles only: the others are in the list
     /// without lines. [`IntersectionList::merge`] makes the whole list of the parts.
     ///
@@ -179,19 +196,7 @@ impl IntersectionList {
         shard: Shard,
         control: &Control,
     ) -> Result<Self, TraceError> {
-        let mut list = Self {
-            batches: Vec::new(),
-            bundle_starts: Vec::new(),
-            frames: scene.frames.count,
-            static_offsets: vec![0],
-            static_hits: Vec::new(),
-            dynamic_offsets: vec![0],
-            dynamic_hits: Vec::new(),
-            dense: Vec::new(),
-            factor: 1,
-            weights: Vec::new(),
-            bounds: scene.bounds,
-        };
+        let mut list = Self::empty(scene.frames.count, scene.bounds);
         let global = Batch::for_budget(params.lines, None, &scene.bounds, params.seed, 0);
         list.add_batches(&[global], shard, scene, tracer, control)?;
         list.weights = list.weights_of_lines();
@@ -251,19 +256,7 @@ impl IntersectionList {
                 ));
             }
         }
-        let mut list = Self {
-            batches: Vec::new(),
-            bundle_starts: Vec::with_capacity(bundles),
-            frames,
-            static_offsets: vec![0],
-            static_hits: Vec::new(),
-            dynamic_offsets: vec![0],
-            dynamic_hits: Vec::new(),
-            dense: Vec::new(),
-            factor: 1,
-            weights: Vec::new(),
-            bounds,
-        };
+        let mut list = Self::empty(frames, bounds);
         let mut next = vec![0usize; count];
         let mut bundle_lines = Vec::with_capacity(bundles);
         let too_many = |_| "the parts hold more crossings than a list can".to_string();
