@@ -14,25 +14,39 @@ cd "$(dirname "$0")/.."
 scene=$1
 counts=$2
 shift 2
+# The outputs' options, which merge takes (the parts carry the others).
+outputs=$(python3 -c '
+import sys
+args, kept, i = sys.argv[1:], [], 0
+valued = ("--glb-frames", "--preview-frames", "--preview-size", "--exposure", "--preview-shading")
+while i < len(args):
+    name = args[i].split("=")[0]
+    n = 2 if name in valued and "=" not in args[i] else 1
+    if name in valued or name == "--no-gif":
+        kept += args[i:i + n]
+    i += n if name in valued else 1
+print(" ".join(kept))' "$@")
 radiosity=./target/release/radiosity
 name=$(basename "${scene%.*}")
 work=$(mktemp -d)
-trap 'rm -rf "$work"' EXIT
+log=$(mktemp)
+# The commands' own output goes to a log, printed if one of them fails.
+trap 'status=$?; [ $status -ne 0 ] && tail -20 "$log"; rm -rf "$work" "$log"' EXIT
 now() { date +%s.%N; }
 since() { python3 -c "import sys; print(f'{float(sys.argv[2]) - float(sys.argv[1]):.2f}')" "$1" "$(now)"; }
 start=$(now)
-$radiosity bake "$scene" --out "$work/single" "$@" 2>/dev/null
+$radiosity bake "$scene" --out "$work/single" "$@" 2>>"$log"
 echo "single: $(since "$start") s; trace $(python3 -c "import json; t = json.load(open('$work/single/$name/timings.json')); print(round(t['trace'], 2), 's of it')")"
 for n in $counts; do
     out="$work/n$n"
     start=$(now)
     for k in $(seq 0 $((n - 1))); do
-        $radiosity bake "$scene" --shard "$k/$n" --out "$out" "$@" 2>/dev/null &
+        $radiosity bake "$scene" --shard "$k/$n" --out "$out" "$@" 2>>"$log" &
     done
-    wait
+    for k in $(seq 1 "$n"); do wait -n; done
     parts=$(since "$start")
     start=$(now)
-    $radiosity merge "$out/$name"/shard-*.part --out "$out" "$@" 2>/dev/null
+    $radiosity merge "$out/$name"/shard-*.part --out "$out" $outputs 2>>"$log"
     merge=$(since "$start")
     bytes=$(du -cb "$out/$name"/shard-*.part | tail -1 | cut -f1)
     if diff -r -q -x '*.part' -x timings.json "$work/single/$name" "$out/$name" >/dev/null; then
