@@ -11,7 +11,7 @@ use std::sync::Arc;
 
 use rayon::prelude::*;
 
-use crate::control::{Control, TraceError};
+use crate::control::{Control, Stop, TraceError};
 use crate::direct::DirectLight;
 use crate::direct::area::{AreaLights, Sampling};
 use crate::scene::{Light, Material, Scene};
@@ -124,15 +124,21 @@ impl Bake {
     /// the same lines.
     ///
     /// # Errors
-    /// [`TraceError::Cancelled`] if `control` is cancelled.
+    /// [`Stop::Cancelled`] if `control` is cancelled; [`Stop::Failed`] if the list crosses
+    /// triangles the scene does not have (a list of another scene).
     pub fn of_merged_list(
         scene: Scene,
         list: IntersectionList,
         seed: u64,
         control: &Control,
-    ) -> Result<Self, TraceError> {
+    ) -> Result<Self, Stop> {
         let tracer = SceneTracer::new(&scene);
-        Self::of_list((scene, tracer), list, seed, control)
+        if !list.crosses_only(tracer.faces().len()) {
+            return Err(Stop::Failed(
+                "the lines cross triangles the scene does not have".into(),
+            ));
+        }
+        Ok(Self::of_list((scene, tracer), list, seed, control)?)
     }
 
     /// [`Bake::of_merged_list`] with the scene's tracer.

@@ -167,6 +167,32 @@ impl IntersectionList {
         Self::build_shard(scene, tracer, params, Shard::WHOLE, control)
     }
 
+    /// Whether the list's arrays agree with each other: as many lines as its batches count,
+    /// each line's crossings within the arrays, in order, and frames within the timeline. What
+    /// this build wrote always does; a list read from elsewhere is checked before it is used.
+    fn is_whole(&self) -> bool {
+        let lines: usize = (self.batches.iter())
+            .flat_map(|b| &b.bundle_lines)
+            .map(|&n| n as usize)
+            .sum();
+        let csr = |offsets: &[u32], len: usize| {
+            offsets.len() == lines + 1
+                && offsets.first() == Some(&0)
+                && offsets.windows(2).all(|w| w[0] <= w[1])
+                && offsets.last().is_some_and(|&last| last as usize == len)
+        };
+        csr(&self.static_offsets, self.static_hits.len())
+            && csr(&self.dynamic_offsets, self.dynamic_hits.len())
+            && (self.dynamic_hits.iter()).all(|h| (h.frame as usize) < self.frames)
+    }
+
+    /// Whether every crossing is of one of the first `triangles` traced triangles.
+    #[must_use]
+    pub fn crosses_only(&self, triangles: usize) -> bool {
+        let within = |h: &Hit| (h.surface() as usize) < triangles;
+        self.static_hits.iter().all(within) && self.dynamic_hits.iter().all(|h| within(&h.hit))
+    }
+
     /// A list of no lines yet, of `frames` frames, its lines drawn against `bounds`.
     fn empty(frames: usize, bounds: Bounds) -> Self {
         Self {
@@ -252,6 +278,12 @@ impl IntersectionList {
             if foreign {
                 return Err(format!(
                     "part {}/{} holds lines of other parts",
+                    shard.index, shard.count
+                ));
+            }
+            if !part.is_whole() {
+                return Err(format!(
+                    "part {}/{} is damaged: its lines and crossings do not agree",
                     shard.index, shard.count
                 ));
             }
@@ -814,4 +846,72 @@ fn append_csr(offsets: &mut Vec<u32>, counts: &[u32]) -> Result<(), TraceError> 
         offsets.push(last);
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The parts of 3,000 lines through the Cornell box in `count` parts.
+    fn parts(count: u32) -> (Scene, Vec<(Shard, IntersectionList)>) {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/cornell_box.gltf");
+        let options = crate::loader::LoadOptions::default();
+        let scene = crate::loader::load(&std::fs::read(path).unwrap(), &options).unwrap();
+        let tracer = SceneTracer::new(&scene);
+        let params = LineParams {
+            lines: 3_000,
+            seed: 2,
+        };
+        let parts = (0..count)
+            .map(|index| {
+                let shard = Shard { index, count };
+                let control = Control::default();
+                let list = IntersectionList::build_shard(&scene, &tracer, &params, shard, &control);
+                (shard, list.unwrap())
+            })
+            .collect();
+        (scene, parts)
+    }
+
+    #[test]
+    fn a_part_whose_arrays_disagree_is_refused_not_read_out_of_bounds() {
+        let (_, whole) = parts(2);
+        assert!(IntersectionList::merge(whole.clone()).is_ok());
+        let damages: [fn(&mut IntersectionList); 4] = [
+            |l| {
+                l.static_offsets.pop();
+            },
+            |l| {
+                let hit = Hit::new(0.0, 0, true);
+                l.dynamic_hits.push(FrameHit { frame: 0, hit });
+            },
+            |l| *l.static_offsets.last_mut().unwrap() += 1,
+            |l| {
+                if let Some(h) = l.dynamic_hits.first_mut() {
+                    h.frame = 99;
+                } else {
+                    l.static_offsets[1] = u32::MAX;
+                }
+            },
+        ];
+        for (k, damage) in damages.iter().enumerate() {
+            let mut parts = whole.clone();
+            damage(&mut parts[1].1);
+            let error = IntersectionList::merge(parts).err().unwrap_or_default();
+            assert!(
+                error.contains("part 1/2 is damaged"),
+                "damage {k}: {error:?}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_list_crossing_triangles_the_scene_lacks_is_told() {
+        let (scene, parts) = parts(1);
+        let list = IntersectionList::merge(parts).unwrap();
+        let most = list.static_hits.iter().map(|h| h.surface()).max().unwrap() as usize;
+        assert!(most < SceneTracer::new(&scene).faces().len());
+        assert!(list.crosses_only(most + 1));
+        assert!(!list.crosses_only(most));
+    }
 }
