@@ -5,14 +5,14 @@
 //! bakes on from there as `bake` does, so its outputs are byte-identical to a single machine's
 //! (`timings.json` aside).
 //!
-//! A part, `OUT/<scene>/shard-K-of-N.part`, is a checked file ([`crate::checked`]) whose
-//! payload is `RADPART1`, the build that wrote it ([`checked::build`]: the encoding does not
-//! describe itself, so only the same build reads it), then the scene's name, what the bake is
-//! asked for (the settings and the solver's cap: the merge takes them from the parts, and only
-//! its outputs from its own options), a hash of those and the scene's bytes, the shard, the
-//! scene's bytes and the part's crossings (the intersection list of its lines: the patches are cut after
-//! tracing where the light needs them, `patch_size=auto`, so the parts carry crossings, not
-//! tallies of patches not made yet).
+//! A part, `OUT/<scene>/shard-K-of-N.part`, is a checked file ([`crate::checked`]) whose payload is
+//! `RADPART1`, the build that wrote it ([`checked::build`]: the encoding does not describe itself,
+//! so only the same build reads it), then the scene's name, what the bake is asked for (the
+//! settings and the solver's cap: the merge takes them from the parts, and only its outputs from
+//! its own options), a hash of those and the scene's bytes, the shard, the scene's bytes and the
+//! part's crossings (the intersection list of its lines: the patches are cut after tracing where
+//! the light needs them, `patch_size=auto`, so the parts carry crossings, not tallies of patches
+//! not made yet).
 
 use std::io::Write;
 use std::path::{Path, PathBuf};

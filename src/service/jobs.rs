@@ -1025,7 +1025,7 @@ impl Job {
             Ok(Traced::Read { .. }) => None,
             Ok(Traced::Missing) => None,
             Ok(Traced::OtherBuild) => {
-                tracing::info!(id = %self.id, "traced.bin was written by another build: traced again");
+                tracing::info!(id = %self.id, "traced.bin is another build's: traced again");
                 None
             }
             Err(e) => {

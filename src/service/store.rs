@@ -16,12 +16,12 @@
 //!   `scene.bin` and writes its own.
 //!
 //! Every file is checked: `scene.bin`, `request.json`, `job.json` and `traced.bin` start with a
-//! 24-byte header (`RADSTOR1`, the payload's length as u64, its CRC-32 as u32, 4 zero bytes; the JSON
-//! follows it as it is); `frames.bin` starts with a 40-byte header (`RADFRMS2`, frames, patches
-//! and result version as u64, the CRC-32 of those 32 bytes, 4 zero bytes) and ends each frame
-//! with its CRC-32. A file that does not match is reported with what is wrong, never read as
-//! numbers. Files of data directories written before (plain JSON, a raw scene, the first
-//! frames layout) are read as they are; frames in the first layout are rewritten in this one.
+//! 24-byte header (`RADSTOR1`, the payload's length as u64, its CRC-32 as u32, 4 zero bytes; the
+//! JSON follows it as it is); `frames.bin` starts with a 40-byte header (`RADFRMS2`, frames,
+//! patches and result version as u64, the CRC-32 of those 32 bytes, 4 zero bytes) and ends each
+//! frame with its CRC-32. A file that does not match is reported with what is wrong, never read as
+//! numbers. Files of data directories written before (plain JSON, a raw scene, the first frames
+//! layout) are read as they are; frames in the first layout are rewritten in this one.
 //!
 //! Files are written to a temporary name, flushed to the disk, and renamed: a crash or a full
 //! disk leaves the previous file whole. At start-up, finished timelines come back `done`; the
@@ -36,8 +36,7 @@ use std::time::SystemTime;
 use serde::{Deserialize, Serialize};
 
 use crate::bake::Bake;
-pub use crate::checked::payload;
-use crate::checked::{CHECKED, HEADER as CHECKED_HEADER, build, checked, damaged, sealed};
+use crate::checked::{CHECKED, HEADER as CHECKED_HEADER, build, checked, damaged, payload, sealed};
 use crate::solve::FrameSolution;
 
 /// First bytes of `traced.bin`'s payload.
