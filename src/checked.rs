@@ -100,3 +100,79 @@ pub fn payload<'a>(name: &str, bytes: &'a [u8]) -> std::io::Result<&'a [u8]> {
     }
     Ok(payload)
 }
+
+/// Bytes of a stamp: the kind of file (8 bytes) and the [`build`] that wrote it.
+pub const STAMP: usize = 8 + 12;
+
+/// The start of a checked file of kind `kind` whose encoding does not describe itself: the
+/// header's room, then `kind` and this build. The caller writes the rest after it, then
+/// [`sealed`]. `None` if this build cannot tell itself from others.
+#[must_use]
+pub fn stamped(kind: &[u8; 8]) -> Option<Vec<u8>> {
+    let mut out = vec![0; HEADER];
+    out.extend_from_slice(kind);
+    out.extend_from_slice(&build()?);
+    Some(out)
+}
+
+/// What the payload of a [`stamped`] file holds.
+pub enum Stamp<'a> {
+    /// This build wrote it: what follows the stamp.
+    Ours(&'a [u8]),
+    /// Another build wrote it, which this one cannot read.
+    OtherBuild,
+}
+
+/// The payload after the stamp of checked file `name` of kind `kind` ([`stamped`]), `what` naming
+/// the kind in errors ("a traced state").
+///
+/// # Errors
+/// It is not such a file, or it is damaged.
+pub fn unstamped<'a>(
+    name: &str,
+    bytes: &'a [u8],
+    (kind, what): (&[u8; 8], &str),
+) -> std::io::Result<Stamp<'a>> {
+    let not = || damaged(name, format!("it is not {what}"));
+    if !bytes.starts_with(CHECKED) {
+        return Err(not());
+    }
+    let payload = payload(name, bytes)?;
+    if payload.get(..8) != Some(&kind[..]) {
+        return Err(not());
+    }
+    let Some(rest) = payload.get(STAMP..) else {
+        return Err(damaged(name, "it is cut short"));
+    };
+    Ok(match build() {
+        Some(b) if payload[8..STAMP] == b => Stamp::Ours(rest),
+        _ => Stamp::OtherBuild,
+    })
+}
+
+/// Writes `bytes` to `path` so that a crash or a full disk leaves either the file before or
+/// the new one: a temporary file, flushed to the disk, renamed over it, the directory flushed
+/// (the temporary file removed if anything fails). Two writers of one path at once share its
+/// temporary file: callers keep them apart.
+///
+/// # Errors
+/// What writing, flushing or renaming met.
+pub fn write_whole(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    use std::io::Write;
+    let tmp = path.with_extension("tmp");
+    let written = std::fs::File::create(&tmp)
+        .and_then(|mut file| {
+            file.write_all(bytes)?;
+            file.sync_all()
+        })
+        .and_then(|()| std::fs::rename(&tmp, path));
+    if written.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    written?;
+    // The rename itself reaches the disk with the directory.
+    if let Some(dir) = path.parent() {
+        std::fs::File::open(dir)?.sync_all()?;
+    }
+    Ok(())
+}

@@ -14,7 +14,6 @@
 //! the light needs them, `patch_size=auto`, so the parts carry crossings, not tallies of patches
 //! not made yet).
 
-use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -29,10 +28,8 @@ use crate::params::BakeSettings;
 use crate::timeline::{IntersectionList, Shard};
 use crate::trace::SceneTracer;
 
-/// First bytes of a part's payload.
+/// The kind of a part file ([`checked::stamped`]).
 const PART: &[u8; 8] = b"RADPART1";
-/// Bytes of a part's payload before its encoded contents: [`PART`] and the build.
-const PART_HEADER: usize = 8 + 12;
 
 /// A part as written.
 #[derive(Serialize)]
@@ -142,51 +139,32 @@ pub fn trace_part(
 
 /// Writes `part` to `file` whole or not at all (a temporary file, flushed, renamed).
 fn write_part(file: &Path, part: &Written) -> std::io::Result<()> {
-    let Some(build) = checked::build() else {
+    let Some(out) = checked::stamped(PART) else {
         return Err(std::io::Error::other(
             "this build cannot read its own executable, which identifies its parts",
         ));
     };
-    let mut out = vec![0; checked::HEADER];
-    out.extend_from_slice(PART);
-    out.extend_from_slice(&build);
     let out = checked::sealed(postcard::to_extend(part, out).map_err(std::io::Error::other)?);
     if let Some(dir) = file.parent() {
         std::fs::create_dir_all(dir)?;
     }
-    let tmp = file.with_extension("part.tmp");
-    let written = std::fs::File::create(&tmp)
-        .and_then(|mut f| {
-            f.write_all(&out)?;
-            f.sync_all()
-        })
-        .and_then(|()| std::fs::rename(&tmp, file));
-    if written.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    written
+    checked::write_whole(file, &out)
 }
 
 /// The part in `file`.
 fn read_part(file: &Path) -> Result<Part, String> {
     let bytes = std::fs::read(file).map_err(|e| format!("{}: {e}", file.display()))?;
     let what = |e: &dyn std::fmt::Display| format!("{}: {e}", file.display());
-    if !bytes.starts_with(checked::CHECKED) {
-        return Err(what(&"not a part file (made by `radiosity bake --shard`)"));
-    }
-    let payload = checked::payload("the part", &bytes).map_err(|e| what(&e))?;
-    if payload.get(..8) != Some(PART) {
-        return Err(what(&"not a part file (made by `radiosity bake --shard`)"));
-    }
-    let build = checked::build();
-    if build.is_none_or(|b| payload.get(8..PART_HEADER) != Some(&b[..])) {
-        return Err(what(
+    let kind = (PART, "a part file (made by `radiosity bake --shard`)");
+    match checked::unstamped("the part", &bytes, kind).map_err(|e| what(&e))? {
+        checked::Stamp::Ours(rest) => {
+            postcard::from_bytes(rest).map_err(|e| what(&format!("the part is damaged: {e}")))
+        }
+        checked::Stamp::OtherBuild => Err(what(
             &"made by another build of radiosity: parts are merged by the build that traced \
               them (the same image on every machine)",
-        ));
+        )),
     }
-    postcard::from_bytes(&payload[PART_HEADER..])
-        .map_err(|e| what(&format!("the part is damaged: {e}")))
 }
 
 /// Merges the parts in `files` (every part of one scene's lines, once each, in any order) and

@@ -28,7 +28,7 @@
 //! others start again from their stored scene (or, from a data directory written before scenes
 //! were stored, come back `failed` with the reason `interrupted`).
 
-use std::io::{Read, Seek, SeekFrom, Write};
+use std::io::{Read, Seek, SeekFrom};
 use std::path::{Path, PathBuf};
 use std::sync::PoisonError;
 use std::time::SystemTime;
@@ -36,14 +36,12 @@ use std::time::SystemTime;
 use serde::{Deserialize, Serialize};
 
 use crate::bake::Bake;
-use crate::checked::{CHECKED, HEADER as CHECKED_HEADER, build, checked, damaged, payload, sealed};
+use crate::checked::{Stamp, checked, damaged, payload, sealed, stamped, unstamped, write_whole};
 use crate::solve::FrameSolution;
 
-/// First bytes of `traced.bin`'s payload.
+/// The kind of `traced.bin` ([`stamped`]); the refinements its state has (u64) follow the
+/// stamp.
 const TRACED: &[u8; 8] = b"RADTRCD1";
-/// Bytes of `traced.bin`'s own header in its payload: [`TRACED`], the build that wrote it
-/// ([`build`]), the refinements its state has (u64).
-const TRACED_HEADER: usize = 8 + 12 + 8;
 /// First bytes of `frames.bin`.
 const FRAMES: &[u8; 8] = b"RADFRMS2";
 /// Bytes of `frames.bin`'s header.
@@ -275,22 +273,7 @@ impl Store {
     /// file removed if anything fails).
     fn write(&self, path: &Path, bytes: &[u8]) -> std::io::Result<()> {
         let _one_at_a_time = self.writing.lock().unwrap_or_else(PoisonError::into_inner);
-        let tmp = path.with_extension("tmp");
-        let written = std::fs::File::create(&tmp)
-            .and_then(|mut file| {
-                file.write_all(bytes)?;
-                file.sync_all()
-            })
-            .and_then(|()| std::fs::rename(&tmp, path));
-        if written.is_err() {
-            let _ = std::fs::remove_file(&tmp);
-        }
-        written?;
-        // The rename itself reaches the disk with the directory.
-        if let Some(dir) = path.parent() {
-            std::fs::File::open(dir)?.sync_all()?;
-        }
-        Ok(())
+        write_whole(path, bytes)
     }
 
     /// Reads checked file `name` of timeline `id` ([`payload`]).
@@ -450,12 +433,9 @@ impl Store {
     /// # Errors
     /// It cannot be written (the file before, if any, is left whole).
     pub fn save_traced(&self, id: &str, refinements: usize, bake: &Bake) -> std::io::Result<u64> {
-        let Some(build) = build().filter(|_| self.traced_files) else {
+        let Some(mut out) = stamped(TRACED).filter(|_| self.traced_files) else {
             return Ok(0);
         };
-        let mut out = vec![0; CHECKED_HEADER];
-        out.extend_from_slice(TRACED);
-        out.extend_from_slice(&build);
         out.extend_from_slice(&(refinements as u64).to_le_bytes());
         let out = sealed(bake.write_bytes(out).map_err(std::io::Error::other)?);
         let dir = self.dir(id);
@@ -473,22 +453,14 @@ impl Store {
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Traced::Missing),
             bytes => bytes?,
         };
-        if !bytes.starts_with(CHECKED) {
-            return Err(damaged("traced.bin", "its header is damaged"));
-        }
-        let payload = payload("traced.bin", &bytes)?;
-        let (Some(header), Some(state)) =
-            (payload.get(..TRACED_HEADER), payload.get(TRACED_HEADER..))
-        else {
+        let rest = match unstamped("traced.bin", &bytes, (TRACED, "a traced state"))? {
+            Stamp::Ours(rest) => rest,
+            Stamp::OtherBuild => return Ok(Traced::OtherBuild),
+        };
+        let (Some(count), Some(state)) = (rest.get(..8), rest.get(8..)) else {
             return Err(damaged("traced.bin", "it is cut short"));
         };
-        if &header[..8] != TRACED {
-            return Err(damaged("traced.bin", "it is not a traced state"));
-        }
-        if build().is_none_or(|b| header[8..20] != b) {
-            return Ok(Traced::OtherBuild);
-        }
-        let refinements = u64::from_le_bytes(header[20..28].try_into().unwrap_or_default());
+        let refinements = u64::from_le_bytes(count.try_into().unwrap_or_default());
         let bake = Bake::from_bytes(state).map_err(|e| damaged("traced.bin", e))?;
         Ok(Traced::Read {
             bake: Box::new(bake),
@@ -703,7 +675,7 @@ mod tests {
         let good = std::fs::read(&path).unwrap();
         // Another build's (resealed, so only the build differs): not read, not damaged.
         let mut other = good.clone();
-        other[CHECKED_HEADER + 8] ^= 1;
+        other[crate::checked::HEADER + 8] ^= 1;
         std::fs::write(&path, sealed(other)).unwrap();
         assert!(matches!(store.load_traced("t"), Ok(Traced::OtherBuild)));
         // A flipped bit anywhere, a cut anywhere: damaged.
