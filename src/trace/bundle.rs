@@ -143,6 +143,19 @@ impl Scratch {
     }
 }
 
+/// Whether the processor has the instructions [`TraceMesh::walk_avx2`] is compiled for (looked
+/// up once, then read from a cache).
+#[cfg(target_arch = "x86_64")]
+#[inline]
+fn wide_instructions() -> bool {
+    std::arch::is_x86_feature_detected!("avx2")
+        && std::arch::is_x86_feature_detected!("fma")
+        && std::arch::is_x86_feature_detected!("bmi1")
+        && std::arch::is_x86_feature_detected!("bmi2")
+        && std::arch::is_x86_feature_detected!("lzcnt")
+        && std::arch::is_x86_feature_detected!("popcnt")
+}
+
 /// How many nodes or triangles ahead of the one being tested the walk asks memory for.
 const PREFETCH_AHEAD: usize = 16;
 
@@ -183,7 +196,7 @@ fn inside(rect: &[f32; 4], p: &Point) -> bool {
 
 /// The children (bit i for child i) whose rectangles hold `p`: per four children, their
 /// lower x, lower y, upper x and upper y, one per lane.
-#[inline]
+#[inline(always)]
 fn children_around(rects: &[[glam::Vec4; 4]; wide::WIDTH / 4], p: &Point) -> u32 {
     let (x, y) = (glam::Vec4::splat(p.x), glam::Vec4::splat(p.y));
     rects.iter().enumerate().fold(0, |mask, (half, r)| {
@@ -195,7 +208,7 @@ fn children_around(rects: &[[glam::Vec4; 4]; wide::WIDTH / 4], p: &Point) -> u32
 /// Appends to `next` the lines of `list` (of several lines) inside each child's rectangle
 /// (`rects`, see [`children_around`]; `used`, the children there are), child after child: the
 /// children reached (bit i for child i), and each one's range in `next`.
-#[inline]
+#[inline(always)]
 fn split(
     list: &[Point],
     rects: &[[glam::Vec4; 4]; wide::WIDTH / 4],
@@ -249,6 +262,28 @@ impl TraceMesh {
         scratch: &mut Scratch,
         out: &mut Vec<(u32, Hit)>,
     ) {
+        #[cfg(target_arch = "x86_64")]
+        if wide_instructions() {
+            // SAFETY: the processor has every feature the function is compiled for.
+            unsafe { self.walk_avx2(lines, scratch, out) };
+            return;
+        }
+        self.walk(lines, scratch, out);
+    }
+
+    /// [`TraceMesh::walk`] compiled for the instructions of x86-64-v3 (AVX2, FMA, BMI), which
+    /// the processor was found to have. The same operations on the same numbers: Rust never
+    /// fuses a multiply and an add that the code does not ask to fuse, so the crossings are
+    /// the same bit for bit.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+    fn walk_avx2(&self, lines: &ParallelLines, scratch: &mut Scratch, out: &mut Vec<(u32, Hit)>) {
+        self.walk(lines, scratch, out);
+    }
+
+    /// The walk of [`TraceMesh::trace_parallel`].
+    #[inline(always)]
+    fn walk(&self, lines: &ParallelLines, scratch: &mut Scratch, out: &mut Vec<(u32, Hit)>) {
         let shear = &lines.shear;
         let Scratch {
             points,
@@ -321,7 +356,7 @@ impl TraceMesh {
     }
 
     /// Appends the crossings of triangle `k` by the lines of `points`.
-    #[inline]
+    #[inline(always)]
     fn cross_triangle(
         &self,
         k: usize,
@@ -385,4 +420,73 @@ fn triangle_rect([[ax, ay], [bx, by], [cx, cy]]: [[f32; 2]; 3]) -> [f32; 4] {
         ax.max(bx).max(cx),
         ay.max(by).max(cy),
     ]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::rngs::Xoshiro256PlusPlus;
+    use rand::{RngExt, SeedableRng};
+
+    /// A mesh of `n` small triangles scattered in the unit cube, corners on a grid of 1/64 so
+    /// that lines through edges and corners happen.
+    fn scattered(n: usize, rng: &mut Xoshiro256PlusPlus) -> TraceMesh {
+        let mut grid = || f32::from(rng.random_range(0u8..=64)) / 64.0;
+        let triangles: Vec<[Vec3; 3]> = (0..n)
+            .map(|_| {
+                let a = Vec3::new(grid(), grid(), grid());
+                let mut near = || a + Vec3::new(grid(), grid(), grid()) * 0.25 - 0.125;
+                [a, near(), near()]
+            })
+            .collect();
+        TraceMesh::new(triangles.into_iter(), 0).unwrap()
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn the_walk_compiled_for_avx2_finds_what_the_plain_one_does() {
+        if !wide_instructions() {
+            eprintln!("no AVX2 here: nothing to compare");
+            return;
+        }
+        let mut rng = Xoshiro256PlusPlus::seed_from_u64(16);
+        let mesh = scattered(5_000, &mut rng);
+        let mut scratch = Scratch::default();
+        let (mut plain, mut avx2) = (Vec::new(), Vec::new());
+        let mut crossings = 0;
+        for _ in 0..50 {
+            let direction = Vec3::new(
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-1.0..1.0),
+            )
+            .normalize();
+            let origins = (0..2_000)
+                .map(|_| {
+                    let grid = |v: f32| (v * 64.0).round() / 64.0;
+                    let p = Vec3::new(
+                        grid(rng.random_range(-0.5..1.5)),
+                        grid(rng.random_range(-0.5..1.5)),
+                        grid(rng.random_range(-0.5..1.5)),
+                    );
+                    p - direction * 4.0
+                })
+                .collect();
+            let lines = ParallelLines::new(direction, origins);
+            plain.clear();
+            avx2.clear();
+            mesh.walk(&lines, &mut scratch, &mut plain);
+            // SAFETY: the processor has the features (checked above).
+            unsafe { mesh.walk_avx2(&lines, &mut scratch, &mut avx2) };
+            assert_eq!(plain.len(), avx2.len());
+            for (a, b) in plain.iter().zip(&avx2) {
+                assert_eq!(
+                    (a.0, a.1.t.to_bits(), a.1.code),
+                    (b.0, b.1.t.to_bits(), b.1.code)
+                );
+            }
+            crossings += plain.len();
+        }
+        assert!(crossings > 10_000, "{crossings}");
+    }
 }
