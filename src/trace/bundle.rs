@@ -194,24 +194,74 @@ fn inside(rect: &[f32; 4], p: &Point) -> bool {
     (p.x >= rect[0]) & (p.y >= rect[1]) & (p.x <= rect[2]) & (p.y <= rect[3])
 }
 
-/// The children (bit i for child i) whose rectangles hold `p`: per four children, their
-/// lower x, lower y, upper x and upper y, one per lane.
+/// The projected rectangles of a node's children: lower x, lower y, upper x and upper y, child
+/// by child ([`Shear::project_boxes`]).
+type Rects = [[f32; wide::WIDTH]; 4];
+
+/// The children (bit i for child i) whose rectangles hold `p`; with `AVX`, eight at once.
 #[inline(always)]
-fn children_around(rects: &[[glam::Vec4; 4]; wide::WIDTH / 4], p: &Point) -> u32 {
+fn children_around<const AVX: bool>(rects: &Rects, p: &Point) -> u32 {
+    #[cfg(target_arch = "x86_64")]
+    if AVX {
+        // SAFETY: `AVX` is set only in the walk compiled for AVX2 ([`TraceMesh::walk_avx2`]).
+        return unsafe { children_around_avx(rects, p) };
+    }
     let (x, y) = (glam::Vec4::splat(p.x), glam::Vec4::splat(p.y));
-    rects.iter().enumerate().fold(0, |mask, (half, r)| {
-        let inside = x.cmpge(r[0]) & y.cmpge(r[1]) & x.cmple(r[2]) & y.cmple(r[3]);
-        mask | inside.bitmask() << (4 * half)
+    [0, 4].into_iter().fold(0, |mask, half| {
+        let side = |k: usize| glam::Vec4::from_slice(&rects[k][half..]);
+        let inside = x.cmpge(side(0)) & y.cmpge(side(1)) & x.cmple(side(2)) & y.cmple(side(3));
+        mask | inside.bitmask() << half
     })
+}
+
+/// [`children_around`] in one AVX instruction per side.
+///
+/// # Safety
+/// The processor must have AVX.
+#[cfg(target_arch = "x86_64")]
+#[inline]
+#[target_feature(enable = "avx")]
+unsafe fn children_around_avx(rects: &Rects, p: &Point) -> u32 {
+    use std::arch::x86_64::{
+        _CMP_GE_OQ, _CMP_LE_OQ, _mm256_and_ps, _mm256_cmp_ps, _mm256_loadu_ps, _mm256_movemask_ps,
+        _mm256_set1_ps,
+    };
+    // SAFETY: the eight-float loads stay inside the rectangles' arrays.
+    unsafe {
+        let (x, y) = (_mm256_set1_ps(p.x), _mm256_set1_ps(p.y));
+        let side = |k: usize| _mm256_loadu_ps(rects[k].as_ptr());
+        let inside = _mm256_and_ps(
+            _mm256_and_ps(
+                _mm256_cmp_ps::<_CMP_GE_OQ>(x, side(0)),
+                _mm256_cmp_ps::<_CMP_GE_OQ>(y, side(1)),
+            ),
+            _mm256_and_ps(
+                _mm256_cmp_ps::<_CMP_LE_OQ>(x, side(2)),
+                _mm256_cmp_ps::<_CMP_LE_OQ>(y, side(3)),
+            ),
+        );
+        _mm256_movemask_ps(inside) as u32
+    }
+}
+
+/// The rectangles of `node`'s children; with `AVX`, eight at once.
+#[inline(always)]
+fn rects_of<const AVX: bool>(shear: &Shear, node: &wide::Node) -> Rects {
+    #[cfg(target_arch = "x86_64")]
+    if AVX {
+        // SAFETY: as in [`children_around`].
+        return unsafe { shear.project_boxes_avx(&node.lo, &node.hi) };
+    }
+    shear.project_boxes(&node.lo, &node.hi)
 }
 
 /// Appends to `next` the lines of `list` (of several lines) inside each child's rectangle
 /// (`rects`, see [`children_around`]; `used`, the children there are), child after child: the
 /// children reached (bit i for child i), and each one's range in `next`.
 #[inline(always)]
-fn split(
+fn split<const AVX: bool>(
     list: &[Point],
-    rects: &[[glam::Vec4; 4]; wide::WIDTH / 4],
+    rects: &Rects,
     used: u32,
     next: &mut Vec<Point>,
     masks: &mut Vec<u32>,
@@ -223,7 +273,7 @@ fn split(
     let mut counts = [0; wide::WIDTH];
     let mut reached = 0;
     for p in list {
-        let m = children_around(rects, p) & used;
+        let m = children_around::<AVX>(rects, p) & used;
         reached |= m;
         masks.push(m);
         for (i, count) in counts.iter_mut().enumerate() {
@@ -268,7 +318,7 @@ impl TraceMesh {
             unsafe { self.walk_avx2(lines, scratch, out) };
             return;
         }
-        self.walk(lines, scratch, out);
+        self.walk::<false>(lines, scratch, out);
     }
 
     /// [`TraceMesh::walk`] compiled for the instructions of x86-64-v3 (AVX2, FMA, BMI), which
@@ -278,12 +328,17 @@ impl TraceMesh {
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
     fn walk_avx2(&self, lines: &ParallelLines, scratch: &mut Scratch, out: &mut Vec<(u32, Hit)>) {
-        self.walk(lines, scratch, out);
+        self.walk::<true>(lines, scratch, out);
     }
 
-    /// The walk of [`TraceMesh::trace_parallel`].
+    /// The walk of [`TraceMesh::trace_parallel`]; `AVX` only in [`TraceMesh::walk_avx2`].
     #[inline(always)]
-    fn walk(&self, lines: &ParallelLines, scratch: &mut Scratch, out: &mut Vec<(u32, Hit)>) {
+    fn walk<const AVX: bool>(
+        &self,
+        lines: &ParallelLines,
+        scratch: &mut Scratch,
+        out: &mut Vec<(u32, Hit)>,
+    ) {
         let shear = &lines.shear;
         let Scratch {
             points,
@@ -311,22 +366,18 @@ impl TraceMesh {
                     prefetch(&self.wide[ahead as usize], size_of::<wide::Node>());
                 }
                 let node = &self.wide[node as usize];
-                let [low, high] = &node.boxes;
-                let rects = [
-                    shear.project_boxes(&low.lo, &low.hi),
-                    shear.project_boxes(&high.lo, &high.hi),
-                ];
+                let rects = rects_of::<AVX>(shear, node);
                 let list = &points[start as usize..end as usize];
                 let (mut reached, ranges) = if let [p] = list {
                     // Most lists deep in the tree: one line, whose children share one copy.
-                    let reached = children_around(&rects, p) & node.used;
+                    let reached = children_around::<AVX>(&rects, p) & node.used;
                     let at = next_points.len() as u32;
                     if reached != 0 {
                         next_points.push(*p);
                     }
                     (reached, [(at, at + 1); wide::WIDTH])
                 } else {
-                    split(list, &rects, node.used, next_points, masks)
+                    split::<AVX>(list, &rects, node.used, next_points, masks)
                 };
                 while reached != 0 {
                     let i = reached.trailing_zeros() as usize;
@@ -475,7 +526,7 @@ mod tests {
             let lines = ParallelLines::new(direction, origins);
             plain.clear();
             avx2.clear();
-            mesh.walk(&lines, &mut scratch, &mut plain);
+            mesh.walk::<false>(&lines, &mut scratch, &mut plain);
             // SAFETY: the processor has the features (checked above).
             unsafe { mesh.walk_avx2(&lines, &mut scratch, &mut avx2) };
             assert_eq!(plain.len(), avx2.len());

@@ -1,27 +1,22 @@
 //! A wide BVH for tracing bundles: the binary BVH collapsed so that a node holds the boxes of
-//! up to eight children side by side, tested against a bundle's lines four at a time. A third
-//! of the depth of the binary tree, and a node is four cache lines read together.
+//! up to eight children side by side, tested against a line all eight at once. A third of the
+//! depth of the binary tree, and a node is four cache lines read together.
 
 use obvhs::bvh2::Bvh2;
 
 /// Children per node.
 pub const WIDTH: usize = 8;
 
-/// Four children's boxes by axis and child (`lo[axis][child]`), side by side for SIMD.
-#[derive(Clone, Copy, Debug)]
-pub struct Boxes {
-    /// Lower corners.
-    pub lo: [[f32; 4]; 3],
-    /// Upper corners.
-    pub hi: [[f32; 4]; 3],
-}
-
-/// A node of the wide BVH: its children's boxes, four at a time, and what each child is.
+/// A node of the wide BVH: its children's boxes side by side, by axis and child
+/// (`lo[axis][child]`), as eight lanes a processor with AVX2 tests at once; and what each
+/// child is.
 #[derive(Clone, Copy, Debug)]
 #[repr(C, align(64))]
 pub struct Node {
-    /// Children 0–3, 4–7.
-    pub boxes: [Boxes; WIDTH / 4],
+    /// Lower corners.
+    pub lo: [[f32; WIDTH]; 3],
+    /// Upper corners.
+    pub hi: [[f32; WIDTH]; 3],
     /// An inner child's node index, or a leaf's first triangle.
     pub child: [u32; WIDTH],
     /// A leaf's triangle count; [`INNER`] for an inner child, 0 for an unused slot.
@@ -35,10 +30,8 @@ pub const INNER: u16 = u16::MAX;
 
 impl Node {
     const UNUSED: Self = Self {
-        boxes: [Boxes {
-            lo: [[f32::INFINITY; 4]; 3],
-            hi: [[f32::NEG_INFINITY; 4]; 3],
-        }; WIDTH / 4],
+        lo: [[f32::INFINITY; WIDTH]; 3],
+        hi: [[f32::NEG_INFINITY; WIDTH]; 3],
         child: [0; WIDTH],
         count: [0; WIDTH],
         used: 0,
@@ -165,10 +158,9 @@ fn fill(bvh: &Bvh2, plan: &Plan, nodes: &mut Vec<Node>, slot: usize, kids: &[usi
     let mut node = Node::UNUSED;
     for (i, &k) in kids.iter().enumerate() {
         let aabb = &binary[k].aabb;
-        let boxes = &mut node.boxes[i / 4];
         for axis in 0..3 {
-            boxes.lo[axis][i % 4] = aabb.min[axis];
-            boxes.hi[axis][i % 4] = aabb.max[axis];
+            node.lo[axis][i] = aabb.min[axis];
+            node.hi[axis][i] = aabb.max[axis];
         }
         node.used |= 1 << i;
         if binary[k].prim_count == 0 {
@@ -202,10 +194,9 @@ mod tests {
                 assert_eq!(node.count[i], 0);
                 continue;
             }
-            let b = &node.boxes[i / 4];
             let (lo, hi) = (
-                Vec3A::new(b.lo[0][i % 4], b.lo[1][i % 4], b.lo[2][i % 4]),
-                Vec3A::new(b.hi[0][i % 4], b.hi[1][i % 4], b.hi[2][i % 4]),
+                Vec3A::new(node.lo[0][i], node.lo[1][i], node.lo[2][i]),
+                Vec3A::new(node.hi[0][i], node.hi[1][i], node.hi[2][i]),
             );
             if let Some(outer) = outer {
                 assert!(lo.cmpge(outer.min).all() && hi.cmple(outer.max).all());
@@ -243,13 +234,13 @@ mod tests {
             // The expected cost of a line (sum of the wide nodes' areas) is the least there
             // is: no more than that of opening the widest child first (the collapse before).
             let area = |at: u32| {
-                let b = &nodes[at as usize].boxes;
+                let node = &nodes[at as usize];
                 let mut whole = Aabb::empty();
                 for i in 0..WIDTH {
-                    if nodes[at as usize].used >> i & 1 == 1 {
-                        let (lo, hi) = (&b[i / 4].lo, &b[i / 4].hi);
-                        whole.extend(Vec3A::new(lo[0][i % 4], lo[1][i % 4], lo[2][i % 4]));
-                        whole.extend(Vec3A::new(hi[0][i % 4], hi[1][i % 4], hi[2][i % 4]));
+                    if node.used >> i & 1 == 1 {
+                        let (lo, hi) = (&node.lo, &node.hi);
+                        whole.extend(Vec3A::new(lo[0][i], lo[1][i], lo[2][i]));
+                        whole.extend(Vec3A::new(hi[0][i], hi[1][i], hi[2][i]));
                     }
                 }
                 whole.half_area()
