@@ -27,6 +27,8 @@ use crate::lines::LINE_LENGTH;
 pub struct Point {
     x: f32,
     y: f32,
+    /// [`Shear::diagonal`] of (x, y).
+    d: f32,
     line: u32,
 }
 
@@ -56,6 +58,7 @@ impl ParallelLines {
                 Point {
                     x,
                     y,
+                    d: shear.diagonal([x, y]),
                     line: line as u32,
                 }
             })
@@ -178,9 +181,10 @@ fn prefetch<T>(at: &T, bytes: usize) {
     }
 }
 
-/// The rounding margin of a box moved into another space (a rigid object's): the lines moved
-/// with it are within a few units in the last place of the largest coordinate (about 6e-8
-/// relative); 1e-5 of it is ample.
+/// A rounding margin for coordinates up to `scale`: of a box moved into another space (a rigid
+/// object's), whose lines moved with it are within a few units in the last place of the
+/// largest coordinate (about 6e-8 relative), and of a box's diagonal band
+/// ([`Shear::project_boxes`]); 1e-5 of it is ample.
 fn margin(scale: f32) -> f32 {
     1e-5 * scale.max(f32::MIN_POSITIVE)
 }
@@ -194,9 +198,9 @@ fn inside(rect: &[f32; 4], p: &Point) -> bool {
     (p.x >= rect[0]) & (p.y >= rect[1]) & (p.x <= rect[2]) & (p.y <= rect[3])
 }
 
-/// The projected rectangles of a node's children: lower x, lower y, upper x and upper y, child
-/// by child ([`Shear::project_boxes`]).
-type Rects = [[f32; wide::WIDTH]; 4];
+/// The images of a node's children: their rectangles' lower x, lower y, upper x and upper y,
+/// and the range of their diagonals, child by child ([`Shear::project_boxes`]).
+type Rects = [[f32; wide::WIDTH]; 6];
 
 /// The children (bit i for child i) whose rectangles hold `p`; with `AVX`, eight at once.
 #[inline(always)]
@@ -206,10 +210,19 @@ fn children_around<const AVX: bool>(rects: &Rects, p: &Point) -> u32 {
         // SAFETY: `AVX` is set only in the walk compiled for AVX2 ([`TraceMesh::walk_avx2`]).
         return unsafe { children_around_avx(rects, p) };
     }
-    let (x, y) = (glam::Vec4::splat(p.x), glam::Vec4::splat(p.y));
+    let (x, y, d) = (
+        glam::Vec4::splat(p.x),
+        glam::Vec4::splat(p.y),
+        glam::Vec4::splat(p.d),
+    );
     [0, 4].into_iter().fold(0, |mask, half| {
         let side = |k: usize| glam::Vec4::from_slice(&rects[k][half..]);
-        let inside = x.cmpge(side(0)) & y.cmpge(side(1)) & x.cmple(side(2)) & y.cmple(side(3));
+        let inside = x.cmpge(side(0))
+            & y.cmpge(side(1))
+            & x.cmple(side(2))
+            & y.cmple(side(3))
+            & d.cmpge(side(4))
+            & d.cmple(side(5));
         mask | inside.bitmask() << half
     })
 }
@@ -228,16 +241,26 @@ unsafe fn children_around_avx(rects: &Rects, p: &Point) -> u32 {
     };
     // SAFETY: the eight-float loads stay inside the rectangles' arrays.
     unsafe {
-        let (x, y) = (_mm256_set1_ps(p.x), _mm256_set1_ps(p.y));
+        let (x, y, d) = (
+            _mm256_set1_ps(p.x),
+            _mm256_set1_ps(p.y),
+            _mm256_set1_ps(p.d),
+        );
         let side = |k: usize| _mm256_loadu_ps(rects[k].as_ptr());
         let inside = _mm256_and_ps(
             _mm256_and_ps(
-                _mm256_cmp_ps::<_CMP_GE_OQ>(x, side(0)),
-                _mm256_cmp_ps::<_CMP_GE_OQ>(y, side(1)),
+                _mm256_and_ps(
+                    _mm256_cmp_ps::<_CMP_GE_OQ>(x, side(0)),
+                    _mm256_cmp_ps::<_CMP_GE_OQ>(y, side(1)),
+                ),
+                _mm256_and_ps(
+                    _mm256_cmp_ps::<_CMP_LE_OQ>(x, side(2)),
+                    _mm256_cmp_ps::<_CMP_LE_OQ>(y, side(3)),
+                ),
             ),
             _mm256_and_ps(
-                _mm256_cmp_ps::<_CMP_LE_OQ>(x, side(2)),
-                _mm256_cmp_ps::<_CMP_LE_OQ>(y, side(3)),
+                _mm256_cmp_ps::<_CMP_GE_OQ>(d, side(4)),
+                _mm256_cmp_ps::<_CMP_LE_OQ>(d, side(5)),
             ),
         );
         _mm256_movemask_ps(inside) as u32
@@ -246,13 +269,13 @@ unsafe fn children_around_avx(rects: &Rects, p: &Point) -> u32 {
 
 /// The rectangles of `node`'s children; with `AVX`, eight at once.
 #[inline(always)]
-fn rects_of<const AVX: bool>(shear: &Shear, node: &wide::Node) -> Rects {
+fn rects_of<const AVX: bool>(shear: &Shear, node: &wide::Node, margin: f32) -> Rects {
     #[cfg(target_arch = "x86_64")]
     if AVX {
         // SAFETY: as in [`children_around`].
-        return unsafe { shear.project_boxes_avx(&node.lo, &node.hi) };
+        return unsafe { shear.project_boxes_avx(&node.lo, &node.hi, margin) };
     }
-    shear.project_boxes(&node.lo, &node.hi)
+    shear.project_boxes(&node.lo, &node.hi, margin)
 }
 
 /// Appends to `next` the lines of `list` (of several lines) inside each child's rectangle
@@ -340,6 +363,14 @@ impl TraceMesh {
         out: &mut Vec<(u32, Hit)>,
     ) {
         let shear = &lines.shear;
+        // The diagonal's rounding: a few units in the last place of the largest coordinate of
+        // a line's start or of the mesh ([`Shear::project_boxes`]).
+        let bounds = self.bounds();
+        let scale = lines
+            .reach
+            .max(Vec3::from(bounds.min).abs().max_element())
+            .max(Vec3::from(bounds.max).abs().max_element());
+        let diagonal_margin = margin(scale);
         let Scratch {
             points,
             next_points,
@@ -366,7 +397,7 @@ impl TraceMesh {
                     prefetch(&self.wide[ahead as usize], size_of::<wide::Node>());
                 }
                 let node = &self.wide[node as usize];
-                let rects = rects_of::<AVX>(shear, node);
+                let rects = rects_of::<AVX>(shear, node, diagonal_margin);
                 let list = &points[start as usize..end as usize];
                 let (mut reached, ranges) = if let [p] = list {
                     // Most lists deep in the tree: one line, whose children share one copy.
@@ -491,6 +522,49 @@ mod tests {
             })
             .collect();
         TraceMesh::new(triangles.into_iter(), 0).unwrap()
+    }
+
+    #[test]
+    fn a_box_s_image_holds_every_corner_of_the_box_as_projected() {
+        // The corners of a box projected as a triangle's corners are (rounded): each inside the
+        // rectangle and the diagonal band of the box, even at the ends of the band, where the
+        // rounding is not monotonic and the margin covers it.
+        let mut rng = Xoshiro256PlusPlus::seed_from_u64(3);
+        let (mut outside, mut unmargined) = (0, 0);
+        for _ in 0..20_000 {
+            let mut c = || rng.random_range(-4.0f32..4.0);
+            let (a, b) = (Vec3::new(c(), c(), c()), Vec3::new(c(), c(), c()));
+            let (min, max) = (a.min(b), a.max(b));
+            let direction = Vec3::new(c(), c(), c()).normalize();
+            let shear = Shear::new(direction);
+            let mut node = wide::Node::UNUSED;
+            for axis in 0..3 {
+                node.lo[axis][5] = min[axis];
+                node.hi[axis][5] = max[axis];
+            }
+            let scale = min.abs().max(max.abs()).max_element();
+            let rects = rects_of::<false>(&shear, &node, margin(scale));
+            let tight = rects_of::<false>(&shear, &node, 0.0);
+            for k in 0..8 {
+                let corner = Vec3::select(
+                    glam::BVec3::new(k & 1 != 0, k & 2 != 0, k & 4 != 0),
+                    max,
+                    min,
+                );
+                let [x, y] = shear.project(corner);
+                let p = Point {
+                    x,
+                    y,
+                    d: shear.diagonal([x, y]),
+                    line: 0,
+                };
+                outside += usize::from(children_around::<false>(&rects, &p) >> 5 & 1 == 0);
+                unmargined += usize::from(children_around::<false>(&tight, &p) >> 5 & 1 == 0);
+            }
+        }
+        assert_eq!(outside, 0);
+        // Without the margin some corners fall out: the margin is needed, and tested.
+        assert!(unmargined > 0, "{unmargined}");
     }
 
     #[cfg(target_arch = "x86_64")]

@@ -73,24 +73,51 @@ impl Shear {
         ]
     }
 
-    /// [`Shear::project_box`] of eight boxes at once, given as their lower and upper corners'
-    /// coordinates per axis (`lo[axis][box]`): the rectangles' lower x, lower y, upper x and
-    /// upper y, one box per lane; four lanes at a time.
+    /// What the two corners cut off a box's image are measured by: `sy·x − sx·y` of a point's
+    /// coordinates on the minor axes, or equally of its projection (the shear adds the same
+    /// to both terms).
     #[must_use]
     #[inline]
-    pub fn project_boxes(&self, lo: &[[f32; 8]; 3], hi: &[[f32; 8]; 3]) -> [[f32; 8]; 4] {
+    pub fn diagonal(&self, [x, y]: [f32; 2]) -> f32 {
+        self.sy * x - self.sx * y
+    }
+
+    /// [`Shear::project_box`] of eight boxes at once, given as their lower and upper corners'
+    /// coordinates per axis (`lo[axis][box]`): the rectangles' lower x, lower y, upper x and
+    /// upper y, then the least and the greatest [`Shear::diagonal`] of the boxes' points,
+    /// widened by `margin`; one box per lane, four lanes at a time.
+    ///
+    /// A box's image is a hexagon: its rectangle with two corners cut off along the
+    /// direction of the shear. The diagonal's range is the band between those cuts; a point
+    /// outside it is outside the hexagon, its line misses the box. Its rounding is not
+    /// monotonic like the rectangle's: `margin` must exceed a few units in the last place of
+    /// the largest coordinate in play.
+    #[must_use]
+    #[inline]
+    pub fn project_boxes(
+        &self,
+        lo: &[[f32; 8]; 3],
+        hi: &[[f32; 8]; 3],
+        margin: f32,
+    ) -> [[f32; 8]; 6] {
         use glam::Vec4;
-        let mut out = [[0.0; 8]; 4];
+        let mut out = [[0.0; 8]; 6];
         for half in [0, 4] {
             let lanes = |axes: &[[f32; 8]; 3], k: usize| Vec4::from_slice(&axes[k][half..]);
             let (lo_z, hi_z) = (lanes(lo, self.kz), lanes(hi, self.kz));
             let (zx0, zx1) = (lo_z * self.sx, hi_z * self.sx);
             let (zy0, zy1) = (lo_z * self.sy, hi_z * self.sy);
+            let (x0, y0) = (lanes(lo, self.kx), lanes(lo, self.ky));
+            let (x1, y1) = (lanes(hi, self.kx), lanes(hi, self.ky));
+            let (ax0, ax1) = (x0 * self.sy, x1 * self.sy);
+            let (by0, by1) = (y0 * self.sx, y1 * self.sx);
             let rect = [
-                lanes(lo, self.kx) - zx0.max(zx1),
-                lanes(lo, self.ky) - zy0.max(zy1),
-                lanes(hi, self.kx) - zx0.min(zx1),
-                lanes(hi, self.ky) - zy0.min(zy1),
+                x0 - zx0.max(zx1),
+                y0 - zy0.max(zy1),
+                x1 - zx0.min(zx1),
+                y1 - zy0.min(zy1),
+                ax0.min(ax1) - by0.max(by1) - Vec4::splat(margin),
+                ax0.max(ax1) - by0.min(by1) + Vec4::splat(margin),
             ];
             for (side, lanes) in out.iter_mut().zip(rect) {
                 lanes.write_to_slice(&mut side[half..]);
@@ -112,10 +139,11 @@ impl Shear {
         &self,
         lo: &[[f32; 8]; 3],
         hi: &[[f32; 8]; 3],
-    ) -> [[f32; 8]; 4] {
+        margin: f32,
+    ) -> [[f32; 8]; 6] {
         use std::arch::x86_64::{
-            _mm256_loadu_ps, _mm256_max_ps, _mm256_min_ps, _mm256_mul_ps, _mm256_set1_ps,
-            _mm256_storeu_ps, _mm256_sub_ps,
+            _mm256_add_ps, _mm256_loadu_ps, _mm256_max_ps, _mm256_min_ps, _mm256_mul_ps,
+            _mm256_set1_ps, _mm256_storeu_ps, _mm256_sub_ps,
         };
         // SAFETY: the eight-float loads and stores stay inside the arrays.
         unsafe {
@@ -124,13 +152,26 @@ impl Shear {
             let (lo_z, hi_z) = (lanes(lo, self.kz), lanes(hi, self.kz));
             let (zx0, zx1) = (_mm256_mul_ps(lo_z, sx), _mm256_mul_ps(hi_z, sx));
             let (zy0, zy1) = (_mm256_mul_ps(lo_z, sy), _mm256_mul_ps(hi_z, sy));
+            let (x0, y0) = (lanes(lo, self.kx), lanes(lo, self.ky));
+            let (x1, y1) = (lanes(hi, self.kx), lanes(hi, self.ky));
+            let (ax0, ax1) = (_mm256_mul_ps(x0, sy), _mm256_mul_ps(x1, sy));
+            let (by0, by1) = (_mm256_mul_ps(y0, sx), _mm256_mul_ps(y1, sx));
+            let margin = _mm256_set1_ps(margin);
             let rect = [
-                _mm256_sub_ps(lanes(lo, self.kx), _mm256_max_ps(zx0, zx1)),
-                _mm256_sub_ps(lanes(lo, self.ky), _mm256_max_ps(zy0, zy1)),
-                _mm256_sub_ps(lanes(hi, self.kx), _mm256_min_ps(zx0, zx1)),
-                _mm256_sub_ps(lanes(hi, self.ky), _mm256_min_ps(zy0, zy1)),
+                _mm256_sub_ps(x0, _mm256_max_ps(zx0, zx1)),
+                _mm256_sub_ps(y0, _mm256_max_ps(zy0, zy1)),
+                _mm256_sub_ps(x1, _mm256_min_ps(zx0, zx1)),
+                _mm256_sub_ps(y1, _mm256_min_ps(zy0, zy1)),
+                _mm256_sub_ps(
+                    _mm256_sub_ps(_mm256_min_ps(ax0, ax1), _mm256_max_ps(by0, by1)),
+                    margin,
+                ),
+                _mm256_add_ps(
+                    _mm256_sub_ps(_mm256_max_ps(ax0, ax1), _mm256_min_ps(by0, by1)),
+                    margin,
+                ),
             ];
-            let mut out = [[0.0; 8]; 4];
+            let mut out = [[0.0; 8]; 6];
             for (side, lanes) in out.iter_mut().zip(rect) {
                 _mm256_storeu_ps(side.as_mut_ptr(), lanes);
             }

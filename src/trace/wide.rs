@@ -29,7 +29,7 @@ pub struct Node {
 pub const INNER: u16 = u16::MAX;
 
 impl Node {
-    const UNUSED: Self = Self {
+    pub(super) const UNUSED: Self = Self {
         lo: [[f32::INFINITY; WIDTH]; 3],
         hi: [[f32::NEG_INFINITY; WIDTH]; 3],
         child: [0; WIDTH],
