@@ -1,19 +1,21 @@
 //! Tracing a bundle's parallel lines together.
 //!
 //! Lines that share a direction are points on any plane they cross: sheared along the
-//! direction (the watertight test's own shear, [`Shear`]), a BVH node's box becomes a rectangle
-//! and the lines through the box are the points inside it. One walk of an 8-wide BVH per bundle
-//! carries down, from each node to its children, the list of the lines inside the node's
-//! rectangle: a node is read once per bundle, not once per line, and testing a line against
-//! eight children is two comparisons of its projected point with four rectangles at once. The
-//! walk goes level by level, so that the reads of a level's nodes from memory overlap.
+//! direction (the watertight test's own shear, [`Shear`]), a BVH node's box becomes a hexagon
+//! (a rectangle with two corners cut along the shear) and the lines through the box are the
+//! points inside it. One walk of an 8-wide BVH per bundle carries down, from each node to its
+//! children, the list of the lines inside the node's hexagon: a node is read once per bundle,
+//! not once per line, and testing a line against eight children is six comparisons with eight
+//! lanes each (one instruction each with AVX2; the walk is compiled for it too, and chosen at
+//! run time). The walk goes level by level, so that the reads of a level's nodes from memory
+//! overlap.
 //!
-//! At a leaf, each line inside a triangle's rectangle gets the exact test on the same numbers
-//! as a line traced alone ([`ShearedLine::intersect_projected`]), so both find the same
-//! crossings bit for bit. No line is lost to rounding on the way: the test works on the
-//! corners' and the line's projections, the same f32 numbers the rectangles are made of, and
-//! rounding is monotonic, so a box's rectangle holds the projection of every point of the box
-//! and a line outside a triangle's rectangle has all three corners on one side.
+//! At a leaf, each line inside a triangle's box gets the exact test on the same numbers as a
+//! line traced alone ([`ShearedLine::intersect_projected`]), so both find the same crossings
+//! bit for bit. No line is lost to rounding on the way: the test works on the corners' and the
+//! line's projections, the same f32 numbers the rectangles are made of, and rounding is
+//! monotonic, so a box's rectangle holds the projection of every point of the box; the band
+//! between the cut corners is widened by a margin larger than its rounding.
 
 use glam::Vec3;
 

@@ -66,62 +66,39 @@ pub fn collapse(bvh: &Bvh2) -> Vec<Node> {
     nodes
 }
 
-/// The least expected cost of each binary subtree spread over at most `k` slots of a wide node
-/// (`k` = 1..=8), and how: for an inner node, the slots given to its first child (the rest to
-/// the second), or 0 for the subtree kept whole as one slot (a wide node of its own).
+/// How each binary subtree is best spread over at most `k` slots of a wide node (`k` =
+/// 1..=8), for the least expected cost: for an inner node, the slots given to its first child
+/// (the rest to the second), or 0 for the subtree kept whole as one slot (a wide node of its
+/// own). One byte per node and slot count; the costs are kept only while the walk needs them.
 struct Plan {
-    cost: Vec<[f32; WIDTH]>,
     split: Vec<[u8; WIDTH]>,
 }
 
 impl Plan {
     fn new(bvh: &Bvh2) -> Self {
-        let n = bvh.nodes.len();
-        let mut plan = Self {
-            cost: vec![[0.0; WIDTH]; n],
-            split: vec![[0; WIDTH]; n],
-        };
-        // Children before their parents: a post-order walk from the root.
+        let mut split = vec![[0; WIDTH]; bvh.nodes.len()];
+        // Children before their parents, a post-order walk from the root; the costs of the
+        // subtrees walked whose parent is not yet, on a stack (as deep as the tree).
+        let mut costs: Vec<[f32; WIDTH]> = Vec::new();
         let mut stack = vec![(0, false)];
         while let Some((i, opened)) = stack.pop() {
             let node = &bvh.nodes[i];
-            if node.prim_count == 0 && !opened {
+            if node.prim_count != 0 {
+                // A triangle's slot: no node to test.
+                costs.push([0.0; WIDTH]);
+            } else if !opened {
                 let first = node.first_index as usize;
                 stack.extend([(i, true), (first, false), (first + 1, false)]);
             } else {
-                plan.cost_of(bvh, i);
+                // The first child was walked last.
+                let (l, r) = (costs.pop(), costs.pop());
+                let (l, r) = (l.expect("walked"), r.expect("walked"));
+                let (cost, best) = spread(node.aabb.half_area(), &l, &r);
+                costs.push(cost);
+                split[i] = best;
             }
         }
-        plan
-    }
-
-    fn cost_of(&mut self, bvh: &Bvh2, i: usize) {
-        let node = &bvh.nodes[i];
-        let area = node.aabb.half_area();
-        if node.prim_count != 0 {
-            // A triangle's slot: no node to test.
-            return;
-        }
-        let (l, r) = (node.first_index as usize, node.first_index as usize + 1);
-        // Spread over `k` slots: the best division of them between the two children.
-        let spread = |k: usize| {
-            (1..k)
-                .map(|a| (self.cost[l][a - 1] + self.cost[r][k - a - 1], a as u8))
-                .min_by(|x, y| x.0.total_cmp(&y.0))
-        };
-        let (whole, _) = spread(WIDTH).expect("eight slots divide");
-        let mut cost = [area + whole; WIDTH];
-        let mut split = [0; WIDTH];
-        for k in 2..=WIDTH {
-            (cost[k - 1], split[k - 1]) = (cost[k - 2], split[k - 2]);
-            if let Some((c, a)) = spread(k)
-                && c < cost[k - 1]
-            {
-                (cost[k - 1], split[k - 1]) = (c, a);
-            }
-        }
-        self.cost[i] = cost;
-        self.split[i] = split;
+        Self { split }
     }
 
     /// Appends the binary nodes that fill the (at most `k`) slots standing for subtree `i`.
@@ -136,6 +113,30 @@ impl Plan {
         self.slots(bvh, l, a, out);
         self.slots(bvh, l + 1, k - a, out);
     }
+}
+
+/// The least expected cost of an inner node of box area `area` whose children cost `l` and
+/// `r` (by slot count) spread over 1..=8 slots, and the slots its first child gets for each
+/// (0: kept whole).
+fn spread(area: f32, l: &[f32; WIDTH], r: &[f32; WIDTH]) -> ([f32; WIDTH], [u8; WIDTH]) {
+    // Over `k` slots: the best division of them between the two children.
+    let divide = |k: usize| {
+        (1..k)
+            .map(|a| (l[a - 1] + r[k - a - 1], a as u8))
+            .min_by(|x, y| x.0.total_cmp(&y.0))
+    };
+    let (whole, _) = divide(WIDTH).expect("eight slots divide");
+    let mut cost = [area + whole; WIDTH];
+    let mut split = [0; WIDTH];
+    for k in 2..=WIDTH {
+        (cost[k - 1], split[k - 1]) = (cost[k - 2], split[k - 2]);
+        if let Some((c, a)) = divide(k)
+            && c < cost[k - 1]
+        {
+            (cost[k - 1], split[k - 1]) = (c, a);
+        }
+    }
+    (cost, split)
 }
 
 /// Appends the wide node standing for inner binary node `at` (and its subtrees); its index.
