@@ -109,11 +109,23 @@ impl ParallelLines {
             .reach
             .max(min.abs().max_element())
             .max(max.abs().max_element());
-        let rect = padded(self.shear.project_box(min, max), margin(scale));
+        // The box's image (the rectangle and the diagonal band), widened by the margin of
+        // the move and, for the band, its own rounding as well.
+        let pad = margin(scale);
+        let (lo, hi) = (
+            min.to_array().map(|v| [v; 8]),
+            max.to_array().map(|v| [v; 8]),
+        );
+        let image = self
+            .shear
+            .project_boxes(&lo, &hi, 2.0 * pad)
+            .map(|side| side[0]);
+        let rect = padded([image[0], image[1], image[2], image[3]], pad);
+        let (d0, d1) = (image[4], image[5]);
         out.extend(
             self.points
                 .iter()
-                .filter(|p| inside(&rect, p))
+                .filter(|p| inside(&rect, p) & (p.d >= d0) & (p.d <= d1))
                 .map(|p| p.line),
         );
     }

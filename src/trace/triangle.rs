@@ -56,23 +56,6 @@ impl Shear {
         [x - self.sx * z, y - self.sy * z]
     }
 
-    /// The rectangle (lower x, lower y, upper x, upper y) that [`Shear::project`] maps the box
-    /// from `min` to `max` into. It holds the projection of every point of the box as
-    /// [`Shear::project`] rounds it: rounding is monotonic.
-    #[must_use]
-    #[inline]
-    pub fn project_box(&self, min: Vec3, max: Vec3) -> [f32; 4] {
-        let (min_z, max_z) = (axis(&min, self.kz), axis(&max, self.kz));
-        let (zx0, zx1) = (self.sx * min_z, self.sx * max_z);
-        let (zy0, zy1) = (self.sy * min_z, self.sy * max_z);
-        [
-            axis(&min, self.kx) - zx0.max(zx1),
-            axis(&min, self.ky) - zy0.max(zy1),
-            axis(&max, self.kx) - zx0.min(zx1),
-            axis(&max, self.ky) - zy0.min(zy1),
-        ]
-    }
-
     /// What the two corners cut off a box's image are measured by: `sy·x − sx·y` of a point's
     /// coordinates on the minor axes, or equally of its projection (the shear adds the same
     /// to both terms).
@@ -82,9 +65,10 @@ impl Shear {
         self.sy * x - self.sx * y
     }
 
-    /// [`Shear::project_box`] of eight boxes at once, given as their lower and upper corners'
-    /// coordinates per axis (`lo[axis][box]`): the rectangles' lower x, lower y, upper x and
-    /// upper y, then the least and the greatest [`Shear::diagonal`] of the boxes' points,
+    /// The images under [`Shear::project`] of eight boxes at once, given as their lower and
+    /// upper corners' coordinates per axis (`lo[axis][box]`): the rectangles' lower x, lower
+    /// y, upper x and upper y (each holding the projection of every point of its box as
+    /// [`Shear::project`] rounds it: rounding is monotonic), then the least and the greatest [`Shear::diagonal`] of the boxes' points,
     /// widened by `margin`; one box per lane, four lanes at a time.
     ///
     /// A box's image is a hexagon: its rectangle with two corners cut off along the
