@@ -216,7 +216,7 @@ fn inside(rect: &[f32; 4], p: &Point) -> bool {
 /// and the range of their diagonals, child by child ([`Shear::project_boxes`]).
 type Rects = [[f32; wide::WIDTH]; 6];
 
-/// The children (bit i for child i) whose rectangles hold `p`; with `AVX`, eight at once.
+/// The children (bit i for child i) whose images hold `p`; with `AVX`, eight at once.
 #[inline(always)]
 fn children_around<const AVX: bool>(rects: &Rects, p: &Point) -> u32 {
     #[cfg(target_arch = "x86_64")]
@@ -281,7 +281,8 @@ unsafe fn children_around_avx(rects: &Rects, p: &Point) -> u32 {
     }
 }
 
-/// The rectangles of `node`'s children; with `AVX`, eight at once.
+/// The images of `node`'s children, their diagonal bands widened by `margin`; with `AVX`,
+/// eight at once.
 #[inline(always)]
 fn rects_of<const AVX: bool>(shear: &Shear, node: &wide::Node, margin: f32) -> Rects {
     #[cfg(target_arch = "x86_64")]
@@ -292,7 +293,7 @@ fn rects_of<const AVX: bool>(shear: &Shear, node: &wide::Node, margin: f32) -> R
     shear.project_boxes(&node.lo, &node.hi, margin)
 }
 
-/// Appends to `next` the lines of `list` (of several lines) inside each child's rectangle
+/// Appends to `next` the lines of `list` (of several lines) inside each child's image
 /// (`rects`, see [`children_around`]; `used`, the children there are), child after child: the
 /// children reached (bit i for child i), and each one's range in `next`.
 #[inline(always)]
