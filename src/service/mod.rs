@@ -251,6 +251,11 @@ pub fn app(state: AppState) -> Router {
         )
         .fallback(|| async { ApiError::NotFound("no such path".into()) })
         .layer(DefaultBodyLimit::max(limit))
+        .layer(axum::middleware::from_fn(
+            move |request: axum::extract::Request, next: axum::middleware::Next| {
+                declared_length_within(limit, request, next)
+            },
+        ))
         .layer(
             tower_http::trace::TraceLayer::new_for_http()
                 .make_span_with(
@@ -328,6 +333,25 @@ async fn healthz(
         "data_dir_bytes": data_bytes,
         "retention": {"days": retention.days, "count": retention.count},
     }))
+}
+
+/// Refuses a request whose declared length is over `limit` before any of its body is read: a
+/// client streaming a large upload gets the 413 at once instead of after the first `limit`
+/// bytes (bodies without a declared length are cut by the body limit as they are read).
+async fn declared_length_within(
+    limit: usize,
+    request: axum::extract::Request,
+    next: axum::middleware::Next,
+) -> Result<Response, ApiError> {
+    let declared = request
+        .headers()
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.parse::<u64>().ok());
+    if declared.is_some_and(|n| n > limit as u64) {
+        return Err(ApiError::TooLarge(limit));
+    }
+    Ok(next.run(request).await)
 }
 
 /// The process's resident memory (Linux's `/proc/self/statm`, 4 KiB pages), if known.
