@@ -227,20 +227,13 @@ impl AreaLights {
             .collect();
         let mut rows: Vec<(u32, Pair, Vec<u64>)> = receivers
             .par_iter()
-            .map_init(Vec::new, |hits, receiver| {
+            .map(|receiver| {
                 let mut rows = Vec::new();
                 for (c, emitter) in emitters.iter().enumerate() {
                     if !clusters[c].moving {
                         let mut bits = Vec::new();
-                        let pair = pair(
-                            &at,
-                            receiver,
-                            c,
-                            emitter,
-                            sampling,
-                            Rays::Record(&mut bits),
-                            hits,
-                        );
+                        let pair =
+                            pair(&at, receiver, c, emitter, sampling, Rays::Record(&mut bits));
                         if pair.value > 0.0 {
                             rows.push((receiver.patch, pair, bits));
                         }
@@ -741,7 +734,6 @@ fn pair(
     emitter: &Emitter,
     sampling: Sampling,
     mut rays: Rays<'_>,
-    hits: &mut Vec<crate::trace::Hit>,
 ) -> Pair {
     let seed = mix(sampling.seed ^ mix((u64::from(receiver.patch) << 32) ^ c as u64));
     let total: f64 = receiver.faces.iter().map(|(_, a)| a).sum();
@@ -762,7 +754,7 @@ fn pair(
             }
             Rays::Known(bits) => Rays::Known(&bits[word..]),
         };
-        let (v, var) = form_factor(at, face, emitter, (seed, g), face_rays, hits);
+        let (v, var) = form_factor(at, face, emitter, (seed, g), face_rays);
         if let Rays::Record(bits) = &mut rays {
             own.resize(words, 0);
             bits.extend_from_slice(&own);
@@ -836,37 +828,34 @@ fn changed_pairs(
     }
     let mut changed: Vec<(u32, Pair)> = receivers(triangles, statics)
         .par_iter()
-        .map_init(
-            || (Vec::new(), Vec::new()),
-            |(hits, hull), receiver| {
-                let mut out = Vec::new();
-                for (c, emitter) in emitters.iter().enumerate() {
-                    if receiver.moving || clusters[c].moving {
-                        let pair = pair(&at, receiver, c, emitter, sampling, Rays::Trace, hits);
-                        if pair.value > 0.0 {
-                            out.push((receiver.patch, pair));
-                        }
-                        continue;
-                    }
-                    // Dark with the static geometry alone: dark whatever moves.
-                    let Some(base) = lights.static_pair(receiver.patch, c) else {
-                        continue;
-                    };
-                    hull.clear();
-                    let corners = receiver.faces.iter().flat_map(|(f, _)| &f.corners);
-                    hull.extend(corners.chain(&emitter.hull));
-                    if !boxes.iter().any(|b| b.meets_hull(hull)) {
-                        continue;
-                    }
-                    let rays = Rays::Known(&lights.visible[base.visible as usize..]);
-                    let pair = pair(&moving_only, receiver, c, emitter, sampling, rays, hits);
-                    if pair.value != base.value {
+        .map_init(Vec::new, |hull, receiver| {
+            let mut out = Vec::new();
+            for (c, emitter) in emitters.iter().enumerate() {
+                if receiver.moving || clusters[c].moving {
+                    let pair = pair(&at, receiver, c, emitter, sampling, Rays::Trace);
+                    if pair.value > 0.0 {
                         out.push((receiver.patch, pair));
                     }
+                    continue;
                 }
-                out
-            },
-        )
+                // Dark with the static geometry alone: dark whatever moves.
+                let Some(base) = lights.static_pair(receiver.patch, c) else {
+                    continue;
+                };
+                hull.clear();
+                let corners = receiver.faces.iter().flat_map(|(f, _)| &f.corners);
+                hull.extend(corners.chain(&emitter.hull));
+                if !boxes.iter().any(|b| b.meets_hull(hull)) {
+                    continue;
+                }
+                let rays = Rays::Known(&lights.visible[base.visible as usize..]);
+                let pair = pair(&moving_only, receiver, c, emitter, sampling, rays);
+                if pair.value != base.value {
+                    out.push((receiver.patch, pair));
+                }
+            }
+            out
+        })
         .flatten()
         .collect();
     changed.sort_unstable_by_key(|&(p, pair)| (p, pair.cluster));
@@ -986,7 +975,6 @@ pub(super) fn form_factor(
     emitter: &Emitter,
     (seed, g): (u64, usize),
     mut rays: Rays<'_>,
-    hits: &mut Vec<crate::trace::Hit>,
 ) -> (f64, f64) {
     if !face.may_see(emitter) {
         return (0.0, 0.0);
@@ -1045,7 +1033,7 @@ pub(super) fn form_factor(
         }
         let visible = match &mut rays {
             Rays::Known(bits) if bits[k / 64] >> (k % 64) & 1 == 0 => false,
-            _ => !at.blocked(x, y, face.own, face.back, hits),
+            _ => !at.blocked(x, y, face.own, face.back),
         };
         squares += f * f;
         (eligible, seen) = (eligible + 1, seen + usize::from(visible));
@@ -1253,10 +1241,9 @@ mod tests {
             let triangles = &posed.triangles;
             let emitters: Vec<Emitter> = clusters.iter().map(|c| pose(c, triangles)).collect();
             let mut whole = vec![0.0f64; scene.patches.len() * slots];
-            let mut hits = Vec::new();
             for receiver in receivers(triangles, scene.statics.triangles.len()) {
                 for (c, emitter) in emitters.iter().enumerate() {
-                    let p = pair(&at, &receiver, c, emitter, sampling, Rays::Trace, &mut hits);
+                    let p = pair(&at, &receiver, c, emitter, sampling, Rays::Trace);
                     whole[receiver.patch as usize * slots + clusters[c].slot] += f64::from(p.value);
                 }
             }

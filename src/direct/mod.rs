@@ -369,16 +369,27 @@ impl Frame<'_> {
         }
     }
 
+    /// Whether `found` holds for a crossing of `line` with the occluders, `0 < t < t_max`,
+    /// looked at in no particular order: the walk stops at the first it holds for.
+    fn any_until(&self, line: &Line, t_max: f32, found: &mut impl FnMut(Hit) -> bool) -> bool {
+        let (tracer, frame, deformed) = (self.tracer, self.frame, self.deformed);
+        match self.occluders {
+            Occluders::All => tracer.any_frame_until(line, (frame, deformed), t_max, found),
+            Occluders::Static => tracer.any_static(line, t_max, found),
+            Occluders::Moving => tracer.any_moving(line, (frame, deformed), t_max, found),
+        }
+    }
+
     /// Whether anything but triangle `own` crosses the segment from `from`, a point on one of
     /// `own`'s faces (its back if `back`), to `to`. A surface touching that face (a contact,
     /// [`crate::trace::coincident`]) blocks it too: a face pressed against a wall is not lit
-    /// through the wall.
-    fn blocked(&self, from: DVec3, to: DVec3, own: u32, back: bool, hits: &mut Vec<Hit>) -> bool {
+    /// through the wall. The walk stops at the first blocker.
+    fn blocked(&self, from: DVec3, to: DVec3, own: u32, back: bool) -> bool {
         let d = to - from;
         let length = d.length();
-        let behind = self.trace_from_behind(from, d / length, length, hits);
-        let (start, end) = (behind as f32, (behind + length) as f32 - SHADOW_EPSILON);
-        hits.iter().any(|&h| {
+        let (line, t_max) = from_behind(from, d / length, length);
+        let (start, end) = (BEHIND as f32, (BEHIND + length) as f32 - SHADOW_EPSILON);
+        self.any_until(&line, t_max, &mut |h| {
             (h.surface() != own && h.t > start + COINCIDENT && h.t < end)
                 || self.touching_at(h, start, (own, back))
         })
@@ -388,38 +399,35 @@ impl Frame<'_> {
     /// `n` on that side, at `x` (a box standing on a floor covers the floor under it): the
     /// touching surface [`Frame::blocked`] finds at the start of every shadow ray from there,
     /// looked for along the normal.
-    fn covered(&self, x: DVec3, n: DVec3, face: (u32, bool), hits: &mut Vec<Hit>) -> bool {
-        let start = self.trace_from_behind(x, n, 0.0, hits) as f32;
-        hits.iter().any(|&h| self.touching_at(h, start, face))
+    fn covered(&self, x: DVec3, n: DVec3, face: (u32, bool)) -> bool {
+        let (line, t_max) = from_behind(x, n, 0.0);
+        self.any_until(&line, t_max, &mut |h| {
+            self.touching_at(h, BEHIND as f32, face)
+        })
     }
 
-    /// Traces the line through `x` along unit `direction` from a little behind `x`, so that a
-    /// surface touching the face `x` lies on is crossed whichever side of `x` rounding puts
-    /// it, as far as `reach` past `x` (and a little more); `x`'s distance along the line.
-    fn trace_from_behind(
-        &self,
-        x: DVec3,
-        direction: DVec3,
-        reach: f64,
-        hits: &mut Vec<Hit>,
-    ) -> f64 {
-        let behind = f64::from(4.0 * COINCIDENT);
-        let line = Line {
-            origin: (x - direction * behind).as_vec3(),
-            direction: direction.as_vec3(),
-        };
-        let t_max = (behind + reach) as f32 + 4.0 * COINCIDENT;
-        self.trace_until(&line, t_max.min(LINE_LENGTH), hits);
-        behind
-    }
-
-    /// Whether crossing `h` of a line traced by [`Frame::trace_from_behind`], whose start is at
+    /// Whether crossing `h` of a line from [`from_behind`], whose start is at
     /// `start`, is a surface touching face `back` (or the front) of triangle `own` there.
     fn touching_at(&self, h: Hit, start: f32, (own, back): (u32, bool)) -> bool {
         h.surface() != own
             && (h.t - start).abs() <= COINCIDENT
             && self.tracer.surfaces().touching(own, back, h)
     }
+}
+
+/// How far behind a point its shadow rays start ([`from_behind`]).
+const BEHIND: f64 = (4.0 * COINCIDENT) as f64;
+
+/// The line through `x` along unit `direction` from [`BEHIND`] behind `x`, so that a surface
+/// touching the face `x` lies on is crossed whichever side of `x` rounding puts it, and how
+/// far to walk it: `reach` past `x` and a little more. (`x` is at [`BEHIND`] along it.)
+fn from_behind(x: DVec3, direction: DVec3, reach: f64) -> (Line, f32) {
+    let line = Line {
+        origin: (x - direction * BEHIND).as_vec3(),
+        direction: direction.as_vec3(),
+    };
+    let t_max = (BEHIND + reach) as f32 + 4.0 * COINCIDENT;
+    (line, t_max.min(LINE_LENGTH))
 }
 
 /// Subdivision level of [`visible_shares`]' points: 64 per face (one per stratum).
@@ -466,11 +474,8 @@ pub fn visible_shares(
                         Xoshiro256PlusPlus::seed_from_u64(mix(2 * t as u64 + u64::from(back)));
                     let mut points = Vec::new();
                     sample_points(inset(&corners), VISIBLE_LEVEL, &mut rng, &mut points);
-                    let mut hits = Vec::new();
                     let open: Vec<f64> = (points.iter())
-                        .map(|&x| {
-                            f64::from(u8::from(!at.covered(x, n, (t as u32, back), &mut hits)))
-                        })
+                        .map(|&x| f64::from(u8::from(!at.covered(x, n, (t as u32, back)))))
                         .collect();
                     Some((p, area, collapsed_variance(&open)))
                 })
@@ -596,7 +601,7 @@ fn point(at: &Frame<'_>, light: &Light, index: usize) -> Vec<(f64, f64)> {
         .triangles
         .par_iter()
         .enumerate()
-        .map_init(Vec::new, |hits, (t, (corners, faces))| {
+        .map(|(t, (corners, faces))| {
             let corners = corners.map(|c| c.as_dvec3());
             let (normal, area) = normal_and_area(corners);
             let sides = [(Some(faces.front), false), (faces.back, true)];
@@ -610,7 +615,7 @@ fn point(at: &Frame<'_>, light: &Light, index: usize) -> Vec<(f64, f64)> {
                 };
                 let seed = mix((u64::from(patch) << 32) ^ index as u64);
                 let (value, variance) =
-                    patch_irradiance(at, light, &face, (position, axis), (seed, None), hits);
+                    patch_irradiance(at, light, &face, (position, axis), (seed, None));
                 let r2 = radius * radius;
                 Some((patch, area, (value / r2, variance / (r2 * r2))))
             })
@@ -673,7 +678,6 @@ fn patch_irradiance(
     face: &Face,
     (position, axis): (DVec3, DVec3),
     (seed, level): (u64, Option<u32>),
-    hits: &mut Vec<Hit>,
 ) -> (f64, f64) {
     let Face {
         own,
@@ -732,7 +736,7 @@ fn patch_irradiance(
             if let LightKind::Spot { inner, outer } = light.kind {
                 e *= spot_attenuation(axis.dot(-to_light / d), inner, outer);
             }
-            if e > 0.0 && !at.blocked(x, position, own, back, hits) {
+            if e > 0.0 && !at.blocked(x, position, own, back) {
                 e
             } else {
                 -e
@@ -821,7 +825,7 @@ pub fn parts_irradiance(
     let r2 = scene.normalisation.radius.powi(2);
     parts
         .par_iter()
-        .map_init(Vec::new, |hits, part| {
+        .map(|part| {
             let triangle = posed.triangles[part.triangle as usize]
                 .0
                 .map(|c| c.as_dvec3());
@@ -842,20 +846,17 @@ pub fn parts_irradiance(
             for (k, &(light, w, pose)) in lights.iter().enumerate() {
                 let seed = mix(part.seed ^ k as u64);
                 match light.kind {
-                    LightKind::Directional => add(sunlit(&at, pose.1, &face, seed, hits), w),
+                    LightKind::Directional => add(sunlit(&at, pose.1, &face, seed), w),
                     _ => {
                         let sampling = (seed, Some(PART_LEVEL));
-                        add(
-                            patch_irradiance(&at, light, &face, pose, sampling, hits),
-                            w / r2,
-                        );
+                        add(patch_irradiance(&at, light, &face, pose, sampling), w / r2);
                     }
                 }
             }
             for (k, (emitter, w)) in emitters.iter().enumerate() {
                 let seed = mix(part.seed ^ (lights.len() + k) as u64);
                 let rays = area::Rays::Trace;
-                let f = area::form_factor(&at, &face, emitter, (seed, PART_GRID), rays, hits);
+                let f = area::form_factor(&at, &face, emitter, (seed, PART_GRID), rays);
                 add(f, *w);
             }
             sum
@@ -865,7 +866,7 @@ pub fn parts_irradiance(
 
 /// Mean irradiance over `face` per lux of a directional light shining along `w`, and its
 /// variance: [`PART_LEVEL`]'s points, a shadow ray each out of the scene.
-fn sunlit(at: &Frame<'_>, w: DVec3, face: &Face, seed: u64, hits: &mut Vec<Hit>) -> (f64, f64) {
+fn sunlit(at: &Frame<'_>, w: DVec3, face: &Face, seed: u64) -> (f64, f64) {
     let cos = -face.n.dot(w);
     if face.n == DVec3::ZERO || cos <= 0.0 {
         return (0.0, 0.0);
@@ -877,7 +878,7 @@ fn sunlit(at: &Frame<'_>, w: DVec3, face: &Face, seed: u64, hits: &mut Vec<Hit>)
     let values: Vec<f64> = points
         .iter()
         .map(|&x| {
-            if at.blocked(x, x - away, face.own, face.back, hits) {
+            if at.blocked(x, x - away, face.own, face.back) {
                 -cos
             } else {
                 cos
@@ -963,7 +964,6 @@ fn directional(at: &Frame<'_>, light: &Light) -> Vec<(f64, f64)> {
                 (a, b)
             },
         );
-    let mut hits = Vec::new();
     let mut values = Vec::with_capacity(at.triangles.len());
     for (t, ((corners, faces), &(normal, area))) in at.triangles.iter().zip(&geometry).enumerate() {
         if area <= 0.0 {
@@ -988,7 +988,7 @@ fn directional(at: &Frame<'_>, light: &Light) -> Vec<(f64, f64)> {
                 // Smaller than the grid: one shadow ray from the centroid, out of the scene.
                 let centre = corners.iter().map(|c| c.as_dvec3()).sum::<DVec3>() / 3.0;
                 let away = centre - w * f64::from(LINE_LENGTH);
-                let visible = !at.blocked(centre, away, t as u32, back, &mut hits);
+                let visible = !at.blocked(centre, away, t as u32, back);
                 (f64::from(u8::from(visible)), 0.0)
             };
             values.push((p as u32, area, (cos * visible, cos * cos * variance)));

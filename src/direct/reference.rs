@@ -320,7 +320,7 @@ impl Tracer<'_> {
             let (place, corners) = faces[k];
             let x = triangle_point(&corners, rng.random(), rng.random());
             let face = (place.triangle, place.back);
-            if self.view.covered(x, place.normal, face, &mut hits) {
+            if self.view.covered(x, place.normal, face) {
                 continue;
             }
             n += 1;
@@ -371,7 +371,7 @@ impl Tracer<'_> {
         let mut total = [0.0; 3];
         let mut throughput = [1.0; 3];
         for bounce in 0..MAX_BOUNCES {
-            let direct = self.next_event(x, place, rng, hits);
+            let direct = self.next_event(x, place, rng);
             let punctual = self.punctual(x, place, hits);
             (0..3).for_each(|c| total[c] += throughput[c] * (direct[c] + punctual[c]));
             // A cosine-weighted direction: the irradiance is π times the mean radiance coming
@@ -418,13 +418,7 @@ impl Tracer<'_> {
     }
 
     /// One next-event sample of the irradiance at `x` from the emitting patches.
-    fn next_event(
-        &self,
-        x: DVec3,
-        place: &Place,
-        rng: &mut Xoshiro256PlusPlus,
-        hits: &mut Vec<Hit>,
-    ) -> [f64; 3] {
+    fn next_event(&self, x: DVec3, place: &Place, rng: &mut Xoshiro256PlusPlus) -> [f64; 3] {
         if self.emitters.is_empty() {
             return [0.0; 3];
         }
@@ -445,7 +439,7 @@ impl Tracer<'_> {
         if cos_x <= 0.0 || cos_y <= 0.0 {
             return [0.0; 3];
         }
-        if self.view.blocked(x, y, place.triangle, place.back, hits) {
+        if self.view.blocked(x, y, place.triangle, place.back) {
             return [0.0; 3];
         }
         let g = light.weight(cos_x, cos_y, r2);
@@ -484,7 +478,7 @@ impl Tracer<'_> {
                     if e <= 0.0
                         || self
                             .view
-                            .blocked(x, light.position, place.triangle, place.back, hits)
+                            .blocked(x, light.position, place.triangle, place.back)
                     {
                         continue;
                     }

@@ -529,6 +529,42 @@ mod tests {
     }
 
     #[test]
+    fn a_walk_for_one_crossing_answers_as_every_crossing_does_and_stops_at_it() {
+        let mut rng = Xoshiro256PlusPlus::seed_from_u64(21);
+        let mesh = scattered(3_000, &mut rng);
+        let (mut all, mut early) = (Vec::new(), 0);
+        let tests: [fn(Hit, f32) -> bool; 3] = [
+            |h, _| h.surface() % 2 == 0,
+            |h, t_max| h.t > t_max / 2.0,
+            |h, _| h.front() && h.surface() % 7 == 0,
+        ];
+        for _ in 0..400 {
+            let grid = |v: f32| (v * 64.0).round() / 64.0;
+            let mut c = || grid(rng.random_range(-0.5..1.5));
+            let direction = Vec3::new(c(), c(), c()).normalize_or(Vec3::X);
+            let origin = Vec3::new(c(), c(), c()) - direction * 2.0;
+            let t_max = rng.random_range(1.0..5.0);
+            all.clear();
+            mesh.trace_until(origin, direction, t_max, &mut all);
+            for test in tests {
+                let mut looked = 0;
+                let found = mesh.any_until(origin, direction, t_max, &mut |h| {
+                    looked += 1;
+                    test(h, t_max)
+                });
+                assert_eq!(found, all.iter().any(|&h| test(h, t_max)));
+                // Every crossing looked at when none holds; fewer when one does and others
+                // come after it.
+                if !found {
+                    assert_eq!(looked, all.len());
+                }
+                early += usize::from(looked < all.len());
+            }
+        }
+        assert!(early > 100, "{early}");
+    }
+
+    #[test]
     fn a_box_s_image_holds_every_corner_of_the_box_as_projected() {
         // The corners of a box projected as a triangle's corners are (rounded): each inside the
         // rectangle and the diagonal band of the box, even at the ends of the band, where the

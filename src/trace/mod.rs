@@ -84,6 +84,14 @@ struct Triangle {
     id: u32,
 }
 
+/// A `found` for the `any_` walks that appends every crossing to `out` and never stops them.
+fn pushed(out: &mut Vec<Hit>) -> impl FnMut(Hit) -> bool + '_ {
+    |hit| {
+        out.push(hit);
+        false
+    }
+}
+
 /// Triangles with a BVH over them, in BVH order.
 pub struct TraceMesh {
     /// The triangles, in the BVH's primitive order.
@@ -145,15 +153,30 @@ impl TraceMesh {
 
     /// [`TraceMesh::trace`] for `0 < t < t_max` only: the nodes beyond are not visited.
     pub fn trace_until(&self, origin: Vec3, direction: Vec3, t_max: f32, out: &mut Vec<Hit>) {
+        self.any_until(origin, direction, t_max, &mut pushed(out));
+    }
+
+    /// Whether `found` holds for a crossing of the line `origin + t·direction`,
+    /// `0 < t < t_max`: the crossings of [`TraceMesh::trace_until`] are given to it in the
+    /// same order, and the walk stops at the first it holds for (a shadow ray's first blocker).
+    pub fn any_until(
+        &self,
+        origin: Vec3,
+        direction: Vec3,
+        t_max: f32,
+        found: &mut impl FnMut(Hit) -> bool,
+    ) -> bool {
         let sheared = ShearedLine::new(origin, direction);
         let ray = Ray::new(origin.into(), direction.into(), 0.0, t_max);
-        self.bvh.ray_traverse_anyhit(ray, |_, k| {
+        // The walk stops at a primitive whose distance is under the ray's end.
+        !self.bvh.ray_traverse_miss(ray, |_, k| {
             let Triangle { corners, id } = self.triangles[k];
             let [a, b, c] = corners;
-            if let Some((t, front)) = sheared.intersect(a, b, c, t_max) {
-                out.push(Hit::new(t, id, front));
+            match sheared.intersect(a, b, c, t_max) {
+                Some((t, front)) if found(Hit::new(t, id, front)) => f32::NEG_INFINITY,
+                _ => f32::INFINITY,
             }
-        });
+        })
     }
 
     /// The box around all the triangles (padded like the BVH's).
@@ -329,9 +352,14 @@ impl SceneTracer {
     /// Appends the crossings of `line` with the static geometry, `0 < t < t_max`
     /// ([`LINE_LENGTH`] for the whole line; less for a shadow ray, sparing the nodes beyond).
     pub fn trace_static(&self, line: &Line, t_max: f32, out: &mut Vec<Hit>) {
-        if let Some(mesh) = &self.statics {
-            mesh.trace_until(line.origin, line.direction, t_max, out);
-        }
+        self.any_static(line, t_max, &mut pushed(out));
+    }
+
+    /// Whether `found` holds for a crossing [`SceneTracer::trace_static`] finds; the walk stops
+    /// at the first it holds for.
+    pub fn any_static(&self, line: &Line, t_max: f32, found: &mut impl FnMut(Hit) -> bool) -> bool {
+        (self.statics.as_ref())
+            .is_some_and(|mesh| mesh.any_until(line.origin, line.direction, t_max, found))
     }
 
     /// Appends the crossings of `line` with the moving objects as posed at `frame`,
@@ -344,6 +372,18 @@ impl SceneTracer {
         t_max: f32,
         out: &mut Vec<Hit>,
     ) {
+        self.any_moving(line, (frame, deformed), t_max, &mut pushed(out));
+    }
+
+    /// Whether `found` holds for a crossing [`SceneTracer::trace_moving`] finds; the walk
+    /// stops at the first it holds for.
+    pub fn any_moving(
+        &self,
+        line: &Line,
+        (frame, deformed): (usize, &FrameMeshes),
+        t_max: f32,
+        found: &mut impl FnMut(Hit) -> bool,
+    ) -> bool {
         let ray = Ray::new(line.origin.into(), line.direction.into(), 0.0, t_max);
         for rigid in self.rigid.iter().flatten() {
             if let Some((bounds, inv)) = &rigid.frames[frame] {
@@ -354,12 +394,13 @@ impl SceneTracer {
                 // together.
                 let origin = inv.transform_point3(line.origin);
                 let direction = inv.transform_vector3(line.direction);
-                rigid.mesh.trace_until(origin, direction, t_max, out);
+                if rigid.mesh.any_until(origin, direction, t_max, found) {
+                    return true;
+                }
             }
         }
-        for mesh in deformed.meshes.iter().flatten() {
-            mesh.trace_until(line.origin, line.direction, t_max, out);
-        }
+        (deformed.meshes.iter().flatten())
+            .any(|mesh| mesh.any_until(line.origin, line.direction, t_max, found))
     }
 
     /// Appends `(line, crossing)` for every crossing of the static geometry by `lines`, in no
@@ -443,7 +484,7 @@ impl SceneTracer {
         self.trace_frame_until(line, frame, deformed, LINE_LENGTH, out);
     }
 
-    /// [`SceneTracer::trace_frame`] for `0 < t < t_max` only: what a shadow ray needs.
+    /// [`SceneTracer::trace_frame`] for `0 < t < t_max` only.
     pub fn trace_frame_until(
         &self,
         line: &Line,
@@ -456,6 +497,19 @@ impl SceneTracer {
         self.trace_static(line, t_max, out);
         self.trace_moving(line, frame, deformed, t_max, out);
         out.sort_unstable_by(Hit::order);
+    }
+
+    /// Whether `found` holds for a crossing [`SceneTracer::trace_frame_until`] finds, in no
+    /// particular order: the walks stop at the first it holds for (what a shadow ray needs).
+    pub fn any_frame_until(
+        &self,
+        line: &Line,
+        (frame, deformed): (usize, &FrameMeshes),
+        t_max: f32,
+        found: &mut impl FnMut(Hit) -> bool,
+    ) -> bool {
+        self.any_static(line, t_max, found)
+            || self.any_moving(line, (frame, deformed), t_max, found)
     }
 
     /// Builds the BVHs of the deforming objects posed at `frame` (none if nothing deforms).
