@@ -529,16 +529,16 @@ mod tests {
     }
 
     #[test]
-    fn a_walk_for_one_crossing_answers_as_every_crossing_does_and_stops_at_it() {
+    fn a_line_walked_alone_finds_what_every_triangle_finds_and_stops_at_the_first_asked_for() {
         let mut rng = Xoshiro256PlusPlus::seed_from_u64(21);
         let mesh = scattered(3_000, &mut rng);
-        let (mut all, mut early) = (Vec::new(), 0);
+        let (mut all, mut every, mut early, mut crossings) = (Vec::new(), Vec::new(), 0, 0);
         let tests: [fn(Hit, f32) -> bool; 3] = [
             |h, _| h.surface() % 2 == 0,
             |h, t_max| h.t > t_max / 2.0,
             |h, _| h.front() && h.surface() % 7 == 0,
         ];
-        for _ in 0..400 {
+        for _ in 0..1_000 {
             let grid = |v: f32| (v * 64.0).round() / 64.0;
             let mut c = || grid(rng.random_range(-0.5..1.5));
             let direction = Vec3::new(c(), c(), c()).normalize_or(Vec3::X);
@@ -546,6 +546,15 @@ mod tests {
             let t_max = rng.random_range(1.0..5.0);
             all.clear();
             mesh.trace_until(origin, direction, t_max, &mut all);
+            // The walk finds what testing every triangle finds up to `t_max`.
+            every.clear();
+            mesh.trace_brute_force(origin, direction, &mut every);
+            every.retain(|h| h.t < t_max);
+            every.sort_unstable_by(Hit::order);
+            let mut sorted = all.clone();
+            sorted.sort_unstable_by(Hit::order);
+            assert_eq!(sorted, every);
+            crossings += all.len();
             for test in tests {
                 let mut looked = 0;
                 let found = mesh.any_until(origin, direction, t_max, &mut |h| {
@@ -561,7 +570,7 @@ mod tests {
                 early += usize::from(looked < all.len());
             }
         }
-        assert!(early > 100, "{early}");
+        assert!(early > 300 && crossings > 1_500, "{early} {crossings}");
     }
 
     #[test]

@@ -12,10 +12,9 @@ mod wide;
 
 use std::time::Duration;
 
-use glam::{Affine3A, DAffine3, Vec3, Vec3A};
+use glam::{Affine3A, DAffine3, Vec3, Vec3A, Vec4};
 use obvhs::BvhBuildParams;
 use obvhs::aabb::Aabb;
-use obvhs::bvh2::Bvh2;
 use obvhs::bvh2::builder::build_bvh2;
 use obvhs::ray::Ray;
 
@@ -92,13 +91,54 @@ fn pushed(out: &mut Vec<Hit>) -> impl FnMut(Hit) -> bool + '_ {
     }
 }
 
+/// A line's slab test of boxes, as obvhs's ([`Aabb::intersect_ray`], the same arithmetic on
+/// four lanes): a box is met where the line's spans between its planes on the three axes
+/// overlap at or past 0 and start before `t_max`. The boxes are padded ([`BOX_PADDING`]) so
+/// that rounding never loses a triangle the line crosses.
+struct Slabs {
+    origin: [Vec4; 3],
+    inverse: [Vec4; 3],
+    t_max: Vec4,
+}
+
+impl Slabs {
+    fn new(origin: Vec3, direction: Vec3, t_max: f32) -> Self {
+        let ray = Ray::new(origin.into(), direction.into(), 0.0, t_max);
+        Self {
+            origin: std::array::from_fn(|a| Vec4::splat(ray.origin[a])),
+            inverse: std::array::from_fn(|a| Vec4::splat(ray.inv_direction[a])),
+            t_max: Vec4::splat(t_max),
+        }
+    }
+
+    /// The children of `node` (bit i for child i) whose boxes the line meets.
+    #[inline]
+    fn children(&self, node: &wide::Node) -> u32 {
+        [0, 4].into_iter().fold(0, |mask, half| {
+            let (mut near, mut far) = (Vec4::NEG_INFINITY, Vec4::INFINITY);
+            for a in 0..3 {
+                let t1 = (Vec4::from_slice(&node.lo[a][half..]) - self.origin[a]) * self.inverse[a];
+                let t2 = (Vec4::from_slice(&node.hi[a][half..]) - self.origin[a]) * self.inverse[a];
+                near = near.max(t1.min(t2));
+                far = far.min(t1.max(t2));
+            }
+            let met = far.cmpge(near) & far.cmpge(Vec4::ZERO) & near.cmplt(self.t_max);
+            mask | met.bitmask() << half
+        })
+    }
+}
+
 /// Triangles with a BVH over them, in BVH order.
 pub struct TraceMesh {
     /// The triangles, in the BVH's primitive order.
     triangles: Vec<Triangle>,
-    bvh: Bvh2,
-    /// The same BVH, 8 wide, for bundles ([`TraceMesh::trace_parallel`]).
+    /// The box around them (padded like the BVH's).
+    bounds: Aabb,
+    /// The BVH, 8 wide, for bundles ([`TraceMesh::trace_parallel`]) and single lines
+    /// ([`TraceMesh::any_until`]).
     wide: Vec<wide::Node>,
+    /// How many levels of nodes it has.
+    depth: usize,
 }
 
 /// Boxes are padded by this much (normalised units, the scale of the whole scene being 1) so
@@ -132,6 +172,7 @@ impl TraceMesh {
         };
         let bvh = build_bvh2(&boxes, params, &mut build_time);
         let order = &bvh.primitive_indices;
+        let wide = wide::collapse(&bvh);
         Some(Self {
             triangles: order
                 .iter()
@@ -140,8 +181,9 @@ impl TraceMesh {
                     id: first_id + i,
                 })
                 .collect(),
-            wide: wide::collapse(&bvh),
-            bvh,
+            bounds: bvh.nodes[0].aabb,
+            depth: wide::depth(&wide),
+            wide,
         })
     }
 
@@ -157,8 +199,12 @@ impl TraceMesh {
     }
 
     /// Whether `found` holds for a crossing of the line `origin + t·direction`,
-    /// `0 < t < t_max`: the crossings of [`TraceMesh::trace_until`] are given to it in the
-    /// same order, and the walk stops at the first it holds for (a shadow ray's first blocker).
+    /// `0 < t < t_max`: the crossings are given to it in the order the walk meets them, and
+    /// the walk stops at the first it holds for (a shadow ray's first blocker).
+    ///
+    /// The walk is of the wide BVH, eight children's boxes tested at once by their slabs
+    /// ([`Slabs`]); a line walked alone, without its bundle's hexagons, so that the nodes past
+    /// `t_max` are left out.
     pub fn any_until(
         &self,
         origin: Vec3,
@@ -166,25 +212,54 @@ impl TraceMesh {
         t_max: f32,
         found: &mut impl FnMut(Hit) -> bool,
     ) -> bool {
+        if self.wide.is_empty() {
+            return false;
+        }
+        // A node's children on the stack in place of the node: 7 more a level at most.
+        let (mut small, mut large) = ([0u32; 192], Vec::new());
+        let size = (wide::WIDTH - 1) * self.depth + 1;
+        let stack: &mut [u32] = if size <= small.len() {
+            &mut small
+        } else {
+            large.resize(size, 0);
+            &mut large
+        };
         let sheared = ShearedLine::new(origin, direction);
-        let ray = Ray::new(origin.into(), direction.into(), 0.0, t_max);
-        // The walk stops at a primitive whose distance is under the ray's end.
-        !self.bvh.ray_traverse_miss(ray, |_, k| {
-            let Triangle { corners, id } = self.triangles[k];
-            let [a, b, c] = corners;
-            match sheared.intersect(a, b, c, t_max) {
-                Some((t, front)) if found(Hit::new(t, id, front)) => f32::NEG_INFINITY,
-                _ => f32::INFINITY,
+        let slabs = Slabs::new(origin, direction, t_max);
+        let mut top = 1;
+        while top > 0 {
+            top -= 1;
+            let node = &self.wide[stack[top] as usize];
+            let mut reached = slabs.children(node) & node.used;
+            while reached != 0 {
+                let i = reached.trailing_zeros() as usize;
+                reached &= reached - 1;
+                let first = node.child[i];
+                match node.count[i] {
+                    wide::INNER => {
+                        stack[top] = first;
+                        top += 1;
+                    }
+                    count => {
+                        for k in first..first + u32::from(count) {
+                            let Triangle { corners, id } = self.triangles[k as usize];
+                            let [a, b, c] = corners;
+                            if let Some((t, front)) = sheared.intersect(a, b, c, t_max)
+                                && found(Hit::new(t, id, front))
+                            {
+                                return true;
+                            }
+                        }
+                    }
+                }
             }
-        })
+        }
+        false
     }
 
     /// The box around all the triangles (padded like the BVH's).
     fn bounds(&self) -> Aabb {
-        self.bvh
-            .nodes
-            .first()
-            .map_or(Aabb::empty(), |root| root.aabb)
+        self.bounds
     }
 
     /// The same crossings found by testing every triangle, for checking the BVH path.

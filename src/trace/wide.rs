@@ -66,6 +66,26 @@ pub fn collapse(bvh: &Bvh2) -> Vec<Node> {
     nodes
 }
 
+/// How many levels of nodes the wide BVH `nodes` (from [`collapse`]) has.
+#[must_use]
+pub fn depth(nodes: &[Node]) -> usize {
+    let mut deepest = 0;
+    let mut stack = Vec::new();
+    if !nodes.is_empty() {
+        stack.push((0, 1));
+    }
+    while let Some((at, level)) = stack.pop() {
+        deepest = deepest.max(level);
+        let node: &Node = &nodes[at as usize];
+        for i in 0..WIDTH {
+            if node.used >> i & 1 == 1 && node.count[i] == INNER {
+                stack.push((node.child[i], level + 1));
+            }
+        }
+    }
+    deepest
+}
+
 /// How each binary subtree is best spread over at most `k` slots of a wide node (`k` =
 /// 1..=8), for the least expected cost: for an inner node, the slots given to its first child
 /// (the rest to the second), or 0 for the subtree kept whole as one slot (a wide node of its
