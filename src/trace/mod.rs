@@ -203,8 +203,8 @@ impl TraceMesh {
     /// the walk stops at the first it holds for (a shadow ray's first blocker).
     ///
     /// The walk is of the wide BVH, eight children's boxes tested at once by their slabs
-    /// ([`Slabs`]); a line walked alone, without its bundle's hexagons, so that the nodes past
-    /// `t_max` are left out.
+    /// (obvhs's slab test on four lanes): a line walked alone, without its bundle's hexagons,
+    /// so that the nodes past `t_max` are left out.
     pub fn any_until(
         &self,
         origin: Vec3,
