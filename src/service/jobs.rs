@@ -1319,11 +1319,17 @@ impl Jobs {
         self.jobs.read().ok()?.get(id).cloned()
     }
 
-    /// Forgets a job (after cancelling it), on disk too.
+    /// Forgets a job (after cancelling it), on disk too: its directory is out of its place
+    /// before anyone can see the job gone, and removed after.
     pub fn remove(&self, id: &str) -> Option<Arc<Job>> {
-        let job = self.jobs.write().ok()?.remove(id)?;
-        if let Some(store) = &job.store
-            && let Err(e) = store.remove(id)
+        let (job, aside) = {
+            let mut jobs = self.jobs.write().ok()?;
+            let job = jobs.remove(id)?;
+            let aside = job.store.as_ref().and_then(|store| store.set_aside(id));
+            (job, aside)
+        };
+        if let Some(dir) = aside
+            && let Err(e) = Store::discard(&dir)
         {
             tracing::error!(id, error = %e, "could not remove the saved timeline");
         }

@@ -49,6 +49,9 @@ const FRAMES_HEADER: usize = 40;
 /// Bytes of a patch in a frame of `frames.bin`: radiance, standard error (f64 RGB each) and
 /// samples (u64).
 const STORED_PER_PATCH: usize = 56;
+/// What a timeline's directory is renamed to begin with while it is removed
+/// ([`Store::set_aside`]); no timeline's id begins so.
+const SET_ASIDE: &str = ".removing-";
 
 /// What `job.json` holds.
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
@@ -491,9 +494,30 @@ impl Store {
             .ok()
     }
 
-    /// Removes a timeline.
+    /// Removes a timeline ([`Store::set_aside`], then [`Store::discard`]).
     pub fn remove(&self, id: &str) -> std::io::Result<()> {
-        match std::fs::remove_dir_all(self.dir(id)) {
+        self.set_aside(id).map_or(Ok(()), |dir| Self::discard(&dir))
+    }
+
+    /// Moves timeline `id`'s directory out of its place in one rename, so that nothing finds
+    /// it under its id from then on, and gives where it went for [`Store::discard`] (None if
+    /// there was none). A directory set aside and never discarded (a crash between the two)
+    /// is removed by the next [`Store::load_all`]. If it cannot be renamed, it is given as it
+    /// is, to be removed in place.
+    #[must_use]
+    pub fn set_aside(&self, id: &str) -> Option<PathBuf> {
+        let dir = self.dir(id);
+        let aside = self.root.join(format!("{SET_ASIDE}{id}"));
+        match std::fs::rename(&dir, &aside) {
+            Ok(()) => Some(aside),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
+            Err(_) => Some(dir),
+        }
+    }
+
+    /// Removes a directory [`Store::set_aside`] gave.
+    pub fn discard(dir: &Path) -> std::io::Result<()> {
+        match std::fs::remove_dir_all(dir) {
             Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(e),
             _ => Ok(()),
         }
@@ -509,6 +533,16 @@ impl Store {
         };
         let mut out: Vec<Saved> = (entries.filter_map(Result::ok))
             .filter(|e| e.file_type().is_ok_and(|t| t.is_dir()))
+            .filter(|e| {
+                let set_aside = e.file_name().to_string_lossy().starts_with(SET_ASIDE);
+                if set_aside {
+                    tracing::warn!(dir = %e.path().display(), "removing a timeline's directory a removal left");
+                    if let Err(e) = Self::discard(&e.path()) {
+                        tracing::error!(error = %e, "could not remove it");
+                    }
+                }
+                !set_aside
+            })
             .filter_map(|e| self.load_one(&e.file_name().to_string_lossy()))
             .collect();
         out.sort_by(|a, b| a.id.cmp(&b.id));
@@ -645,6 +679,29 @@ mod tests {
             assert_eq!(format!("{read:?}"), format!("{s:?}"));
         }
         assert!(store.load_frame("t", 3).is_err());
+        let _ = std::fs::remove_dir_all(&store.root);
+    }
+
+    #[test]
+    fn a_removed_timeline_leaves_its_place_at_once_and_a_removal_cut_short_is_finished() {
+        let store = temp_store("remove");
+        let record = |id: &str| Record {
+            id: id.into(),
+            status: "failed".into(),
+            ..Record::default()
+        };
+        for id in ["a", "b", "c"] {
+            store.save_record(&record(id)).unwrap();
+        }
+        store.remove("a").unwrap();
+        assert!(!store.dir("a").exists());
+        // Set aside, and the server stopped before it was discarded.
+        let aside = store.set_aside("b").unwrap();
+        assert!(!store.dir("b").exists() && aside.join("job.json").exists());
+        let ids: Vec<String> = store.load_all().into_iter().map(|s| s.id).collect();
+        assert_eq!(ids, ["c"]);
+        assert!(!aside.exists());
+        assert_eq!(store.set_aside("a"), None);
         let _ = std::fs::remove_dir_all(&store.root);
     }
 
