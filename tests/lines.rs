@@ -365,7 +365,9 @@ fn animated_scene(fps: f64, patch_size: Option<f64>) -> Scene {
     let r = d.node(json!({"mesh": room}));
     let b = d.node(json!({"mesh": block, "translation": [-1.0, 0.5, 0.0]}));
     let m = d.node(json!({"mesh": morph, "translation": [1.0, 0.3, 1.0]}));
-    d.scene(&[r, b, m]);
+    // One that slides without turning: its frames are traced in one walk.
+    let s = d.node(json!({"mesh": block, "translation": [0.0, 2.0, -1.0]}));
+    d.scene(&[r, b, m, s]);
     let q = (0.5f32).sin();
     d.animation(
         "move",
@@ -385,6 +387,13 @@ fn animated_scene(fps: f64, patch_size: Option<f64>) -> Scene {
                 "LINEAR",
             ),
             (m, "weights", &[0.0, 1.0], &[0.0, 1.0], "LINEAR"),
+            (
+                s,
+                "translation",
+                &[0.0, 1.0],
+                &[0.0, 2.0, -1.0, 0.7, 1.2, 1.0],
+                "LINEAR",
+            ),
         ],
     );
     load(
@@ -402,7 +411,7 @@ fn animated_scene(fps: f64, patch_size: Option<f64>) -> Scene {
 fn each_frame_extracted_from_the_list_equals_that_frame_traced_alone() {
     let scene = animated_scene(8.0, None);
     assert_eq!(scene.frames.count, 9);
-    assert_eq!(scene.objects.len(), 2);
+    assert_eq!(scene.objects.len(), 3);
     let tracer = SceneTracer::new(&scene);
     let list = IntersectionList::build(
         &scene,

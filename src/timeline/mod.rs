@@ -15,8 +15,8 @@ use crate::control::{Control, TraceError};
 use rayon::prelude::*;
 
 use crate::lines::{Batch, Bundle};
-use crate::scene::{Bounds, Scene};
-use crate::trace::{FrameMeshes, Hit, Line, ParallelLines, SceneTracer, Scratch, sort_by_line};
+use crate::scene::{Bounds, Motion, Scene};
+use crate::trace::{Hit, Line, ParallelLines, SceneTracer, Scratch, sort_by_line};
 
 /// How many lines to trace, and from which seed.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -533,12 +533,10 @@ impl IntersectionList {
             .collect();
         control.check()?;
         let lines: u64 = bundles.iter().map(|b| b.len() as u64).sum();
-        let passes = 1 + if scene.objects.is_empty() {
-            0
-        } else {
-            self.frames as u64
-        };
-        control.add_work(lines * passes);
+        let frames = self.frames as u64;
+        let rigid = tracer.moves_rigidly();
+        let deforms = (scene.objects.iter()).any(|o| matches!(o.motion, Motion::Deforming(_)));
+        control.add_work(lines * (1 + frames * (u64::from(rigid) + u64::from(deforms))));
 
         let traced: Vec<(Vec<u32>, Vec<Hit>)> = bundles
             .par_iter()
@@ -560,28 +558,61 @@ impl IntersectionList {
             .collect();
         control.check()?;
 
-        // Moving objects, frame by frame: per bundle, (line within bundle, crossing) in frame
-        // order, then grouped by line with a stable sort.
-        let mut moving: Vec<Vec<(u32, FrameHit)>> = vec![Vec::new(); bundles.len()];
-        if !scene.objects.is_empty() {
-            for frame in 0..self.frames {
-                let deformed = tracer.deformed_at(scene, frame);
-                control.check()?;
-                let traced: Vec<Vec<(u32, FrameHit)>> = bundles
-                    .par_iter()
-                    .map_init(Scratch::default, |scratch, lines| {
+        // Moving objects: the rigid ones every frame at once, a bundle at a time; the deforming
+        // ones frame by frame (a frame's meshes are built once for all bundles). Per bundle,
+        // (line within bundle, crossing) in frame order, then along each line.
+        let mut moving: Vec<Vec<(u32, FrameHit)>> = if rigid {
+            bundles
+                .par_iter()
+                .map_init(
+                    || (Scratch::default(), Vec::new()),
+                    |(scratch, found), lines| {
                         if control.is_cancelled() {
                             return Vec::new();
                         }
+                        control.advance(lines.len() as u64 * frames);
+                        found.clear();
+                        tracer.trace_rigid_frames(lines, scratch, found);
+                        (found.iter())
+                            .map(|&(line, frame, hit)| (line, FrameHit { frame, hit }))
+                            .collect()
+                    },
+                )
+                .collect()
+        } else {
+            vec![Vec::new(); bundles.len()]
+        };
+        control.check()?;
+        if deforms {
+            for frame in 0..self.frames {
+                let deformed = tracer.deformed_at(scene, frame);
+                control.check()?;
+                let frame = frame as u32;
+                (moving.par_iter_mut().zip(&bundles)).for_each_init(
+                    || (Scratch::default(), Vec::new()),
+                    |(scratch, found), (all, lines)| {
+                        if control.is_cancelled() {
+                            return;
+                        }
                         control.advance(lines.len() as u64);
-                        trace_moving_bundle(tracer, lines, frame, &deformed, scratch)
-                    })
-                    .collect();
-                for (all, new) in moving.iter_mut().zip(traced) {
-                    all.extend(new);
-                }
+                        found.clear();
+                        tracer.trace_deformed_parallel(lines, &deformed, scratch, found);
+                        all.extend(
+                            found
+                                .iter()
+                                .map(|&(line, hit)| (line, FrameHit { frame, hit })),
+                        );
+                    },
+                );
             }
         }
+        moving.par_iter_mut().for_each(|hits| {
+            hits.sort_unstable_by(|(la, a), (lb, b)| {
+                (a.frame.cmp(&b.frame))
+                    .then(la.cmp(lb))
+                    .then(Hit::order(&a.hit, &b.hit))
+            });
+        });
         control.check()?;
         Ok((bundles, traced, moving))
     }
@@ -815,27 +846,6 @@ fn lines_of(bundle: &Bundle) -> impl Iterator<Item = Line> + '_ {
         origin,
         direction: bundle.direction,
     })
-}
-
-/// The crossings of the moving objects at `frame` by `lines`: (line within the bundle,
-/// crossing), by line and along each line.
-fn trace_moving_bundle(
-    tracer: &SceneTracer,
-    lines: &ParallelLines,
-    frame: usize,
-    deformed: &FrameMeshes,
-    scratch: &mut Scratch,
-) -> Vec<(u32, FrameHit)> {
-    let mut found = Vec::new();
-    tracer.trace_moving_parallel(lines, frame, deformed, scratch, &mut found);
-    sort_by_line(&mut found, lines.len(), scratch);
-    found
-        .into_iter()
-        .map(|(line, hit)| {
-            let frame = frame as u32;
-            (line, FrameHit { frame, hit })
-        })
-        .collect()
 }
 
 /// Appends one offset per count to a CSR offset array.

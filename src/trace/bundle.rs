@@ -105,12 +105,25 @@ impl ParallelLines {
     /// rounding margin: a superset, never missing a line that meets the box, even moved into
     /// a rigid object's space after this test.
     pub fn through_box(&self, min: Vec3, max: Vec3, out: &mut Vec<u32>) {
+        let holds = self.image(min, max);
+        out.extend(self.points.iter().filter(|p| holds(p)).map(|p| p.line));
+    }
+
+    /// [`ParallelLines::through_box`] among the lines `among` only (indices, as it gives
+    /// them): the same test, line by line.
+    pub fn through_box_among(&self, min: Vec3, max: Vec3, among: &[u32], out: &mut Vec<u32>) {
+        let holds = self.image(min, max);
+        out.extend(among.iter().filter(|&&i| holds(&self.points[i as usize])));
+    }
+
+    /// Whether a line's point is in the image of the box from `min` to `max` (the rectangle
+    /// and the diagonal band), widened by the margin of a move into another space and, for
+    /// the band, its own rounding as well.
+    fn image(&self, min: Vec3, max: Vec3) -> impl Fn(&Point) -> bool {
         let scale = self
             .reach
             .max(min.abs().max_element())
             .max(max.abs().max_element());
-        // The box's image (the rectangle and the diagonal band), widened by the margin of
-        // the move and, for the band, its own rounding as well.
         let pad = margin(scale);
         let (lo, hi) = (
             min.to_array().map(|v| [v; 8]),
@@ -122,12 +135,13 @@ impl ParallelLines {
             .map(|side| side[0]);
         let rect = padded([image[0], image[1], image[2], image[3]], pad);
         let (d0, d1) = (image[4], image[5]);
-        out.extend(
-            self.points
-                .iter()
-                .filter(|p| inside(&rect, p) & (p.d >= d0) & (p.d <= d1))
-                .map(|p| p.line),
-        );
+        move |p| inside(&rect, p) & (p.d >= d0) & (p.d <= d1)
+    }
+
+    /// Gives back the starting points, for their buffer to be used again.
+    #[must_use]
+    pub fn into_origins(self) -> Vec<Vec3> {
+        self.origins
     }
 }
 

@@ -524,8 +524,92 @@ impl SceneTracer {
                 *line = near[*line as usize];
             }
         }
+        self.trace_deformed_parallel(lines, deformed, scratch, out);
+    }
+
+    /// The deforming objects' part of [`SceneTracer::trace_moving_parallel`].
+    pub fn trace_deformed_parallel(
+        &self,
+        lines: &ParallelLines,
+        deformed: &FrameMeshes,
+        scratch: &mut Scratch,
+        out: &mut Vec<(u32, Hit)>,
+    ) {
         for mesh in deformed.meshes.iter().flatten() {
             mesh.trace_parallel(lines, scratch, out);
+        }
+    }
+
+    /// Whether any moving object is rigid (and has triangles).
+    #[must_use]
+    pub fn moves_rigidly(&self) -> bool {
+        self.rigid.iter().any(Option::is_some)
+    }
+
+    /// Appends `(line, frame, crossing)` for every crossing of the rigid moving objects, as
+    /// posed at every frame, by `lines`, in no particular order: per line and frame, the rigid
+    /// objects' crossings [`SceneTracer::trace_moving_parallel`] finds. The lines near an
+    /// object at any frame are found once; the frames in a row that see the lines along one
+    /// direction in the object's space (all of them, for an object that moves without
+    /// turning) are traced in one walk of its BVH, their lines side by side.
+    pub fn trace_rigid_frames(
+        &self,
+        lines: &ParallelLines,
+        scratch: &mut Scratch,
+        out: &mut Vec<(u32, u32, Hit)>,
+    ) {
+        let (mut around, mut near, mut tags) = (Vec::new(), Vec::new(), Vec::new());
+        let (mut origins, mut found) = (Vec::new(), Vec::new());
+        for rigid in self.rigid.iter().flatten() {
+            let Some(reach) = (rigid.frames.iter().flatten())
+                .map(|(bounds, _)| *bounds)
+                .reduce(|a, b| a.union(&b))
+            else {
+                continue;
+            };
+            // A superset of the lines near it at each frame, which each frame's test sorts out.
+            around.clear();
+            lines.through_box(reach.min.into(), reach.max.into(), &mut around);
+            if around.is_empty() {
+                continue;
+            }
+            let bits = |inv: &Affine3A| {
+                (inv.transform_vector3(lines.direction()).to_array()).map(f32::to_bits)
+            };
+            let mut frame = 0;
+            while frame < rigid.frames.len() {
+                let Some((_, inv)) = &rigid.frames[frame] else {
+                    frame += 1;
+                    continue;
+                };
+                let direction = inv.transform_vector3(lines.direction());
+                let run = bits(inv);
+                tags.clear();
+                origins.clear();
+                while let Some(Some((bounds, inv))) = rigid.frames.get(frame)
+                    && bits(inv) == run
+                {
+                    near.clear();
+                    let (min, max) = (bounds.min.into(), bounds.max.into());
+                    lines.through_box_among(min, max, &around, &mut near);
+                    for &i in &near {
+                        tags.push((i, frame as u32));
+                        origins.push(inv.transform_point3(lines.origins()[i as usize]));
+                    }
+                    frame += 1;
+                }
+                if origins.is_empty() {
+                    continue;
+                }
+                let local = ParallelLines::new(direction, std::mem::take(&mut origins));
+                found.clear();
+                rigid.mesh.trace_parallel(&local, scratch, &mut found);
+                out.extend(found.iter().map(|&(k, hit)| {
+                    let (line, frame) = tags[k as usize];
+                    (line, frame, hit)
+                }));
+                origins = local.into_origins();
+            }
         }
     }
 
