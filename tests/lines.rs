@@ -412,23 +412,39 @@ fn each_frame_extracted_from_the_list_equals_that_frame_traced_alone() {
     let scene = animated_scene(8.0, None);
     assert_eq!(scene.frames.count, 9);
     assert_eq!(scene.objects.len(), 3);
-    let tracer = SceneTracer::new(&scene);
+    let list = list_equals_frames(&scene, 5_000);
+    // Static crossings are stored once, not once per frame.
+    let memory = list.memory();
+    let static_per_frame: usize = (0..list.lines()).map(|l| list.static_hits(l).len()).sum();
+    assert_eq!(memory.static_hits, static_per_frame);
+    assert!(memory.bytes_per_hit() <= 16.0, "{}", memory.bytes_per_hit());
+}
+
+#[test]
+fn a_timeline_of_many_frames_is_traced_whole() {
+    // More frames than the rigid movers are traced at once for a bundle.
+    let scene = animated_scene(150.0, None);
+    assert_eq!(scene.frames.count, 151);
+    list_equals_frames(&scene, 1_000);
+}
+
+/// The list of `lines` lines through `scene`, after checking that each frame extracted from it
+/// is that frame traced alone, line by line.
+fn list_equals_frames(scene: &Scene, lines: u64) -> IntersectionList {
+    let tracer = SceneTracer::new(scene);
     let list = IntersectionList::build(
-        &scene,
+        scene,
         &tracer,
-        &LineParams {
-            lines: 5_000,
-            seed: 11,
-        },
+        &LineParams { lines, seed: 11 },
         &radiosity::control::Control::default(),
     )
     .unwrap();
-    let lines: Vec<Line> = list.regenerate_lines(&scene).collect();
+    let lines: Vec<Line> = list.regenerate_lines(scene).collect();
     assert_eq!(lines.len(), list.lines());
     let (mut from_list, mut alone) = (Vec::new(), Vec::new());
     let mut moving_seen = 0;
     for frame in 0..scene.frames.count {
-        let deformed = tracer.deformed_at(&scene, frame);
+        let deformed = tracer.deformed_at(scene, frame);
         for (l, line) in lines.iter().enumerate() {
             list.frame_hits(l, frame, &mut from_list);
             tracer.trace_frame(line, frame, &deformed, &mut alone);
@@ -439,11 +455,7 @@ fn each_frame_extracted_from_the_list_equals_that_frame_traced_alone() {
         }
     }
     assert!(moving_seen > 1000, "{moving_seen}");
-    // Static crossings are stored once, not once per frame.
-    let memory = list.memory();
-    let static_per_frame: usize = (0..list.lines()).map(|l| list.static_hits(l).len()).sum();
-    assert_eq!(memory.static_hits, static_per_frame);
-    assert!(memory.bytes_per_hit() <= 16.0, "{}", memory.bytes_per_hit());
+    list
 }
 
 /// The crossings of line `l` among a bundle's `(line, crossing)` pairs sorted by line.

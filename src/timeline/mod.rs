@@ -567,12 +567,16 @@ impl IntersectionList {
                 .map_init(
                     || (Scratch::default(), Vec::new()),
                     |(scratch, found), lines| {
-                        if control.is_cancelled() {
-                            return Vec::new();
-                        }
-                        control.advance(lines.len() as u64 * frames);
                         found.clear();
-                        tracer.trace_rigid_frames(lines, scratch, found);
+                        // A few frames at a time, between which a cancel is seen.
+                        for start in (0..self.frames).step_by(RIGID_FRAMES) {
+                            if control.is_cancelled() {
+                                return Vec::new();
+                            }
+                            let end = (start + RIGID_FRAMES).min(self.frames);
+                            tracer.trace_rigid_frames(lines, start..end, scratch, found);
+                            control.advance((lines.len() * (end - start)) as u64);
+                        }
                         (found.iter())
                             .map(|&(line, frame, hit)| (line, FrameHit { frame, hit }))
                             .collect()
@@ -607,10 +611,8 @@ impl IntersectionList {
             }
         }
         moving.par_iter_mut().for_each(|hits| {
-            hits.sort_unstable_by(|(la, a), (lb, b)| {
-                (a.frame.cmp(&b.frame))
-                    .then(la.cmp(lb))
-                    .then(Hit::order(&a.hit, &b.hit))
+            hits.sort_unstable_by_key(|&(line, h)| {
+                u128::from(h.frame) << 96 | u128::from(line) << 64 | u128::from(h.hit.key())
             });
         });
         control.check()?;
@@ -847,6 +849,11 @@ fn lines_of(bundle: &Bundle) -> impl Iterator<Item = Line> + '_ {
         direction: bundle.direction,
     })
 }
+
+/// How many frames of the rigid movers are traced at once for a bundle
+/// ([`SceneTracer::trace_rigid_frames`]): enough for the frames of an object that slides to
+/// share the walks, few enough that a cancel is seen soon.
+const RIGID_FRAMES: usize = 64;
 
 /// Appends one offset per count to a CSR offset array.
 fn append_csr(offsets: &mut Vec<u32>, counts: &[u32]) -> Result<(), TraceError> {

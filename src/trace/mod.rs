@@ -59,6 +59,14 @@ impl Hit {
         self.code & BACK == 0
     }
 
+    /// A number whose order is [`Hit::order`]'s among crossings at `t >= 0` (every crossing
+    /// is at `t > 0`): the bits of a float that is not negative grow with it.
+    #[must_use]
+    pub fn key(self) -> u64 {
+        debug_assert!(self.t >= 0.0);
+        u64::from(self.t.to_bits()) << 32 | u64::from(self.code)
+    }
+
     /// Orders hits along the line; equal distances (coincident surfaces) by triangle, so the
     /// order never depends on traversal order.
     #[must_use]
@@ -547,21 +555,23 @@ impl SceneTracer {
     }
 
     /// Appends `(line, frame, crossing)` for every crossing of the rigid moving objects, as
-    /// posed at every frame, by `lines`, in no particular order: per line and frame, the rigid
-    /// objects' crossings [`SceneTracer::trace_moving_parallel`] finds. The lines near an
-    /// object at any frame are found once; the frames in a row that see the lines along one
-    /// direction in the object's space (all of them, for an object that moves without
-    /// turning) are traced in one walk of its BVH, their lines side by side.
+    /// posed at each of `frames`, by `lines`, in no particular order: per line and frame, the
+    /// rigid objects' crossings [`SceneTracer::trace_moving_parallel`] finds. The lines near
+    /// an object at any of the frames are found once; the frames in a row that see the lines
+    /// along one direction in the object's space (all of them, for an object that moves
+    /// without turning) are traced in one walk of its BVH, their lines side by side.
     pub fn trace_rigid_frames(
         &self,
         lines: &ParallelLines,
+        frames: std::ops::Range<usize>,
         scratch: &mut Scratch,
         out: &mut Vec<(u32, u32, Hit)>,
     ) {
         let (mut around, mut near, mut tags) = (Vec::new(), Vec::new(), Vec::new());
         let (mut origins, mut found) = (Vec::new(), Vec::new());
         for rigid in self.rigid.iter().flatten() {
-            let Some(reach) = (rigid.frames.iter().flatten())
+            let posed = &rigid.frames[frames.clone()];
+            let Some(reach) = (posed.iter().flatten())
                 .map(|(bounds, _)| *bounds)
                 .reduce(|a, b| a.union(&b))
             else {
@@ -576,8 +586,8 @@ impl SceneTracer {
             let bits = |inv: &Affine3A| {
                 (inv.transform_vector3(lines.direction()).to_array()).map(f32::to_bits)
             };
-            let mut frame = 0;
-            while frame < rigid.frames.len() {
+            let mut frame = frames.start;
+            while frame < frames.end {
                 let Some((_, inv)) = &rigid.frames[frame] else {
                     frame += 1;
                     continue;
@@ -586,7 +596,7 @@ impl SceneTracer {
                 let run = bits(inv);
                 tags.clear();
                 origins.clear();
-                while let Some(Some((bounds, inv))) = rigid.frames.get(frame)
+                while let Some(Some((bounds, inv))) = rigid.frames[..frames.end].get(frame)
                     && bits(inv) == run
                 {
                     near.clear();
