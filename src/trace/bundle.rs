@@ -411,13 +411,15 @@ impl TraceMesh {
         } = scratch;
         points.clear();
         nodes.clear();
-        points.extend_from_slice(&lines.points);
         if !self.wide.is_empty() {
-            nodes.push((0, 0, points.len() as u32));
+            nodes.push((0, 0, lines.points.len() as u32));
         }
         // Level by level: the nodes of a level are independent, so their reads from memory
-        // overlap (each is asked for a few nodes ahead).
+        // overlap (each is asked for a few nodes ahead). The root's list is the bundle's own.
+        let mut root = true;
         while !nodes.is_empty() {
+            let level: &[Point] = if root { &lines.points } else { points };
+            root = false;
             next_points.clear();
             next_nodes.clear();
             leaves.clear();
@@ -427,7 +429,7 @@ impl TraceMesh {
                 }
                 let node = &self.wide[node as usize];
                 let rects = rects_of::<AVX>(shear, node, diagonal_margin);
-                let list = &points[start as usize..end as usize];
+                let list = &level[start as usize..end as usize];
                 let (mut reached, ranges) = if let [p] = list {
                     // Most lists deep in the tree: one line, whose children share one copy.
                     let reached = children_around::<AVX>(&rects, p) & node.used;
