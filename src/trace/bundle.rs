@@ -409,7 +409,6 @@ impl TraceMesh {
             masks,
             ..
         } = scratch;
-        points.clear();
         nodes.clear();
         if !self.wide.is_empty() {
             nodes.push((0, 0, lines.points.len() as u32));

@@ -510,28 +510,9 @@ impl SceneTracer {
         scratch: &mut Scratch,
         out: &mut Vec<(u32, Hit)>,
     ) {
-        let mut near = Vec::new();
-        for rigid in self.rigid.iter().flatten() {
-            let Some((bounds, inv)) = &rigid.frames[frame] else {
-                continue;
-            };
-            // The lines near the object, moved into its space as a line traced alone is.
-            near.clear();
-            lines.through_box(bounds.min.into(), bounds.max.into(), &mut near);
-            if near.is_empty() {
-                continue;
-            }
-            let origins = near
-                .iter()
-                .map(|&i| inv.transform_point3(lines.origins()[i as usize]))
-                .collect();
-            let local = ParallelLines::new(inv.transform_vector3(lines.direction()), origins);
-            let from = out.len();
-            rigid.mesh.trace_parallel(&local, scratch, out);
-            for (line, _) in &mut out[from..] {
-                *line = near[*line as usize];
-            }
-        }
+        let mut rigid = Vec::new();
+        self.trace_rigid_frames(lines, frame..frame + 1, scratch, &mut rigid);
+        out.extend(rigid.into_iter().map(|(line, _, hit)| (line, hit)));
         self.trace_deformed_parallel(lines, deformed, scratch, out);
     }
 
@@ -556,10 +537,11 @@ impl SceneTracer {
 
     /// Appends `(line, frame, crossing)` for every crossing of the rigid moving objects, as
     /// posed at each of `frames`, by `lines`, in no particular order: per line and frame, the
-    /// rigid objects' crossings [`SceneTracer::trace_moving_parallel`] finds. The lines near
-    /// an object at any of the frames are found once; the frames in a row that see the lines
-    /// along one direction in the object's space (all of them, for an object that moves
-    /// without turning) are traced in one walk of its BVH, their lines side by side.
+    /// rigid objects' crossings [`SceneTracer::trace_moving`] finds, each line moved into an
+    /// object's space as a line traced alone is. The lines near an object at any of the
+    /// frames are found once; the frames in a row that see the lines along one direction in
+    /// the object's space (all of them, for an object that moves without turning) are traced
+    /// in one walk of its BVH, their lines side by side.
     pub fn trace_rigid_frames(
         &self,
         lines: &ParallelLines,
@@ -593,7 +575,7 @@ impl SceneTracer {
                     continue;
                 };
                 let direction = inv.transform_vector3(lines.direction());
-                let run = bits(inv);
+                let run = direction.to_array().map(f32::to_bits);
                 tags.clear();
                 origins.clear();
                 while let Some(Some((bounds, inv))) = rigid.frames[..frames.end].get(frame)
