@@ -145,7 +145,18 @@ pub fn trace(
         time_ratio: independent_seconds / list_seconds,
         memory_ratio: independent_bytes as f64 / memory.bytes as f64,
         native: native.map(|dir| {
-            native::compare(scene, &tracer, &bundles, dir, rayon::current_num_threads())
+            let list = || {
+                let start = Instant::now();
+                let params = LineParams { lines, seed };
+                let list = IntersectionList::build(scene, &tracer, &params, &Control::default());
+                let memory = list.ok()?.memory();
+                Some((
+                    memory.static_hits + memory.moving_hits,
+                    start.elapsed().as_secs_f64(),
+                ))
+            };
+            let threads = rayon::current_num_threads();
+            native::compare(scene, &tracer, &bundles, dir, threads, &list)
         }),
     })
 }

@@ -38,6 +38,12 @@ pub struct NativeComparison {
     pub embree_missing: Option<String>,
     /// This tracer's rate over Embree's: the median over passes run one after the other.
     pub ratio: Option<f64>,
+    /// The multiframe list's build, crossings traced per second: the median of builds run
+    /// between the passes of the rest (issue 16 asks it of Embree's rate for one frame).
+    pub list_crossings_per_second: Option<f64>,
+    /// That rate over Embree's for frame 0: the median over builds and passes run one after the
+    /// other.
+    pub list_ratio: Option<f64>,
 }
 
 /// What the Embree program reports for one mode (one JSON line).
@@ -56,15 +62,17 @@ pub struct EmbreeRun {
 /// Traces `bundles` through the scene at frame 0 with this tracer and with native Embree
 /// (built from `bench/embree` into `build_dir` if it is not there), on `threads` threads.
 ///
-/// Embree's modes are tried first; then a run of its fastest and a pass of this tracer
-/// alternate, five times, so that both see the same moments of a shared, noisy machine;
-/// the ratio is the median of the pairs'.
+/// Embree's modes are tried first; then a run of its fastest, a pass of this tracer and a call
+/// of `list` (a build of the multiframe list: crossings traced and seconds, `None` if it
+/// failed) alternate, five times, so that all three see the same moments of a shared, noisy
+/// machine; each ratio is the median of the passes'.
 pub fn compare(
     scene: &Scene,
     tracer: &SceneTracer,
     bundles: &[ParallelLines],
     build_dir: &Path,
     threads: usize,
+    list: &dyn Fn() -> Option<(usize, f64)>,
 ) -> NativeComparison {
     let triangles = scene.triangles_at(0);
     let deformed = tracer.deformed_at(scene, 0);
@@ -96,6 +104,7 @@ pub fn compare(
         .map(|fastest| fastest.mode);
     let mut embree = mode.as_ref().map(|_| Vec::new()).map_err(Clone::clone);
     let mut ours = Vec::with_capacity(REPEATS);
+    let mut lists = Vec::with_capacity(REPEATS);
     for _ in 0..REPEATS {
         if let (Ok(program), Ok(mode)) = (&program, &mode) {
             let pass = run(program, &file, threads, Some(mode));
@@ -105,9 +114,10 @@ pub fn compare(
             });
         }
         ours.push(trace_once());
+        lists.extend(list());
     }
     let _ = std::fs::remove_file(&file);
-    finish(&ours, triangles.len(), embree)
+    finish(&ours, &lists, triangles.len(), embree)
 }
 
 /// The median of `values` (not empty).
@@ -116,29 +126,42 @@ fn median(mut values: Vec<f64>) -> f64 {
     values[values.len() / 2]
 }
 
-/// The comparison from this tracer's passes (crossings, seconds) and Embree's, pass for pass,
-/// or why there are none.
+/// The comparison from this tracer's passes (crossings, seconds), the list's builds (the same)
+/// and Embree's, pass for pass, or why there are none.
 fn finish(
     ours: &[(usize, f64)],
+    lists: &[(usize, f64)],
     triangles: usize,
     embree: Result<Vec<EmbreeRun>, String>,
 ) -> NativeComparison {
     let seconds = median(ours.iter().map(|&(_, s)| s).collect());
     let crossings = ours[0].0;
-    let (embree, embree_missing, ratio) = match embree {
+    let rate = |&(n, s): &(usize, f64)| n as f64 / s;
+    let list_crossings_per_second =
+        (lists.len() == ours.len()).then(|| median(lists.iter().map(rate).collect()));
+    // Rates over Embree's, pass for pass.
+    let over = |passes: &[(usize, f64)], runs: &[EmbreeRun]| {
+        median(
+            (passes.iter().zip(runs))
+                .map(|(pass, e)| rate(pass) / (e.mcps * 1e6))
+                .collect(),
+        )
+    };
+    let (embree, embree_missing, ratio, list_ratio) = match embree {
         Ok(runs) if runs.len() == ours.len() => {
-            let ratio = median(
-                ours.iter()
-                    .zip(&runs)
-                    .map(|(&(n, s), e)| n as f64 / s / (e.mcps * 1e6))
-                    .collect(),
-            );
+            let ratio = over(ours, &runs);
+            let list_ratio = (lists.len() == runs.len()).then(|| over(lists, &runs));
             let mut runs = runs;
             runs.sort_by(|a, b| a.seconds.total_cmp(&b.seconds));
-            (Some(runs.swap_remove(ours.len() / 2)), None, Some(ratio))
+            (
+                Some(runs.swap_remove(ours.len() / 2)),
+                None,
+                Some(ratio),
+                list_ratio,
+            )
         }
-        Ok(_) => (None, Some("Embree reported no pass".to_owned()), None),
-        Err(why) => (None, Some(why), None),
+        Ok(_) => (None, Some("Embree reported no pass".to_owned()), None, None),
+        Err(why) => (None, Some(why), None, None),
     };
     NativeComparison {
         triangles,
@@ -148,6 +171,8 @@ fn finish(
         embree,
         embree_missing,
         ratio,
+        list_crossings_per_second,
+        list_ratio,
     }
 }
 
@@ -249,9 +274,66 @@ impl std::fmt::Display for NativeComparison {
                 e.mode,
                 e.mcps,
                 self.ratio.unwrap_or(f64::NAN)
-            ),
-            (None, Some(why)) => writeln!(f, "native Embree    none: {why}"),
-            (None, None) => Ok(()),
+            )?,
+            (None, Some(why)) => writeln!(f, "native Embree    none: {why}")?,
+            (None, None) => {}
         }
+        if let Some(rate) = self.list_crossings_per_second {
+            write!(
+                f,
+                "list vs Embree   {:.1} M crossings/s traced into the list (median of {REPEATS} builds between the passes above)",
+                rate / 1e6
+            )?;
+            match self.list_ratio {
+                Some(ratio) => writeln!(f, ": {ratio:.2}x Embree's rate for frame 0")?,
+                None => writeln!(f)?,
+            }
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn embree(mcps: f64) -> EmbreeRun {
+        EmbreeRun {
+            mode: "occluded1".to_owned(),
+            crossings: 1_000_000,
+            seconds: 1.0 / mcps,
+            mcps,
+        }
+    }
+
+    #[test]
+    fn the_ratios_pair_each_pass_with_the_embree_run_beside_it() {
+        // Embree's rate moves with the machine; this tracer's passes keep at twice it and the
+        // list's builds at half of it, pass for pass, but for one stalled pass and one fast
+        // build: the medians of the pairs are 2 and 0.5, not the ratios of the medians (4/3 and
+        // 2/3).
+        let moments = [1.0, 4.0, 2.0, 8.0, 3.0];
+        let runs: Vec<EmbreeRun> = moments.map(embree).to_vec();
+        let mut ours: Vec<(usize, f64)> = moments.map(|m| (2_000_000, 1.0 / m)).to_vec();
+        ours[3].1 = 2.0;
+        let mut lists: Vec<(usize, f64)> = moments.map(|m| (500_000, 1.0 / m)).to_vec();
+        lists[0].1 = 0.5 / 9.0;
+        let c = finish(&ours, &lists, 12, Ok(runs.clone()));
+        assert!((c.ratio.unwrap() - 2.0).abs() < 1e-12, "{c:?}");
+        assert!((c.list_ratio.unwrap() - 0.5).abs() < 1e-12, "{c:?}");
+        assert!(
+            (c.list_crossings_per_second.unwrap() - 2e6).abs() < 1e-3,
+            "{c:?}"
+        );
+        assert_eq!(c.embree.unwrap().mcps, 3.0, "the median run");
+
+        // A list build that failed: no list figures, the frame's still.
+        let c = finish(&ours, &lists[..4], 12, Ok(runs));
+        assert!(c.ratio.is_some() && c.list_ratio.is_none());
+        assert!(c.list_crossings_per_second.is_none());
+        // No Embree: the list's own rate, no ratios.
+        let c = finish(&ours, &lists, 12, Err("not installed".to_owned()));
+        assert!(c.ratio.is_none() && c.list_ratio.is_none());
+        assert!(c.list_crossings_per_second.is_some());
     }
 }
