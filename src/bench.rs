@@ -75,13 +75,10 @@ pub fn trace(
     let tracer = SceneTracer::new(scene);
     let bvh_seconds = start.elapsed().as_secs_f64();
 
+    let params = LineParams { lines, seed };
+    let build_list = || IntersectionList::build(scene, &tracer, &params, &Control::default());
     let start = Instant::now();
-    let list = IntersectionList::build(
-        scene,
-        &tracer,
-        &LineParams { lines, seed },
-        &Control::default(),
-    )?;
+    let list = build_list()?;
     let list_seconds = start.elapsed().as_secs_f64();
     let memory = list.memory();
     let bundles: Vec<ParallelLines> = list
@@ -133,8 +130,8 @@ pub fn trace(
         threads: rayon::current_num_threads(),
         bvh_seconds,
         list_seconds,
-        list_hits: memory.static_hits + memory.moving_hits,
-        list_hits_per_second: (memory.static_hits + memory.moving_hits) as f64 / list_seconds,
+        list_hits: memory.hits(),
+        list_hits_per_second: memory.hits() as f64 / list_seconds,
         frame_hits_per_second: frame_hits as f64 / list_seconds,
         list_bytes: memory.bytes,
         bytes_per_hit: memory.bytes_per_hit(),
@@ -147,13 +144,8 @@ pub fn trace(
         native: native.map(|dir| {
             let list = || {
                 let start = Instant::now();
-                let params = LineParams { lines, seed };
-                let list = IntersectionList::build(scene, &tracer, &params, &Control::default());
-                let memory = list.ok()?.memory();
-                Some((
-                    memory.static_hits + memory.moving_hits,
-                    start.elapsed().as_secs_f64(),
-                ))
+                let hits = build_list().ok()?.memory().hits();
+                Some((hits, start.elapsed().as_secs_f64()))
             };
             let threads = rayon::current_num_threads();
             native::compare(scene, &tracer, &bundles, dir, threads, &list)

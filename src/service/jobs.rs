@@ -1088,7 +1088,7 @@ impl Job {
         let memory = bake.list().memory();
         if let Ok(mut s) = self.state.lock() {
             s.timings.trace += started.elapsed().as_secs_f64();
-            s.memory = Some((memory.static_hits + memory.moving_hits, bake.bytes()));
+            s.memory = Some((memory.hits(), bake.bytes()));
         }
     }
 

@@ -149,10 +149,16 @@ pub struct Memory {
 }
 
 impl Memory {
+    /// Crossings stored: static ones once, moving ones once per frame.
+    #[must_use]
+    pub fn hits(&self) -> usize {
+        self.static_hits + self.moving_hits
+    }
+
     /// Bytes per stored crossing, offsets included.
     #[must_use]
     pub fn bytes_per_hit(&self) -> f64 {
-        self.bytes as f64 / (self.static_hits + self.moving_hits).max(1) as f64
+        self.bytes as f64 / self.hits().max(1) as f64
     }
 }
 
