@@ -7,6 +7,7 @@
 
 pub mod bundle;
 pub mod coincident;
+mod pages;
 pub mod triangle;
 mod wide;
 
@@ -22,6 +23,7 @@ use crate::lines::LINE_LENGTH;
 use crate::scene::{Faces, Motion, Scene};
 pub use bundle::{ParallelLines, Scratch};
 pub use coincident::Surfaces;
+use pages::Pages;
 use triangle::ShearedLine;
 
 /// One crossing of a line with a traced triangle: 8 bytes.
@@ -139,12 +141,12 @@ impl Slabs {
 /// Triangles with a BVH over them, in BVH order.
 pub struct TraceMesh {
     /// The triangles, in the BVH's primitive order.
-    triangles: Vec<Triangle>,
+    triangles: Pages<Triangle>,
     /// The box around them (padded like the BVH's).
     bounds: Aabb,
     /// The BVH, 8 wide, for bundles ([`TraceMesh::trace_parallel`]) and single lines
     /// ([`TraceMesh::any_until`]).
-    wide: Vec<wide::Node>,
+    wide: Pages<wide::Node>,
     /// How many levels of nodes it has.
     depth: usize,
 }
@@ -181,17 +183,18 @@ impl TraceMesh {
         let bvh = build_bvh2(&boxes, params, &mut build_time);
         let order = &bvh.primitive_indices;
         let wide = wide::collapse(&bvh);
+        let triangles: Vec<Triangle> = order
+            .iter()
+            .map(|&i| Triangle {
+                corners: corners[i as usize],
+                id: first_id + i,
+            })
+            .collect();
         Some(Self {
-            triangles: order
-                .iter()
-                .map(|&i| Triangle {
-                    corners: corners[i as usize],
-                    id: first_id + i,
-                })
-                .collect(),
+            triangles: triangles.into(),
             bounds: bvh.nodes[0].aabb,
             depth: wide::depth(&wide),
-            wide,
+            wide: wide.into(),
         })
     }
 
@@ -273,7 +276,7 @@ impl TraceMesh {
     /// The same crossings found by testing every triangle, for checking the BVH path.
     pub fn trace_brute_force(&self, origin: Vec3, direction: Vec3, out: &mut Vec<Hit>) {
         let sheared = ShearedLine::new(origin, direction);
-        for &Triangle { corners, id } in &self.triangles {
+        for &Triangle { corners, id } in self.triangles.iter() {
             let [a, b, c] = corners;
             if let Some((t, front)) = sheared.intersect(a, b, c, LINE_LENGTH) {
                 out.push(Hit::new(t, id, front));
