@@ -16,6 +16,7 @@ use rayon::prelude::*;
 
 use crate::lines::{Batch, Bundle};
 use crate::scene::{Bounds, Motion, Scene};
+use crate::trace::pages::reserve_in_huge_pages;
 use crate::trace::{Hit, Line, ParallelLines, SceneTracer, Scratch, sort_by_line};
 
 /// How many lines to trace, and from which seed.
@@ -632,34 +633,47 @@ impl IntersectionList {
         traced: &[(Vec<u32>, Vec<Hit>)],
         moving: Vec<Vec<(u32, FrameHit)>>,
     ) -> Result<(), TraceError> {
-        for (counts, hits) in traced {
+        for (counts, _) in traced {
             append_csr(&mut self.static_offsets, counts)?;
-            self.static_hits.extend_from_slice(hits);
         }
-        for (bundle, hits) in bundles.iter().zip(moving) {
-            // Group by line with a counting sort, which keeps the frame order within a line.
-            let mut counts = vec![0u32; bundle.len()];
-            hits.iter()
-                .for_each(|&(line, _)| counts[line as usize] += 1);
-            let mut next: Vec<usize> = counts
-                .iter()
-                .scan(self.dynamic_hits.len(), |at, &c| {
-                    let start = *at;
-                    *at += c as usize;
-                    Some(start)
-                })
-                .collect();
-            let placeholder = FrameHit {
-                frame: 0,
-                hit: Hit::new(0.0, 0, true),
-            };
-            self.dynamic_hits
-                .resize(self.dynamic_hits.len() + hits.len(), placeholder);
-            for (line, hit) in hits {
-                self.dynamic_hits[next[line as usize]] = hit;
-                next[line as usize] += 1;
-            }
-            append_csr(&mut self.dynamic_offsets, &counts)?;
+        // Each bundle's crossings copied to their place, bundles side by side.
+        let blocks = traced.iter().map(|(_, hits)| (hits.len(), hits)).collect();
+        let blank = Hit::new(0.0, 0, true);
+        fill_blocks(&mut self.static_hits, blank, blocks, |block, hits| {
+            block.copy_from_slice(hits);
+        });
+        // Moving crossings grouped by line with a counting sort per bundle, which keeps the
+        // frame order within a line.
+        let mut counts: Vec<Vec<u32>> = bundles.iter().map(|b| vec![0; b.len()]).collect();
+        let blocks = (moving.iter().zip(counts.iter_mut()))
+            .map(|(hits, counts)| (hits.len(), (hits, counts)))
+            .collect();
+        let blank = FrameHit {
+            frame: 0,
+            hit: Hit::new(0.0, 0, true),
+        };
+        fill_blocks(
+            &mut self.dynamic_hits,
+            blank,
+            blocks,
+            |block, (hits, counts)| {
+                hits.iter()
+                    .for_each(|&(line, _)| counts[line as usize] += 1);
+                let mut next: Vec<usize> = (counts.iter())
+                    .scan(0, |at, &c| {
+                        let start = *at;
+                        *at += c as usize;
+                        Some(start)
+                    })
+                    .collect();
+                for &(line, hit) in hits {
+                    block[next[line as usize]] = hit;
+                    next[line as usize] += 1;
+                }
+            },
+        );
+        for counts in &counts {
+            append_csr(&mut self.dynamic_offsets, counts)?;
         }
         Ok(())
     }
@@ -862,6 +876,30 @@ fn lines_of(bundle: &Bundle) -> impl Iterator<Item = Line> + '_ {
 const RIGID_FRAMES: usize = 64;
 
 /// Appends one offset per count to a CSR offset array.
+/// Appends to `items` a block of each length of `sources`, and fills each block from its
+/// source with `fill`, blocks in parallel; `blank` holds the places until then.
+fn fill_blocks<T: Copy + Send, S: Send>(
+    items: &mut Vec<T>,
+    blank: T,
+    sources: Vec<(usize, S)>,
+    fill: impl Fn(&mut [T], S) + Sync,
+) {
+    let added = sources.iter().map(|&(len, _)| len).sum();
+    let start = items.len();
+    reserve_in_huge_pages(items, added);
+    items.resize(start + added, blank);
+    let mut rest = &mut items[start..];
+    let mut blocks = Vec::with_capacity(sources.len());
+    for (len, source) in sources {
+        let (block, tail) = rest.split_at_mut(len);
+        blocks.push((block, source));
+        rest = tail;
+    }
+    blocks
+        .into_par_iter()
+        .for_each(|(block, source)| fill(block, source));
+}
+
 fn append_csr(offsets: &mut Vec<u32>, counts: &[u32]) -> Result<(), TraceError> {
     let mut last = *offsets.last().unwrap_or(&0);
     for &c in counts {

@@ -7,7 +7,7 @@
 
 pub mod bundle;
 pub mod coincident;
-mod pages;
+pub(crate) mod pages;
 pub mod triangle;
 mod wide;
 

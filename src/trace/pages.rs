@@ -68,13 +68,30 @@ impl<T: Copy> Pages<T> {
     }
 }
 
-/// Asks the kernel to back `size` bytes from `start` with huge pages before they are first
-/// written: a hint, ignored where it is not supported.
+/// Reserves room for `additional` more items in `items`, and asks for every whole huge page of
+/// the room not yet used to be backed by one: for arrays filled once and read many times, as
+/// the intersection list's, whose tens of megabytes then take a page fault per 2 MiB rather
+/// than per 4 KiB.
+pub fn reserve_in_huge_pages<T>(items: &mut Vec<T>, additional: usize) {
+    items.reserve(additional);
+    let spare = items.spare_capacity_mut();
+    let (from, to) = (
+        spare.as_mut_ptr() as usize,
+        spare.as_mut_ptr() as usize + size_of_val(spare),
+    );
+    let (first, last) = (from.next_multiple_of(HUGE_PAGE), to / HUGE_PAGE * HUGE_PAGE);
+    if first < last {
+        advise_huge_pages(first as *mut u8, last - first);
+    }
+}
+
+/// Asks the kernel to back `size` bytes from `start` (a multiple of the page size, and within
+/// memory this process owns) with huge pages: a hint, ignored where it is not supported.
 #[allow(unused_variables)]
 fn advise_huge_pages(start: *mut u8, size: usize) {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
-    // SAFETY: the range is one allocation of this process, 2 MiB aligned (so page aligned);
-    // the advice changes how it is backed, never its contents. A failure (a kernel without
+    // SAFETY: the range is within an allocation of this process, 2 MiB aligned (so page
+    // aligned); the advice changes how it is backed, never its contents. A failure (a kernel without
     // transparent huge pages) leaves ordinary pages, so its result is not needed.
     unsafe {
         libc::madvise(start.cast(), size, libc::MADV_HUGEPAGE);
