@@ -505,7 +505,7 @@ impl IntersectionList {
 
     /// Traces one batch through the whole timeline: its bundles (ready for tracing), each
     /// bundle's lines' counts and static crossings, and its moving crossings per bundle (line
-    /// within the bundle, crossing) in frame order.
+    /// within the bundle, crossing) in no particular order.
     #[allow(clippy::type_complexity)]
     fn trace_batch(
         &self,
@@ -567,7 +567,7 @@ impl IntersectionList {
 
         // Moving objects: the rigid ones every frame at once, a bundle at a time; the deforming
         // ones frame by frame (a frame's meshes are built once for all bundles). Per bundle,
-        // (line within bundle, crossing) in frame order, then along each line.
+        // (line within bundle, crossing).
         let mut moving: Vec<Vec<(u32, FrameHit)>> = if rigid {
             bundles
                 .par_iter()
@@ -617,11 +617,6 @@ impl IntersectionList {
                 );
             }
         }
-        moving.par_iter_mut().for_each(|hits| {
-            hits.sort_unstable_by_key(|&(line, h)| {
-                u128::from(h.frame) << 96 | u128::from(line) << 64 | u128::from(h.hit.key())
-            });
-        });
         control.check()?;
         Ok((bundles, traced, moving))
     }
@@ -642,8 +637,8 @@ impl IntersectionList {
         fill_blocks(&mut self.static_hits, blank, blocks, |block, hits| {
             block.copy_from_slice(hits);
         });
-        // Moving crossings grouped by line with a counting sort per bundle, which keeps the
-        // frame order within a line.
+        // Moving crossings grouped by line with a counting sort per bundle, then each line's
+        // (a few) put in frame order, and along the line within a frame.
         let mut counts: Vec<Vec<u32>> = bundles.iter().map(|b| vec![0; b.len()]).collect();
         let blocks = (moving.iter().zip(counts.iter_mut()))
             .map(|(hits, counts)| (hits.len(), (hits, counts)))
@@ -669,6 +664,11 @@ impl IntersectionList {
                 for &(line, hit) in hits {
                     block[next[line as usize]] = hit;
                     next[line as usize] += 1;
+                }
+                let mut start = 0;
+                for &end in &next {
+                    block[start..end].sort_unstable_by_key(|h| (h.frame, h.hit.key()));
+                    start = end;
                 }
             },
         );
