@@ -875,7 +875,6 @@ fn lines_of(bundle: &Bundle) -> impl Iterator<Item = Line> + '_ {
 /// share the walks, few enough that a cancel is seen soon.
 const RIGID_FRAMES: usize = 64;
 
-/// Appends one offset per count to a CSR offset array.
 /// Appends to `items` a block of each length of `sources`, and fills each block from its
 /// source with `fill`, blocks in parallel; `blank` holds the places until then.
 fn fill_blocks<T: Copy + Send, S: Send>(
@@ -900,6 +899,7 @@ fn fill_blocks<T: Copy + Send, S: Send>(
         .for_each(|(block, source)| fill(block, source));
 }
 
+/// Appends one offset per count to a CSR offset array.
 fn append_csr(offsets: &mut Vec<u32>, counts: &[u32]) -> Result<(), TraceError> {
     let mut last = *offsets.last().unwrap_or(&0);
     for &c in counts {

@@ -1,4 +1,5 @@
-//! Read-only arrays in memory the kernel is asked to back with 2 MiB pages.
+//! Large arrays in memory the kernel is asked to back with 2 MiB pages: the BVHs' nodes and
+//! triangles ([`Pages`]) and the intersection list's crossings ([`reserve_in_huge_pages`]).
 //!
 //! A walk of a BVH reads nodes and triangles scattered over megabytes: with 4 KiB pages the
 //! addresses of a 200,000-triangle mesh (10 MB of nodes, 8 MB of triangles) span about 4,500
@@ -10,7 +11,6 @@
 //! and nothing else changes.
 
 use std::alloc::{Layout, alloc, dealloc, handle_alloc_error};
-use std::fmt;
 use std::ops::Deref;
 use std::ptr::NonNull;
 
@@ -91,8 +91,8 @@ pub fn reserve_in_huge_pages<T>(items: &mut Vec<T>, additional: usize) {
 fn advise_huge_pages(start: *mut u8, size: usize) {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: the range is within an allocation of this process, 2 MiB aligned (so page
-    // aligned); the advice changes how it is backed, never its contents. A failure (a kernel without
-    // transparent huge pages) leaves ordinary pages, so its result is not needed.
+    // aligned); the advice changes how it is backed, never its contents. A failure (a kernel
+    // without transparent huge pages) leaves ordinary pages, so its result is not needed.
     unsafe {
         libc::madvise(start.cast(), size, libc::MADV_HUGEPAGE);
     }
@@ -114,18 +114,6 @@ impl<T: Copy> Drop for Pages<T> {
             // SAFETY: allocated in `new` with this layout; `T: Copy` has nothing to drop.
             unsafe { dealloc(self.start.as_ptr().cast(), layout) };
         }
-    }
-}
-
-impl<T: Copy> Clone for Pages<T> {
-    fn clone(&self) -> Self {
-        Self::new(self)
-    }
-}
-
-impl<T: Copy + fmt::Debug> fmt::Debug for Pages<T> {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.debug_list().entries(self.iter()).finish()
     }
 }
 
@@ -154,7 +142,6 @@ mod tests {
                 .collect();
             let pages = Pages::new(&items);
             assert_eq!(&pages[..], &items[..], "{len} items");
-            assert_eq!(&pages.clone()[..], &items[..], "a clone of {len} items");
             if size_of_val(&items[..]) >= HUGE_PAGE {
                 assert_eq!(pages.as_ptr() as usize % HUGE_PAGE, 0, "{len} items");
             }
