@@ -665,6 +665,7 @@ impl IntersectionList {
                     block[next[line as usize]] = hit;
                     next[line as usize] += 1;
                 }
+                // `next` now holds where each line's crossings end.
                 let mut start = 0;
                 for &end in &next {
                     block[start..end].sort_unstable_by_key(|h| (h.frame, h.hit.key()));
