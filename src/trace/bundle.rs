@@ -158,6 +158,8 @@ pub struct Scratch {
     next_nodes: Vec<(u32, u32, u32)>,
     /// Triangles reached at this level, with their list's range in `next_points`.
     leaves: Vec<(u32, u32, u32)>,
+    /// Blocks reached at this level: the block, its lanes, and its list's range.
+    blocks: Vec<(u32, u32, u32, u32)>,
     /// Per line of a node's list, the children it goes through.
     masks: Vec<u32>,
     /// For [`super::sort_by_line`]: where each line's crossings start, where its next one
@@ -406,6 +408,7 @@ impl TraceMesh {
             nodes,
             next_nodes,
             leaves,
+            blocks,
             masks,
             ..
         } = scratch;
@@ -422,6 +425,7 @@ impl TraceMesh {
             next_points.clear();
             next_nodes.clear();
             leaves.clear();
+            blocks.clear();
             for (n, &(node, start, end)) in nodes.iter().enumerate() {
                 if let Some(&(ahead, _, _)) = nodes.get(n + PREFETCH_AHEAD) {
                     prefetch(&self.wide[ahead as usize], size_of::<wide::Node>());
@@ -446,6 +450,9 @@ impl TraceMesh {
                     let (from, to) = ranges[i];
                     match node.count[i] {
                         INNER => next_nodes.push((node.child[i], from, to)),
+                        count if count & wide::BLOCK != 0 => {
+                            blocks.push((node.child[i], u32::from(count & !wide::BLOCK), from, to));
+                        }
                         count => {
                             let first = node.child[i];
                             for k in first..first + u32::from(count) {
@@ -461,6 +468,13 @@ impl TraceMesh {
                 }
                 let list = &next_points[from as usize..to as usize];
                 self.cross_triangle(k as usize, lines, list, out);
+            }
+            for (n, &(b, lanes, from, to)) in blocks.iter().enumerate() {
+                if let Some(&(ahead, _, _, _)) = blocks.get(n + PREFETCH_AHEAD) {
+                    prefetch(&self.blocks[ahead as usize], size_of::<wide::Block>());
+                }
+                let list = &next_points[from as usize..to as usize];
+                self.cross_block::<AVX>(b as usize, lanes, lines, list, out);
             }
             std::mem::swap(points, next_points);
             std::mem::swap(nodes, next_nodes);
@@ -502,6 +516,134 @@ impl TraceMesh {
                 cross(&chunk[i]);
             }
         }
+    }
+}
+
+impl TraceMesh {
+    /// Appends the crossings of the triangles of block `b` (its first `lanes`) by the lines of
+    /// `points`: the f32 rejection eight lanes at once, the same operations on the same
+    /// numbers as [`ShearedLine::intersect_projected`]'s, then the exact test of the lanes
+    /// left.
+    #[inline(always)]
+    fn cross_block<const AVX: bool>(
+        &self,
+        b: usize,
+        lanes: u32,
+        lines: &ParallelLines,
+        points: &[Point],
+        out: &mut Vec<(u32, Hit)>,
+    ) {
+        let block = &self.blocks[b];
+        let shear = &lines.shear;
+        #[cfg(target_arch = "x86_64")]
+        let projected = if AVX {
+            // SAFETY: as in [`children_around`].
+            unsafe { shear.project_block_avx(&block.corner) }
+        } else {
+            shear.project_block(&block.corner)
+        };
+        #[cfg(not(target_arch = "x86_64"))]
+        let projected = shear.project_block(&block.corner);
+        let used = (1u32 << lanes) - 1;
+        for p in points {
+            let mut maybe = !outside8::<AVX>(&projected, p.x, p.y) & used;
+            while maybe != 0 {
+                let l = maybe.trailing_zeros() as usize;
+                maybe &= maybe - 1;
+                let corner = |c: usize| {
+                    Vec3::new(
+                        block.corner[c][0][l],
+                        block.corner[c][1][l],
+                        block.corner[c][2][l],
+                    )
+                };
+                let pc = |c: usize| [projected[c][0][l], projected[c][1][l]];
+                cross_one(
+                    lines,
+                    [corner(0), corner(1), corner(2)],
+                    [pc(0), pc(1), pc(2)],
+                    block.id[l],
+                    p,
+                    out,
+                );
+            }
+        }
+    }
+}
+
+/// The lanes (bit i for lane i) of the triangles projected as `projected` (`[corner][x or
+/// y][lane]`) that the line through `(x, y)` certainly misses: [`certainly_outside`]'s test,
+/// eight lanes at once.
+#[inline(always)]
+fn outside8<const AVX: bool>(projected: &[[[f32; 8]; 2]; 3], x: f32, y: f32) -> u32 {
+    #[cfg(target_arch = "x86_64")]
+    if AVX {
+        // SAFETY: as in [`children_around`].
+        return unsafe { outside8_avx(projected, x, y) };
+    }
+    [0, 4].into_iter().fold(0, |mask, half| {
+        let (ox, oy) = (glam::Vec4::splat(x), glam::Vec4::splat(y));
+        let lanes = |c: usize, k: usize| glam::Vec4::from_slice(&projected[c][k][half..]);
+        let (ax, ay) = (lanes(0, 0) - ox, lanes(0, 1) - oy);
+        let (bx, by) = (lanes(1, 0) - ox, lanes(1, 1) - oy);
+        let (cx, cy) = (lanes(2, 0) - ox, lanes(2, 1) - oy);
+        let u = cx * by - cy * bx;
+        let v = ax * cy - ay * cx;
+        let w = bx * ay - by * ax;
+        let zero = glam::Vec4::ZERO;
+        let outside = (u.cmplt(zero) | v.cmplt(zero) | w.cmplt(zero))
+            & (u.cmpgt(zero) | v.cmpgt(zero) | w.cmpgt(zero));
+        mask | outside.bitmask() << half
+    })
+}
+
+/// [`outside8`] in AVX.
+///
+/// # Safety
+/// The processor must have AVX.
+#[cfg(target_arch = "x86_64")]
+#[inline]
+#[target_feature(enable = "avx")]
+unsafe fn outside8_avx(projected: &[[[f32; 8]; 2]; 3], x: f32, y: f32) -> u32 {
+    use std::arch::x86_64::{
+        _CMP_GT_OQ, _CMP_LT_OQ, _mm256_and_ps, _mm256_cmp_ps, _mm256_loadu_ps, _mm256_movemask_ps,
+        _mm256_mul_ps, _mm256_or_ps, _mm256_set1_ps, _mm256_setzero_ps, _mm256_sub_ps,
+    };
+    // SAFETY: the eight-float loads stay inside the arrays.
+    unsafe {
+        let (ox, oy) = (_mm256_set1_ps(x), _mm256_set1_ps(y));
+        let lanes = |c: usize, k: usize| _mm256_loadu_ps(projected[c][k].as_ptr());
+        let (ax, ay) = (
+            _mm256_sub_ps(lanes(0, 0), ox),
+            _mm256_sub_ps(lanes(0, 1), oy),
+        );
+        let (bx, by) = (
+            _mm256_sub_ps(lanes(1, 0), ox),
+            _mm256_sub_ps(lanes(1, 1), oy),
+        );
+        let (cx, cy) = (
+            _mm256_sub_ps(lanes(2, 0), ox),
+            _mm256_sub_ps(lanes(2, 1), oy),
+        );
+        let u = _mm256_sub_ps(_mm256_mul_ps(cx, by), _mm256_mul_ps(cy, bx));
+        let v = _mm256_sub_ps(_mm256_mul_ps(ax, cy), _mm256_mul_ps(ay, cx));
+        let w = _mm256_sub_ps(_mm256_mul_ps(bx, ay), _mm256_mul_ps(by, ax));
+        let zero = _mm256_setzero_ps();
+        let below = _mm256_or_ps(
+            _mm256_or_ps(
+                _mm256_cmp_ps::<_CMP_LT_OQ>(u, zero),
+                _mm256_cmp_ps::<_CMP_LT_OQ>(v, zero),
+            ),
+            _mm256_cmp_ps::<_CMP_LT_OQ>(w, zero),
+        );
+        let above = _mm256_or_ps(
+            _mm256_or_ps(
+                _mm256_cmp_ps::<_CMP_GT_OQ>(u, zero),
+                _mm256_cmp_ps::<_CMP_GT_OQ>(v, zero),
+            ),
+            _mm256_cmp_ps::<_CMP_GT_OQ>(w, zero),
+        );
+        _mm256_movemask_ps(_mm256_and_ps(below, above)) as u32
     }
 }
 

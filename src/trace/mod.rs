@@ -149,6 +149,9 @@ pub struct TraceMesh {
     wide: Pages<wide::Node>,
     /// How many levels of nodes it has.
     depth: usize,
+    /// The triangles of the nodes whose children were all single triangles, eight lanes side
+    /// by side.
+    blocks: Pages<wide::Block>,
 }
 
 /// Boxes are padded by this much (normalised units, the scale of the whole scene being 1) so
@@ -190,11 +193,16 @@ impl TraceMesh {
                 id: first_id + i,
             })
             .collect();
+        let (wide, blocks) = wide::into_blocks(&wide, |k| {
+            let t = &triangles[k as usize];
+            (t.corners, t.id)
+        });
         Some(Self {
             triangles: triangles.into(),
             bounds: bvh.nodes[0].aabb,
             depth: wide::depth(&wide),
             wide: wide.into(),
+            blocks: blocks.into(),
         })
     }
 
@@ -251,6 +259,24 @@ impl TraceMesh {
                         stack[top] = first;
                         top += 1;
                     }
+                    count if count & wide::BLOCK != 0 => {
+                        let block = &self.blocks[first as usize];
+                        for lane in 0..usize::from(count & !wide::BLOCK) {
+                            let corner = |c: usize| {
+                                Vec3::new(
+                                    block.corner[c][0][lane],
+                                    block.corner[c][1][lane],
+                                    block.corner[c][2][lane],
+                                )
+                            };
+                            if let Some((t, front)) =
+                                sheared.intersect(corner(0), corner(1), corner(2), t_max)
+                                && found(Hit::new(t, block.id[lane], front))
+                            {
+                                return true;
+                            }
+                        }
+                    }
                     count => {
                         for k in first..first + u32::from(count) {
                             let Triangle { corners, id } = self.triangles[k as usize];
@@ -299,7 +325,7 @@ struct RigidTracer {
 /// Everything needed to trace lines through a scene at any frame.
 pub struct SceneTracer {
     /// The static triangles, global indices `0..statics`.
-    statics: Option<TraceMesh>,
+    pub(crate) statics: Option<TraceMesh>,
     /// Per moving object: its tracer if rigid and not empty (deforming objects are in
     /// [`FrameMeshes`]).
     rigid: Vec<Option<RigidTracer>>,

@@ -56,6 +56,47 @@ impl Shear {
         [x - self.sx * z, y - self.sy * z]
     }
 
+    /// [`Shear::project`] of the corners of eight triangles side by side
+    /// (`corner[c][axis][lane]`): `[corner][x or y][lane]`, the same operations lane by lane.
+    #[must_use]
+    #[inline(always)]
+    pub fn project_block(&self, corner: &[[[f32; 8]; 3]; 3]) -> [[[f32; 8]; 2]; 3] {
+        corner.map(|c| {
+            let (x, y, z) = (&c[self.kx], &c[self.ky], &c[self.kz]);
+            [
+                std::array::from_fn(|l| x[l] - self.sx * z[l]),
+                std::array::from_fn(|l| y[l] - self.sy * z[l]),
+            ]
+        })
+    }
+
+    /// [`Shear::project_block`] in AVX: the same operations on the same numbers.
+    ///
+    /// # Safety
+    /// The processor must have AVX.
+    #[cfg(target_arch = "x86_64")]
+    #[must_use]
+    #[inline]
+    #[target_feature(enable = "avx")]
+    pub unsafe fn project_block_avx(&self, corner: &[[[f32; 8]; 3]; 3]) -> [[[f32; 8]; 2]; 3] {
+        use std::arch::x86_64::{
+            _mm256_loadu_ps, _mm256_mul_ps, _mm256_set1_ps, _mm256_storeu_ps, _mm256_sub_ps,
+        };
+        let mut out = [[[0.0; 8]; 2]; 3];
+        // SAFETY: the eight-float loads and stores stay inside the arrays.
+        unsafe {
+            let (sx, sy) = (_mm256_set1_ps(self.sx), _mm256_set1_ps(self.sy));
+            for (c, o) in corner.iter().zip(&mut out) {
+                let z = _mm256_loadu_ps(c[self.kz].as_ptr());
+                let x = _mm256_sub_ps(_mm256_loadu_ps(c[self.kx].as_ptr()), _mm256_mul_ps(sx, z));
+                let y = _mm256_sub_ps(_mm256_loadu_ps(c[self.ky].as_ptr()), _mm256_mul_ps(sy, z));
+                _mm256_storeu_ps(o[0].as_mut_ptr(), x);
+                _mm256_storeu_ps(o[1].as_mut_ptr(), y);
+            }
+        }
+        out
+    }
+
     /// What the two corners cut off a box's image are measured by: `sy·x − sx·y` of a point's
     /// coordinates on the minor axes, or equally of its projection (the shear adds the same
     /// to both terms).
