@@ -10,7 +10,11 @@
 //! run time). The walk goes level by level, so that the reads of a level's nodes from memory
 //! overlap.
 //!
-//! At a leaf, each line inside a triangle's box gets the exact test on the same numbers as a
+//! Nearly all triangles are in blocks ([`wide::Block`]): the triangles of a node whose
+//! children would all be single triangles, side by side, each line that reaches the block
+//! tested against its eight lanes at once with the plain f32 rejection, on the same numbers
+//! as the test of one triangle, with no boxes; the few lanes it leaves go to the exact test.
+//! At a leaf of its own, each line inside a triangle's box gets the exact test on the same numbers as a
 //! line traced alone ([`ShearedLine::intersect_projected`]), so both find the same crossings
 //! bit for bit. No line is lost to rounding on the way: the test works on the corners' and the
 //! line's projections, the same f32 numbers the rectangles are made of, and rounding is

@@ -140,7 +140,7 @@ impl Slabs {
 
 /// Triangles with a BVH over them, in BVH order.
 pub struct TraceMesh {
-    /// The triangles, in the BVH's primitive order.
+    /// The triangles in slots of their own (few: most are in `blocks`), in the BVH's order.
     triangles: Pages<Triangle>,
     /// The box around them (padded like the BVH's).
     bounds: Aabb,
@@ -186,17 +186,17 @@ impl TraceMesh {
         let bvh = build_bvh2(&boxes, params, &mut build_time);
         let order = &bvh.primitive_indices;
         let wide = wide::collapse(&bvh);
-        let triangles: Vec<Triangle> = order
-            .iter()
-            .map(|&i| Triangle {
-                corners: corners[i as usize],
-                id: first_id + i,
+        let triangle = |k: u32| {
+            let i = order[k as usize];
+            (corners[i as usize], first_id + i)
+        };
+        let (wide, blocks, singles) = wide::into_blocks(&wide, triangle);
+        let triangles: Vec<Triangle> = (singles.into_iter())
+            .map(|k| {
+                let (corners, id) = triangle(k);
+                Triangle { corners, id }
             })
             .collect();
-        let (wide, blocks) = wide::into_blocks(&wide, |k| {
-            let t = &triangles[k as usize];
-            (t.corners, t.id)
-        });
         Some(Self {
             triangles: triangles.into(),
             bounds: bvh.nodes[0].aabb,
@@ -302,8 +302,15 @@ impl TraceMesh {
     /// The same crossings found by testing every triangle, for checking the BVH path.
     pub fn trace_brute_force(&self, origin: Vec3, direction: Vec3, out: &mut Vec<Hit>) {
         let sheared = ShearedLine::new(origin, direction);
-        for &Triangle { corners, id } in self.triangles.iter() {
-            let [a, b, c] = corners;
+        let lanes = (self.blocks.iter()).flat_map(|block| {
+            (0..wide::WIDTH).map(|lane| {
+                let corner = |c: usize| Vec3::from(block.corner[c].map(|axis| axis[lane]));
+                ([corner(0), corner(1), corner(2)], block.id[lane])
+            })
+        });
+        // A block's unused lanes are zero: triangles of no area, which no line crosses.
+        let singles = self.triangles.iter().map(|t| (t.corners, t.id));
+        for ([a, b, c], id) in singles.chain(lanes) {
             if let Some((t, front)) = sheared.intersect(a, b, c, LINE_LENGTH) {
                 out.push(Hit::new(t, id, front));
             }

@@ -48,13 +48,15 @@ pub struct Block {
 
 /// Replaces every wide node below the root whose children are all single triangles by a
 /// [`Block`] of them (`triangle(k)` gives leaf triangle `k`'s corners and global index): the
-/// nodes left, in the same order, and the blocks.
+/// nodes left, in the same order; the blocks; and the leaf triangles left in slots of their
+/// own, whose slots now count from the start of that list.
 #[must_use]
 pub fn into_blocks(
     nodes: &[Node],
     triangle: impl Fn(u32) -> ([glam::Vec3; 3], u32),
-) -> (Vec<Node>, Vec<Block>) {
+) -> (Vec<Node>, Vec<Block>, Vec<u32>) {
     let all_leaves = single_triangles;
+    let mut singles = Vec::new();
     let mut index = vec![u32::MAX; nodes.len()];
     let (mut kept, mut blocks) = (0u32, Vec::new());
     for (n, node) in nodes.iter().enumerate() {
@@ -85,18 +87,22 @@ pub fn into_blocks(
             continue;
         }
         let mut node = *node;
-        for i in 0..WIDTH {
-            if node.used >> i & 1 == 1 && node.count[i] == INNER {
-                let child = &nodes[node.child[i] as usize];
+        for i in (0..WIDTH).filter(|&i| node.used >> i & 1 == 1) {
+            let first = node.child[i];
+            if node.count[i] == INNER {
+                let child = &nodes[first as usize];
                 if all_leaves(child) {
                     node.count[i] = BLOCK | child.used.count_ones() as u16;
                 }
-                node.child[i] = index[node.child[i] as usize];
+                node.child[i] = index[first as usize];
+            } else {
+                node.child[i] = singles.len() as u32;
+                singles.extend(first..first + u32::from(node.count[i]));
             }
         }
         out.push(node);
     }
-    (out, blocks)
+    (out, blocks, singles)
 }
 
 /// Whether every child of `node` is a single triangle (a [`Block`] of them can stand for it).
@@ -124,8 +130,8 @@ impl Node {
 /// with a probability proportional to its surface area and pays one test per wide node it
 /// meets, per triangle whose own box it meets, and one per block of up to eight triangles
 /// whose box it meets (a subtree of so few triangles kept whole may be all of them in one
-/// node's slots, which [`into_blocks`] makes a block). On the spheres of the benchmark, 90% of
-/// the static triangles end in 32,900 blocks, under 7,800 nodes.
+/// node's slots, which [`into_blocks`] makes a block). On the spheres of the benchmark, 99% of
+/// the static triangles end in 36,700 blocks, under 7,200 nodes.
 #[must_use]
 pub fn collapse(bvh: &Bvh2) -> Vec<Node> {
     let mut nodes = Vec::new();
@@ -175,11 +181,13 @@ struct Plan {
 }
 
 /// The cost of testing a line against a wide node's boxes, a block's triangles, or one
-/// triangle reached through its own box, relative to each other (measured: a triangle's test
-/// costs about half a node's).
+/// triangle reached through its own box, relative to each other. A triangle alone costs about
+/// half a node (its test, timed), but counting it as a whole one put 99% of the spheres'
+/// triangles in blocks instead of 90%, and the walk was 3% faster; 1.5, or blocks at 0.7 or
+/// 0.8, were within 1% of that.
 const NODE_COST: f32 = 1.0;
 const BLOCK_COST: f32 = 1.0;
-const TRIANGLE_COST: f32 = 0.5;
+const TRIANGLE_COST: f32 = 1.0;
 
 impl Plan {
     fn new(bvh: &Bvh2) -> Self {
@@ -443,7 +451,7 @@ mod tests {
             let order = &bvh.primitive_indices;
             let wide = collapse(&bvh);
             // Global index: 1000 past the triangle's.
-            let (nodes, blocks) = into_blocks(&wide, |k| {
+            let (nodes, blocks, singles) = into_blocks(&wide, |k| {
                 let i = order[k as usize];
                 (triangles[i as usize], 1_000 + i)
             });
@@ -470,7 +478,8 @@ mod tests {
                         }
                         count => {
                             assert_eq!(count, 1);
-                            seen[order[node.child[i] as usize] as usize] += 1;
+                            let k = singles[node.child[i] as usize];
+                            seen[order[k as usize] as usize] += 1;
                         }
                     }
                 }
