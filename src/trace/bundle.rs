@@ -550,7 +550,7 @@ impl TraceMesh {
         let projected = shear.project_block(&block.corner);
         let used = (1u32 << lanes) - 1;
         for p in points {
-            let mut maybe = !outside8::<AVX>(&projected, p.x, p.y) & used;
+            let mut maybe = !outside8::<AVX>(&projected, [p.x, p.y]) & used;
             while maybe != 0 {
                 let l = maybe.trailing_zeros() as usize;
                 maybe &= maybe - 1;
@@ -579,7 +579,7 @@ impl TraceMesh {
 /// y][lane]`) that the line through `(x, y)` certainly misses: [`certainly_outside`]'s test,
 /// eight lanes at once.
 #[inline(always)]
-fn outside8<const AVX: bool>(projected: &[[[f32; 8]; 2]; 3], x: f32, y: f32) -> u32 {
+pub(super) fn outside8<const AVX: bool>(projected: &[[[f32; 8]; 2]; 3], [x, y]: [f32; 2]) -> u32 {
     #[cfg(target_arch = "x86_64")]
     if AVX {
         // SAFETY: as in [`children_around`].
