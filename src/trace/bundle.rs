@@ -10,7 +10,7 @@
 //! run time). The walk goes level by level, so that the reads of a level's nodes from memory
 //! overlap.
 //!
-//! Nearly all triangles are in blocks ([`wide::Block`]): the triangles of a node whose
+//! Nearly all triangles are in blocks (`wide::Block`): the triangles of a node whose
 //! children would all be single triangles, side by side, each line that reaches the block
 //! tested against its eight lanes at once with the plain f32 rejection, on the same numbers
 //! as the test of one triangle, with no boxes; the few lanes it leaves go to the exact test.
@@ -554,17 +554,10 @@ impl TraceMesh {
             while maybe != 0 {
                 let l = maybe.trailing_zeros() as usize;
                 maybe &= maybe - 1;
-                let corner = |c: usize| {
-                    Vec3::new(
-                        block.corner[c][0][l],
-                        block.corner[c][1][l],
-                        block.corner[c][2][l],
-                    )
-                };
                 let pc = |c: usize| [projected[c][0][l], projected[c][1][l]];
                 cross_one(
                     lines,
-                    [corner(0), corner(1), corner(2)],
+                    block.corners(l),
                     [pc(0), pc(1), pc(2)],
                     block.id[l],
                     p,

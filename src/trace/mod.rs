@@ -271,15 +271,8 @@ impl TraceMesh {
                         while maybe != 0 {
                             let lane = maybe.trailing_zeros() as usize;
                             maybe &= maybe - 1;
-                            let corner = |c: usize| {
-                                Vec3::new(
-                                    block.corner[c][0][lane],
-                                    block.corner[c][1][lane],
-                                    block.corner[c][2][lane],
-                                )
-                            };
-                            if let Some((t, front)) =
-                                sheared.intersect(corner(0), corner(1), corner(2), t_max)
+                            let [a, b, c] = block.corners(lane);
+                            if let Some((t, front)) = sheared.intersect(a, b, c, t_max)
                                 && found(Hit::new(t, block.id[lane], front))
                             {
                                 return true;
@@ -311,12 +304,8 @@ impl TraceMesh {
     /// The same crossings found by testing every triangle, for checking the BVH path.
     pub fn trace_brute_force(&self, origin: Vec3, direction: Vec3, out: &mut Vec<Hit>) {
         let sheared = ShearedLine::new(origin, direction);
-        let lanes = (self.blocks.iter()).flat_map(|block| {
-            (0..wide::WIDTH).map(|lane| {
-                let corner = |c: usize| Vec3::from(block.corner[c].map(|axis| axis[lane]));
-                ([corner(0), corner(1), corner(2)], block.id[lane])
-            })
-        });
+        let lanes = (self.blocks.iter())
+            .flat_map(|block| (0..wide::WIDTH).map(|lane| (block.corners(lane), block.id[lane])));
         // A block's unused lanes are zero: triangles of no area, which no line crosses.
         let singles = self.triangles.iter().map(|t| (t.corners, t.id));
         for ([a, b, c], id) in singles.chain(lanes) {

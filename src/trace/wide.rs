@@ -46,6 +46,16 @@ pub struct Block {
     pub id: [u32; WIDTH],
 }
 
+impl Block {
+    /// The corners of the triangle in `lane`.
+    #[must_use]
+    #[inline(always)]
+    pub fn corners(&self, lane: usize) -> [glam::Vec3; 3] {
+        self.corner
+            .map(|c| glam::Vec3::new(c[0][lane], c[1][lane], c[2][lane]))
+    }
+}
+
 /// Replaces every wide node below the root whose children are all single triangles by a
 /// [`Block`] of them (`triangle(k)` gives leaf triangle `k`'s corners and global index): the
 /// nodes left, in the same order; the blocks; and the leaf triangles left in slots of their
@@ -356,6 +366,16 @@ mod tests {
         }
     }
 
+    /// A binary BVH over `boxes`, built as [`super::super::TraceMesh`] builds its own.
+    fn binary(boxes: &[Aabb]) -> Bvh2 {
+        let mut time = std::time::Duration::ZERO;
+        let params = BvhBuildParams {
+            max_prims_per_leaf: 1,
+            ..BvhBuildParams::medium_build()
+        };
+        build_bvh2(boxes, params, &mut time)
+    }
+
     #[test]
     fn the_collapse_keeps_every_triangle_once_and_costs_least() {
         let mut rng = Xoshiro256PlusPlus::seed_from_u64(8);
@@ -366,12 +386,7 @@ mod tests {
                     Aabb::new(c, c + rng.random_range(0.001..0.02))
                 })
                 .collect();
-            let mut time = std::time::Duration::ZERO;
-            let params = BvhBuildParams {
-                max_prims_per_leaf: 1,
-                ..BvhBuildParams::medium_build()
-            };
-            let bvh = build_bvh2(&boxes, params, &mut time);
+            let bvh = binary(&boxes);
             let nodes = collapse(&bvh);
             let mut seen = vec![0; n];
             check(&nodes, 0, None, &mut seen);
@@ -442,12 +457,7 @@ mod tests {
                     )
                 })
                 .collect();
-            let mut time = std::time::Duration::ZERO;
-            let params = BvhBuildParams {
-                max_prims_per_leaf: 1,
-                ..BvhBuildParams::medium_build()
-            };
-            let bvh = build_bvh2(&boxes, params, &mut time);
+            let bvh = binary(&boxes);
             let order = &bvh.primitive_indices;
             let wide = collapse(&bvh);
             // Global index: 1000 past the triangle's.
