@@ -14,12 +14,12 @@
 //! children would all be single triangles, side by side, each line that reaches the block
 //! tested against its eight lanes at once with the plain f32 rejection, on the same numbers
 //! as the test of one triangle, with no boxes; the few lanes it leaves go to the exact test.
-//! At a leaf of its own, each line inside a triangle's box gets the exact test on the same numbers as a
-//! line traced alone ([`ShearedLine::intersect_projected`]), so both find the same crossings
-//! bit for bit. No line is lost to rounding on the way: the test works on the corners' and the
-//! line's projections, the same f32 numbers the rectangles are made of, and rounding is
-//! monotonic, so a box's rectangle holds the projection of every point of the box; the band
-//! between the cut corners is widened by a margin larger than its rounding.
+//! At a leaf of its own, each line inside a triangle's box gets the exact test on the same
+//! numbers as a line traced alone ([`ShearedLine::intersect_projected`]), so both find the
+//! same crossings bit for bit. No line is lost to rounding on the way: the test works on the
+//! corners' and the line's projections, the same f32 numbers the rectangles are made of, and
+//! rounding is monotonic, so a box's rectangle holds the projection of every point of the box;
+//! the band between the cut corners is widened by a margin larger than its rounding.
 
 use glam::Vec3;
 
@@ -521,9 +521,7 @@ impl TraceMesh {
             }
         }
     }
-}
 
-impl TraceMesh {
     /// Appends the crossings of the triangles of block `b` (its first `lanes`) by the lines of
     /// `points`: the f32 rejection eight lanes at once, the same operations on the same
     /// numbers as [`ShearedLine::intersect_projected`]'s, then the exact test of the lanes

@@ -330,7 +330,7 @@ struct RigidTracer {
 /// Everything needed to trace lines through a scene at any frame.
 pub struct SceneTracer {
     /// The static triangles, global indices `0..statics`.
-    pub(crate) statics: Option<TraceMesh>,
+    statics: Option<TraceMesh>,
     /// Per moving object: its tracer if rigid and not empty (deforming objects are in
     /// [`FrameMeshes`]).
     rigid: Vec<Option<RigidTracer>>,

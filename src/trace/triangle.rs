@@ -109,8 +109,9 @@ impl Shear {
     /// The images under [`Shear::project`] of eight boxes at once, given as their lower and
     /// upper corners' coordinates per axis (`lo[axis][box]`): the rectangles' lower x, lower
     /// y, upper x and upper y (each holding the projection of every point of its box as
-    /// [`Shear::project`] rounds it: rounding is monotonic), then the least and the greatest [`Shear::diagonal`] of the boxes' points,
-    /// widened by `margin`; one box per lane, four lanes at a time.
+    /// [`Shear::project`] rounds it: rounding is monotonic), then the least and the greatest
+    /// [`Shear::diagonal`] of the boxes' points, widened by `margin`; one box per lane, four
+    /// lanes at a time.
     ///
     /// A box's image is a hexagon: its rectangle with two corners cut off along the
     /// direction of the shear. The diagonal's range is the band between those cuts; a point

@@ -324,7 +324,8 @@ fn fill(bvh: &Bvh2, plan: &Plan, nodes: &mut Vec<Node>, slot: usize, kids: &[usi
         } else {
             node.child[i] = binary[k].first_index;
             // The builder makes leaves of `max_prims_per_leaf` triangles (one).
-            node.count[i] = u16::try_from(binary[k].prim_count).expect("small leaves");
+            let count = u16::try_from(binary[k].prim_count).ok();
+            node.count[i] = count.filter(|&c| c < BLOCK).expect("small leaves");
         }
     }
     nodes[slot] = node;
