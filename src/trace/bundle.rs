@@ -269,36 +269,49 @@ fn children_around<const AVX: bool>(rects: &Rects, p: &Point) -> u32 {
 #[inline]
 #[target_feature(enable = "avx")]
 unsafe fn children_around_avx(rects: &Rects, p: &Point) -> u32 {
-    use std::arch::x86_64::{
-        _CMP_GE_OQ, _CMP_LE_OQ, _mm256_and_ps, _mm256_cmp_ps, _mm256_loadu_ps, _mm256_movemask_ps,
-        _mm256_set1_ps,
-    };
+    use std::arch::x86_64::{_mm256_loadu_ps, _mm256_movemask_ps};
     // SAFETY: the eight-float loads stay inside the rectangles' arrays.
     unsafe {
-        let (x, y, d) = (
-            _mm256_set1_ps(p.x),
-            _mm256_set1_ps(p.y),
-            _mm256_set1_ps(p.d),
-        );
-        let side = |k: usize| _mm256_loadu_ps(rects[k].as_ptr());
-        let inside = _mm256_and_ps(
-            _mm256_and_ps(
-                _mm256_and_ps(
-                    _mm256_cmp_ps::<_CMP_GE_OQ>(x, side(0)),
-                    _mm256_cmp_ps::<_CMP_GE_OQ>(y, side(1)),
-                ),
-                _mm256_and_ps(
-                    _mm256_cmp_ps::<_CMP_LE_OQ>(x, side(2)),
-                    _mm256_cmp_ps::<_CMP_LE_OQ>(y, side(3)),
-                ),
-            ),
-            _mm256_and_ps(
-                _mm256_cmp_ps::<_CMP_GE_OQ>(d, side(4)),
-                _mm256_cmp_ps::<_CMP_LE_OQ>(d, side(5)),
-            ),
-        );
-        _mm256_movemask_ps(inside) as u32
+        let sides = std::array::from_fn(|k| _mm256_loadu_ps(rects[k].as_ptr()));
+        _mm256_movemask_ps(inside_avx(&sides, p)) as u32
     }
+}
+
+/// All ones in the lanes of the children whose images (`sides`: [`Rects`]' six sides, eight
+/// children each) hold `p`, zeros elsewhere.
+///
+/// # Safety
+/// The processor must have AVX.
+#[cfg(target_arch = "x86_64")]
+#[inline]
+#[target_feature(enable = "avx")]
+unsafe fn inside_avx(
+    sides: &[std::arch::x86_64::__m256; 6],
+    p: &Point,
+) -> std::arch::x86_64::__m256 {
+    use std::arch::x86_64::{_CMP_GE_OQ, _CMP_LE_OQ, _mm256_and_ps, _mm256_cmp_ps, _mm256_set1_ps};
+    let (x, y, d) = (
+        _mm256_set1_ps(p.x),
+        _mm256_set1_ps(p.y),
+        _mm256_set1_ps(p.d),
+    );
+    let [x0, y0, x1, y1, d0, d1] = *sides;
+    _mm256_and_ps(
+        _mm256_and_ps(
+            _mm256_and_ps(
+                _mm256_cmp_ps::<_CMP_GE_OQ>(x, x0),
+                _mm256_cmp_ps::<_CMP_GE_OQ>(y, y0),
+            ),
+            _mm256_and_ps(
+                _mm256_cmp_ps::<_CMP_LE_OQ>(x, x1),
+                _mm256_cmp_ps::<_CMP_LE_OQ>(y, y1),
+            ),
+        ),
+        _mm256_and_ps(
+            _mm256_cmp_ps::<_CMP_GE_OQ>(d, d0),
+            _mm256_cmp_ps::<_CMP_LE_OQ>(d, d1),
+        ),
+    )
 }
 
 /// The images of `node`'s children, their diagonal bands widened by `margin`; with `AVX`,
@@ -327,17 +340,7 @@ fn split<const AVX: bool>(
     let mut ranges = [(0, 0); wide::WIDTH];
     // Which children each line goes through, all at once; then the children's lists, side by
     // side, in one pass.
-    masks.clear();
-    let mut counts = [0; wide::WIDTH];
-    let mut reached = 0;
-    for p in list {
-        let m = children_around::<AVX>(rects, p) & used;
-        reached |= m;
-        masks.push(m);
-        for (i, count) in counts.iter_mut().enumerate() {
-            *count += (m >> i) as usize & 1;
-        }
-    }
+    let (reached, counts) = masks_of::<AVX>(list, rects, used, masks);
     let mut at = [0; wide::WIDTH];
     let mut total = next.len();
     for (at, count) in at.iter_mut().zip(counts) {
@@ -358,6 +361,78 @@ fn split<const AVX: bool>(
         }
     }
     (reached, ranges)
+}
+
+/// Sets `masks` to the children (bit i for child i, among `used`) whose images hold each line
+/// of `list`: the children reached by any, and how many lines each child holds.
+#[inline(always)]
+fn masks_of<const AVX: bool>(
+    list: &[Point],
+    rects: &Rects,
+    used: u32,
+    masks: &mut Vec<u32>,
+) -> (u32, [usize; wide::WIDTH]) {
+    masks.clear();
+    #[cfg(target_arch = "x86_64")]
+    if AVX {
+        // SAFETY: as in [`children_around`].
+        return unsafe { masks_of_avx(list, rects, used, masks) };
+    }
+    let mut counts = [0; wide::WIDTH];
+    let mut reached = 0;
+    for p in list {
+        let m = children_around::<AVX>(rects, p) & used;
+        reached |= m;
+        masks.push(m);
+        for (i, count) in counts.iter_mut().enumerate() {
+            *count += (m >> i) as usize & 1;
+        }
+    }
+    (reached, counts)
+}
+
+/// [`masks_of`] in AVX2: [`children_around_avx`]'s comparisons, each line's eight answers
+/// also added to the children's counts, eight at once.
+///
+/// # Safety
+/// The processor must have AVX2.
+#[cfg(target_arch = "x86_64")]
+#[inline]
+#[target_feature(enable = "avx2")]
+unsafe fn masks_of_avx(
+    list: &[Point],
+    rects: &Rects,
+    used: u32,
+    masks: &mut Vec<u32>,
+) -> (u32, [usize; wide::WIDTH]) {
+    use std::arch::x86_64::{
+        _mm256_and_si256, _mm256_castps_si256, _mm256_castsi256_ps, _mm256_cmpeq_epi32,
+        _mm256_loadu_ps, _mm256_movemask_ps, _mm256_set1_epi32, _mm256_setr_epi32,
+        _mm256_setzero_si256, _mm256_storeu_si256, _mm256_sub_epi32,
+    };
+    let mut reached = 0;
+    let mut counts = [0u32; wide::WIDTH];
+    masks.reserve(list.len());
+    // SAFETY: the eight-lane loads and the store stay inside the rectangles' and the counts'
+    // arrays.
+    unsafe {
+        let sides = std::array::from_fn(|k| _mm256_loadu_ps(rects[k].as_ptr()));
+        // All ones in the lanes of the children there are.
+        let bits = _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128);
+        let used_lanes =
+            _mm256_cmpeq_epi32(_mm256_and_si256(_mm256_set1_epi32(used as i32), bits), bits);
+        let mut total = _mm256_setzero_si256();
+        for p in list {
+            let inside = _mm256_and_si256(_mm256_castps_si256(inside_avx(&sides, p)), used_lanes);
+            // A lane inside is all ones: minus one.
+            total = _mm256_sub_epi32(total, inside);
+            let m = _mm256_movemask_ps(_mm256_castsi256_ps(inside)) as u32;
+            reached |= m;
+            masks.push(m);
+        }
+        _mm256_storeu_si256(counts.as_mut_ptr().cast(), total);
+    }
+    (reached, counts.map(|c| c as usize))
 }
 
 impl TraceMesh {
