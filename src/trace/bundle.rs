@@ -328,7 +328,8 @@ fn rects_of<const AVX: bool>(shear: &Shear, node: &wide::Node, margin: f32) -> R
 
 /// Appends to `next` the lines of `list` (of several lines) inside each child's image
 /// (`rects`, see [`children_around`]; `used`, the children there are), child after child: the
-/// children reached (bit i for child i), and each one's range in `next`.
+/// children reached (bit i for child i), and where each one's list ends in `next` (it starts
+/// where the one before ends, the first where `next` did).
 #[inline(always)]
 fn split<const AVX: bool>(
     list: &[Point],
@@ -336,31 +337,37 @@ fn split<const AVX: bool>(
     used: u32,
     next: &mut Vec<Point>,
     masks: &mut Vec<u32>,
-) -> (u32, [(u32, u32); wide::WIDTH]) {
-    let mut ranges = [(0, 0); wide::WIDTH];
+) -> (u32, [u32; wide::WIDTH]) {
     // Which children each line goes through, all at once; then the children's lists, side by
     // side, in one pass.
     let (reached, counts) = masks_of::<AVX>(list, rects, used, masks);
+    let base = next.len();
     let mut at = [0; wide::WIDTH];
-    let mut total = next.len();
-    for (at, count) in at.iter_mut().zip(counts) {
+    let mut ends = [0; wide::WIDTH];
+    let mut total = 0;
+    for ((at, end), count) in at.iter_mut().zip(&mut ends).zip(counts) {
         *at = total;
         total += count;
+        *end = total;
     }
-    next.resize(total, Point::default());
-    for (i, range) in ranges.iter_mut().enumerate() {
-        *range = (at[i] as u32, (at[i] + counts[i]) as u32);
-    }
+    // Written in place, with no value put first that would be written over.
+    next.reserve(total);
+    let spare = &mut next.spare_capacity_mut()[..total];
     for (p, &m) in list.iter().zip(masks.iter()) {
         let mut m = m;
         while m != 0 {
-            let i = m.trailing_zeros() as usize;
+            // (A child's bit is below `WIDTH`: the remainder only spares a bounds check.)
+            let i = m.trailing_zeros() as usize % wide::WIDTH;
             m &= m - 1;
-            next[at[i]] = *p;
+            spare[at[i]].write(*p);
             at[i] += 1;
         }
     }
-    (reached, ranges)
+    // Every child's list is full: each of its places was written, once.
+    assert_eq!(at, ends, "the children's counts disagree with their lines");
+    // SAFETY: the `total` places after the first `base` were all written (above).
+    unsafe { next.set_len(base + total) };
+    (reached, ends.map(|end| (base + end) as u32))
 }
 
 /// Sets `masks` to the children (bit i for child i, among `used`) whose images hold each line
@@ -512,21 +519,31 @@ impl TraceMesh {
                 let node = &self.wide[node as usize];
                 let rects = rects_of::<AVX>(shear, node, diagonal_margin);
                 let list = &level[start as usize..end as usize];
-                let (mut reached, ranges) = if let [p] = list {
+                // Where each child's list ends in `next_points`; the next level's lists,
+                // child by child, start where the one before ends.
+                let mut from = next_points.len() as u32;
+                let (mut reached, ends) = if let [p] = list {
                     // Most lists deep in the tree: one line, whose children share one copy.
                     let reached = children_around::<AVX>(&rects, p) & node.used;
-                    let at = next_points.len() as u32;
                     if reached != 0 {
                         next_points.push(*p);
                     }
-                    (reached, [(at, at + 1); wide::WIDTH])
+                    (reached, None)
                 } else {
-                    split::<AVX>(list, &rects, node.used, next_points, masks)
+                    let (reached, ends) = split::<AVX>(list, &rects, node.used, next_points, masks);
+                    (reached, Some(ends))
                 };
                 while reached != 0 {
                     let i = reached.trailing_zeros() as usize;
                     reached &= reached - 1;
-                    let (from, to) = ranges[i];
+                    let to = match ends {
+                        Some(ends) => {
+                            // The children not reached hold no line: their lists are empty.
+                            from = if i == 0 { from } else { ends[i - 1] };
+                            ends[i]
+                        }
+                        None => from + 1,
+                    };
                     match node.count[i] {
                         INNER => next_nodes.push((node.child[i], from, to)),
                         count if count & wide::BLOCK != 0 => {

@@ -51,8 +51,11 @@ impl Block {
     #[must_use]
     #[inline(always)]
     pub fn corners(&self, lane: usize) -> [glam::Vec3; 3] {
-        self.corner
-            .map(|c| glam::Vec3::new(c[0][lane], c[1][lane], c[2][lane]))
+        // Indexed in place: `map` would copy all eight lanes' corners first.
+        std::array::from_fn(|k| {
+            let c = &self.corner[k];
+            glam::Vec3::new(c[0][lane], c[1][lane], c[2][lane])
+        })
     }
 }
 
