@@ -152,10 +152,10 @@ impl ParallelLines {
 /// Reusable buffers for [`TraceMesh::trace_parallel`].
 #[derive(Default)]
 pub struct Scratch {
-    /// The lists of lines inside the nodes of the level being walked, one after another.
-    points: Vec<Point>,
+    /// The lists of lines inside the nodes of the level being walked.
+    points: Lists,
     /// Those of the next level.
-    next_points: Vec<Point>,
+    next_points: Lists,
     /// The level's nodes, with their list's range in `points`.
     nodes: Vec<(u32, u32, u32)>,
     /// The next level's.
@@ -164,13 +164,46 @@ pub struct Scratch {
     leaves: Vec<(u32, u32, u32)>,
     /// Blocks reached at this level: the block, its lanes, and its list's range.
     blocks: Vec<(u32, u32, u32, u32)>,
-    /// Per line of a node's list, the children it goes through.
-    masks: Vec<u32>,
     /// For [`super::sort_by_line`]: where each line's crossings start, where its next one
     /// goes, and the sorted pairs.
     line_starts: Vec<u32>,
     line_next: Vec<u32>,
     sorted: Vec<(u32, Hit)>,
+}
+
+/// Lists of lines, one after another, in places kept from one use to the next, so that a place
+/// is written once, with no value put there first.
+#[derive(Default)]
+struct Lists {
+    places: Vec<Point>,
+    /// The places in use.
+    len: usize,
+}
+
+impl Lists {
+    fn clear(&mut self) {
+        self.len = 0;
+    }
+
+    /// The places in use.
+    fn as_slice(&self) -> &[Point] {
+        &self.places[..self.len]
+    }
+
+    /// The `n` places after those in use, to be written (not yet in use).
+    fn after(&mut self, n: usize) -> &mut [Point] {
+        let end = self.len + n;
+        if self.places.len() < end {
+            self.places
+                .resize(end.max(2 * self.places.len()), Point::default());
+        }
+        &mut self.places[self.len..end]
+    }
+
+    fn push(&mut self, p: Point) {
+        self.after(1)[0] = p;
+        self.len += 1;
+    }
 }
 
 impl Scratch {
@@ -328,118 +361,38 @@ fn rects_of<const AVX: bool>(shear: &Shear, node: &wide::Node, margin: f32) -> R
 
 /// Appends to `next` the lines of `list` (of several lines) inside each child's image
 /// (`rects`, see [`children_around`]; `used`, the children there are), child after child: the
-/// children reached (bit i for child i), and where each one's list ends in `next` (it starts
-/// where the one before ends, the first where `next` did).
+/// children reached (bit i for child i), and each one's range in `next`.
+///
+/// Child i's list goes in the i-th of eight runs of `list.len()` places, in one pass: each
+/// line is written at every child's next place, and the places of the children that hold it
+/// move on (a write where none moves on is written over by the next line, or left out).
+/// There is no branch on which children hold a line, no count first, no mask kept.
 #[inline(always)]
 fn split<const AVX: bool>(
     list: &[Point],
     rects: &Rects,
     used: u32,
-    next: &mut Vec<Point>,
-    masks: &mut Vec<u32>,
-) -> (u32, [u32; wide::WIDTH]) {
-    // Which children each line goes through, all at once; then the children's lists, side by
-    // side, in one pass.
-    let (reached, counts) = masks_of::<AVX>(list, rects, used, masks);
-    let base = next.len();
-    let mut at = [0; wide::WIDTH];
-    let mut ends = [0; wide::WIDTH];
-    let mut total = 0;
-    for ((at, end), count) in at.iter_mut().zip(&mut ends).zip(counts) {
-        *at = total;
-        total += count;
-        *end = total;
-    }
-    // Written in place, with no value put first that would be written over.
-    next.reserve(total);
-    let spare = &mut next.spare_capacity_mut()[..total];
-    for (p, &m) in list.iter().zip(masks.iter()) {
-        let mut m = m;
-        while m != 0 {
-            // (A child's bit is below `WIDTH`: the remainder only spares a bounds check.)
-            let i = m.trailing_zeros() as usize % wide::WIDTH;
-            m &= m - 1;
-            spare[at[i]].write(*p);
-            at[i] += 1;
-        }
-    }
-    // Every child's list is full: each of its places was written, once.
-    assert_eq!(at, ends, "the children's counts disagree with their lines");
-    // SAFETY: the `total` places after the first `base` were all written (above).
-    unsafe { next.set_len(base + total) };
-    (reached, ends.map(|end| (base + end) as u32))
-}
-
-/// Sets `masks` to the children (bit i for child i, among `used`) whose images hold each line
-/// of `list`: the children reached by any, and how many lines each child holds.
-#[inline(always)]
-fn masks_of<const AVX: bool>(
-    list: &[Point],
-    rects: &Rects,
-    used: u32,
-    masks: &mut Vec<u32>,
-) -> (u32, [usize; wide::WIDTH]) {
-    masks.clear();
-    #[cfg(target_arch = "x86_64")]
-    if AVX {
-        // SAFETY: as in [`children_around`].
-        return unsafe { masks_of_avx(list, rects, used, masks) };
-    }
-    let mut counts = [0; wide::WIDTH];
+    next: &mut Lists,
+) -> (u32, [(u32, u32); wide::WIDTH]) {
+    let n = list.len();
+    let base = next.len;
+    let places = next.after(wide::WIDTH * n);
+    let mut at: [usize; wide::WIDTH] = std::array::from_fn(|i| i * n);
     let mut reached = 0;
     for p in list {
         let m = children_around::<AVX>(rects, p) & used;
         reached |= m;
-        masks.push(m);
-        for (i, count) in counts.iter_mut().enumerate() {
-            *count += (m >> i) as usize & 1;
+        for (i, at) in at.iter_mut().enumerate() {
+            // Below the run's end: the lines before this one that child i holds are fewer
+            // than `n`.
+            places[*at] = *p;
+            *at += (m >> i) as usize & 1;
         }
     }
-    (reached, counts)
-}
-
-/// [`masks_of`] in AVX2: [`children_around_avx`]'s comparisons, each line's eight answers
-/// also added to the children's counts, eight at once.
-///
-/// # Safety
-/// The processor must have AVX2.
-#[cfg(target_arch = "x86_64")]
-#[inline]
-#[target_feature(enable = "avx2")]
-unsafe fn masks_of_avx(
-    list: &[Point],
-    rects: &Rects,
-    used: u32,
-    masks: &mut Vec<u32>,
-) -> (u32, [usize; wide::WIDTH]) {
-    use std::arch::x86_64::{
-        _mm256_and_si256, _mm256_castps_si256, _mm256_castsi256_ps, _mm256_cmpeq_epi32,
-        _mm256_loadu_ps, _mm256_movemask_ps, _mm256_set1_epi32, _mm256_setr_epi32,
-        _mm256_setzero_si256, _mm256_storeu_si256, _mm256_sub_epi32,
-    };
-    let mut reached = 0;
-    let mut counts = [0u32; wide::WIDTH];
-    masks.reserve(list.len());
-    // SAFETY: the eight-lane loads and the store stay inside the rectangles' and the counts'
-    // arrays.
-    unsafe {
-        let sides = std::array::from_fn(|k| _mm256_loadu_ps(rects[k].as_ptr()));
-        // All ones in the lanes of the children there are.
-        let bits = _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128);
-        let used_lanes =
-            _mm256_cmpeq_epi32(_mm256_and_si256(_mm256_set1_epi32(used as i32), bits), bits);
-        let mut total = _mm256_setzero_si256();
-        for p in list {
-            let inside = _mm256_and_si256(_mm256_castps_si256(inside_avx(&sides, p)), used_lanes);
-            // A lane inside is all ones: minus one.
-            total = _mm256_sub_epi32(total, inside);
-            let m = _mm256_movemask_ps(_mm256_castsi256_ps(inside)) as u32;
-            reached |= m;
-            masks.push(m);
-        }
-        _mm256_storeu_si256(counts.as_mut_ptr().cast(), total);
-    }
-    (reached, counts.map(|c| c as usize))
+    // Up to the end of the last child reached's run.
+    next.len = base + (u32::BITS - reached.leading_zeros()) as usize * n;
+    let ranges = std::array::from_fn(|i| ((base + i * n) as u32, (base + at[i]) as u32));
+    (reached, ranges)
 }
 
 impl TraceMesh {
@@ -495,7 +448,6 @@ impl TraceMesh {
             next_nodes,
             leaves,
             blocks,
-            masks,
             ..
         } = scratch;
         nodes.clear();
@@ -506,7 +458,11 @@ impl TraceMesh {
         // overlap (each is asked for a few nodes ahead). The root's list is the bundle's own.
         let mut root = true;
         while !nodes.is_empty() {
-            let level: &[Point] = if root { &lines.points } else { points };
+            let level: &[Point] = if root {
+                &lines.points
+            } else {
+                points.as_slice()
+            };
             root = false;
             next_points.clear();
             next_nodes.clear();
@@ -519,31 +475,21 @@ impl TraceMesh {
                 let node = &self.wide[node as usize];
                 let rects = rects_of::<AVX>(shear, node, diagonal_margin);
                 let list = &level[start as usize..end as usize];
-                // Where each child's list ends in `next_points`; the next level's lists,
-                // child by child, start where the one before ends.
-                let mut from = next_points.len() as u32;
-                let (mut reached, ends) = if let [p] = list {
+                let (mut reached, ranges) = if let [p] = list {
                     // Most lists deep in the tree: one line, whose children share one copy.
                     let reached = children_around::<AVX>(&rects, p) & node.used;
+                    let at = next_points.len as u32;
                     if reached != 0 {
                         next_points.push(*p);
                     }
-                    (reached, None)
+                    (reached, [(at, at + 1); wide::WIDTH])
                 } else {
-                    let (reached, ends) = split::<AVX>(list, &rects, node.used, next_points, masks);
-                    (reached, Some(ends))
+                    split::<AVX>(list, &rects, node.used, next_points)
                 };
                 while reached != 0 {
                     let i = reached.trailing_zeros() as usize;
                     reached &= reached - 1;
-                    let to = match ends {
-                        Some(ends) => {
-                            // The children not reached hold no line: their lists are empty.
-                            from = if i == 0 { from } else { ends[i - 1] };
-                            ends[i]
-                        }
-                        None => from + 1,
-                    };
+                    let (from, to) = ranges[i];
                     match node.count[i] {
                         INNER => next_nodes.push((node.child[i], from, to)),
                         count if count & wide::BLOCK != 0 => {
@@ -562,14 +508,14 @@ impl TraceMesh {
                 if let Some(&(ahead, _, _)) = leaves.get(n + PREFETCH_AHEAD) {
                     prefetch(&self.triangles[ahead as usize], size_of::<Triangle>());
                 }
-                let list = &next_points[from as usize..to as usize];
+                let list = &next_points.as_slice()[from as usize..to as usize];
                 self.cross_triangle(k as usize, lines, list, out);
             }
             for (n, &(b, lanes, from, to)) in blocks.iter().enumerate() {
                 if let Some(&(ahead, _, _, _)) = blocks.get(n + PREFETCH_AHEAD) {
                     prefetch(&self.blocks[ahead as usize], size_of::<wide::Block>());
                 }
-                let list = &next_points[from as usize..to as usize];
+                let list = &next_points.as_slice()[from as usize..to as usize];
                 self.cross_block::<AVX>(b as usize, lanes, lines, list, out);
             }
             std::mem::swap(points, next_points);
