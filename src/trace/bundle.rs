@@ -164,10 +164,8 @@ pub struct Scratch {
     leaves: Vec<(u32, u32, u32)>,
     /// Blocks reached at this level: the block, its lanes, and its list's range.
     blocks: Vec<(u32, u32, u32, u32)>,
-    /// For [`super::sort_by_line`]: where each line's crossings start, where its next one
-    /// goes, and the sorted pairs.
+    /// For [`super::sort_by_line`]: where each line's crossings start, and the sorted pairs.
     line_starts: Vec<u32>,
-    line_next: Vec<u32>,
     sorted: Vec<(u32, Hit)>,
 }
 
@@ -208,8 +206,8 @@ impl Lists {
 
 impl Scratch {
     /// The buffers of [`super::sort_by_line`].
-    pub(super) fn sort_buffers(&mut self) -> (&mut Vec<u32>, &mut Vec<u32>, &mut Vec<(u32, Hit)>) {
-        (&mut self.line_starts, &mut self.line_next, &mut self.sorted)
+    pub(super) fn sort_buffers(&mut self) -> (&mut Vec<u32>, &mut Vec<(u32, Hit)>) {
+        (&mut self.line_starts, &mut self.sorted)
     }
 }
 

@@ -776,26 +776,54 @@ pub fn sort_by_line<'s>(
     lines: usize,
     scratch: &'s mut Scratch,
 ) -> &'s [u32] {
-    let (starts, next, sorted) = scratch.sort_buffers();
+    let (starts, sorted) = scratch.sort_buffers();
+    // Each line's count two places on; summed, one place on: where each line's crossings go,
+    // which the writes below move on to where the next line's start.
     starts.clear();
-    starts.resize(lines + 1, 0);
+    starts.resize(lines + 2, 0);
     for &(line, _) in found.iter() {
-        starts[line as usize + 1] += 1;
+        starts[line as usize + 2] += 1;
     }
-    for i in 1..starts.len() {
+    for i in 2..starts.len() {
         starts[i] += starts[i - 1];
     }
-    sorted.clear();
-    sorted.resize(found.len(), (0, Hit::new(0.0, 0, true)));
-    next.clone_from(starts);
+    // Every place is written below: only new places are filled first.
+    if sorted.len() < found.len() {
+        sorted.resize(found.len(), (0, Hit::new(0.0, 0, true)));
+    }
+    sorted.truncate(found.len());
     for &(line, hit) in found.iter() {
-        let at = &mut next[line as usize];
+        let at = &mut starts[line as usize + 1];
         sorted[*at as usize] = (line, hit);
         *at += 1;
     }
+    starts.pop();
     for w in starts.windows(2) {
-        sorted[w[0] as usize..w[1] as usize].sort_unstable_by(|a, b| Hit::order(&a.1, &b.1));
+        let run = &mut sorted[w[0] as usize..w[1] as usize];
+        if run.len() > 1 {
+            sort_along(run);
+        }
     }
     std::mem::swap(found, sorted);
     starts
+}
+
+/// Sorts one line's crossings along it ([`Hit::order`], by [`Hit::key`]): a few, most often
+/// two, in place by insertion; many by the library's sort.
+#[inline]
+fn sort_along(run: &mut [(u32, Hit)]) {
+    if run.len() > 16 {
+        run.sort_unstable_by_key(|&(_, hit)| hit.key());
+        return;
+    }
+    for i in 1..run.len() {
+        let item = run[i];
+        let key = item.1.key();
+        let mut j = i;
+        while j > 0 && run[j - 1].1.key() > key {
+            run[j] = run[j - 1];
+            j -= 1;
+        }
+        run[j] = item;
+    }
 }
