@@ -14,7 +14,7 @@ use crate::control::{Control, TraceError};
 use crate::direct::reference::Estimate;
 use crate::scene::{Material, Scene};
 use crate::timeline::{IntersectionList, LineParams};
-use crate::trace::{Hit, ParallelLines, SceneTracer, Scratch};
+use crate::trace::{BuildEffort, Hit, ParallelLines, SceneTracer, Scratch};
 
 /// Tracing figures: the multiframe list against tracing every frame independently.
 #[derive(Clone, Debug, Serialize)]
@@ -31,6 +31,8 @@ pub struct TraceReport {
     pub threads: usize,
     /// Building the BVHs (static and rigid objects), seconds.
     pub bvh_seconds: f64,
+    /// The effort their build was given.
+    pub bvh_effort: BuildEffort,
     /// Building the multiframe list, seconds.
     pub list_seconds: f64,
     /// Crossings stored in the list (static once, moving once per frame).
@@ -70,9 +72,10 @@ pub fn trace(
     lines: u64,
     seed: u64,
     native: Option<&std::path::Path>,
+    effort: BuildEffort,
 ) -> Result<TraceReport, TraceError> {
     let start = Instant::now();
-    let tracer = SceneTracer::new(scene);
+    let tracer = SceneTracer::with_effort(scene, effort);
     let bvh_seconds = start.elapsed().as_secs_f64();
 
     let params = LineParams { lines, seed };
@@ -129,6 +132,7 @@ pub fn trace(
         lines: list.lines(),
         threads: rayon::current_num_threads(),
         bvh_seconds,
+        bvh_effort: effort,
         list_seconds,
         list_hits: memory.hits(),
         list_hits_per_second: memory.hits() as f64 / list_seconds,
@@ -148,7 +152,7 @@ pub fn trace(
                 Some((hits, start.elapsed().as_secs_f64()))
             };
             let threads = rayon::current_num_threads();
-            native::compare(scene, &tracer, &bundles, dir, threads, &list)
+            native::compare(scene, &tracer, &bundles, dir, threads, effort, &list)
         }),
     })
 }
@@ -166,7 +170,15 @@ impl std::fmt::Display for TraceReport {
             "lines            {} on {} threads",
             self.lines, self.threads
         )?;
-        writeln!(f, "BVH build        {:.3} s", self.bvh_seconds)?;
+        let effort = match self.bvh_effort {
+            BuildEffort::Medium => "medium",
+            BuildEffort::High => "high",
+        };
+        writeln!(
+            f,
+            "BVH build        {:.3} s ({effort} effort)",
+            self.bvh_seconds
+        )?;
         writeln!(
             f,
             "multiframe list  {:.3} s, {} crossings, {:.1} M crossings/s traced, {:.1} M frame-crossings/s delivered",

@@ -8,6 +8,7 @@ use clap::{Parser, Subcommand};
 use radiosity::loader::{self, LoadOptions};
 use radiosity::params::{BakeRequest, BakeSettings, Limits};
 use radiosity::timeline::LineParams;
+use radiosity::trace::{BuildEffort, SceneTracer};
 
 #[derive(Parser)]
 #[command(version, about = "Radiosity baking for animated glTF scenes")]
@@ -256,9 +257,20 @@ struct BenchArgs {
     /// and print the ratio.
     #[arg(long)]
     embree: bool,
+    /// The BVHs' build effort; by default the one a bake of as many lines would choose
+    /// (high from 130 lines per static or rigid triangle).
+    #[arg(long, value_enum)]
+    bvh: Option<BvhEffort>,
     /// Print the report as JSON.
     #[arg(long)]
     json: bool,
+}
+
+/// `radiosity bench --bvh`: [`radiosity::trace::BuildEffort`].
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum BvhEffort {
+    Medium,
+    High,
 }
 
 /// The options of `radiosity bench-accuracy`.
@@ -570,13 +582,20 @@ impl BenchArgs {
             file,
             request,
             embree,
+            bvh,
             json,
         } = self;
         let settings = settings(request)?;
         let scene = loader::load_file(&file, &settings.load)?;
         let LineParams { lines, seed } = settings.lines;
         let native = Path::new(env!("CARGO_MANIFEST_DIR")).join("target/embree");
-        let report = radiosity::bench::trace(&scene, lines, seed, embree.then_some(&*native))?;
+        let effort = match bvh {
+            Some(BvhEffort::Medium) => BuildEffort::Medium,
+            Some(BvhEffort::High) => BuildEffort::High,
+            None => SceneTracer::effort_for(&scene, lines),
+        };
+        let native = embree.then_some(&*native);
+        let report = radiosity::bench::trace(&scene, lines, seed, native, effort)?;
         print_report(json, &report, &report)
     }
 }

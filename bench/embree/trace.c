@@ -511,9 +511,13 @@ static void on_embree_error(void *user, enum RTCError code, const char *msg)
 }
 
 /* One triangle geometry with its own (copied) vertex and index buffers. */
-static RTCScene build_scene(RTCDevice device, const Input *in, int robust)
+static RTCScene build_scene(RTCDevice device, const Input *in, int robust, int high)
 {
     RTCScene scene = rtcNewScene(device);
+    /* --quality high: RTC_BUILD_QUALITY_HIGH (spatial splits, whose repeated
+     * reports of one triangle the filter drops). */
+    if (high)
+        rtcSetSceneBuildQuality(scene, RTC_BUILD_QUALITY_HIGH);
     /* Defaults: RTC_SCENE_FLAG_NONE and RTC_BUILD_QUALITY_MEDIUM.  --robust
      * sets RTC_SCENE_FLAG_ROBUST ("avoid optimizations that reduce arithmetic
      * accuracy"), which changes what lines through edges and vertices get. */
@@ -558,6 +562,7 @@ static void usage(void)
     fputs("usage: trace FILE [--threads N (2)] [--repeat R (3)]\n"
           "             [--mode all|occluded8|occluded1|intersect1 (all)]\n"
           "             [--robust]             set RTC_SCENE_FLAG_ROBUST (default: no flags)\n"
+          "             [--quality medium|high] the BVH's build quality (medium)\n"
           "             [--expect CROSSINGS]   exit 3 if any pass finds another count\n",
           stderr);
     exit(1);
@@ -579,7 +584,7 @@ int main(int argc, char **argv)
     int threads = 2, repeat = 3;
     int run_mode[MODE_COUNT] = { 1, 1, 1 };
     long long expect = -1;
-    int robust = 0;
+    int robust = 0, high = 0;
 
     for (int i = 1; i < argc; i++) {
         const char *a = argv[i];
@@ -593,6 +598,12 @@ int main(int argc, char **argv)
                 die("--repeat too large");
         } else if (strcmp(a, "--robust") == 0) {
             robust = 1;
+        } else if (strcmp(a, "--quality") == 0 && i + 1 < argc) {
+            const char *q = argv[++i];
+            if (strcmp(q, "high") == 0)
+                high = 1;
+            else if (strcmp(q, "medium") != 0)
+                die("unknown quality: %s", q);
         } else if (strcmp(a, "--expect") == 0 && i + 1 < argc) {
             expect = parse_long(argv[++i], a, 0);
         } else if (strcmp(a, "--mode") == 0 && i + 1 < argc) {
@@ -631,17 +642,17 @@ int main(int argc, char **argv)
     ssize_t tasking = rtcGetDeviceProperty(device, RTC_DEVICE_PROPERTY_TASKING_SYSTEM);
     fprintf(stderr,
             "trace: embree %s, native ray4/8/16 %d/%d/%d, tasking %s, backface culling %d, "
-            "scene flags %s, build quality MEDIUM, device config \"%s\"\n",
+            "scene flags %s, build quality %s, device config \"%s\"\n",
             RTC_VERSION_STRING,
             (int)rtcGetDeviceProperty(device, RTC_DEVICE_PROPERTY_NATIVE_RAY4_SUPPORTED),
             (int)rtcGetDeviceProperty(device, RTC_DEVICE_PROPERTY_NATIVE_RAY8_SUPPORTED),
             (int)rtcGetDeviceProperty(device, RTC_DEVICE_PROPERTY_NATIVE_RAY16_SUPPORTED),
             tasking_names[tasking >= 0 && tasking <= 2 ? tasking : 3],
             (int)rtcGetDeviceProperty(device, RTC_DEVICE_PROPERTY_BACKFACE_CULLING_ENABLED),
-            robust ? "ROBUST" : "NONE", config);
+            robust ? "ROBUST" : "NONE", high ? "HIGH" : "MEDIUM", config);
 
     double t0 = now_seconds();
-    RTCScene scene = build_scene(device, &in, robust);
+    RTCScene scene = build_scene(device, &in, robust, high);
     double build_seconds = now_seconds() - t0;
     if (atomic_load(&embree_failed))
         die("scene build failed");

@@ -114,7 +114,7 @@ impl Bake {
         params: &LineParams,
         control: &Control,
     ) -> Result<Self, TraceError> {
-        let tracer = SceneTracer::new(&scene);
+        let tracer = SceneTracer::for_lines(&scene, params.lines);
         let list = IntersectionList::build(&scene, &tracer, params, control)?;
         Self::of_list((scene, tracer), list, params.seed, control)
     }

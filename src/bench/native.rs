@@ -12,7 +12,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::scene::Scene;
-use crate::trace::{ParallelLines, SceneTracer, Scratch};
+use crate::trace::{BuildEffort, ParallelLines, SceneTracer, Scratch};
 
 /// Repeats of each measurement; the median counts.
 const REPEATS: usize = 5;
@@ -60,7 +60,8 @@ pub struct EmbreeRun {
 }
 
 /// Traces `bundles` through the scene at frame 0 with this tracer and with native Embree
-/// (built from `bench/embree` into `build_dir` if it is not there), on `threads` threads.
+/// (built from `bench/embree` into `build_dir` if it is not there), on `threads` threads,
+/// Embree's BVH built with the `quality` this tracer's was (its medium or high build quality).
 ///
 /// Embree's modes are tried first; then a run of its fastest, a pass of this tracer and a call
 /// of `list` (a build of the multiframe list: crossings traced and seconds, `None` if it
@@ -72,6 +73,7 @@ pub fn compare(
     bundles: &[ParallelLines],
     build_dir: &Path,
     threads: usize,
+    quality: BuildEffort,
     list: &dyn Fn() -> Option<(usize, f64)>,
 ) -> NativeComparison {
     let triangles = scene.triangles_at(0);
@@ -100,14 +102,14 @@ pub fn compare(
     let mode = program
         .as_ref()
         .map_err(Clone::clone)
-        .and_then(|program| run(program, &file, threads, None))
+        .and_then(|program| run(program, &file, threads, None, quality))
         .map(|fastest| fastest.mode);
     let mut embree = mode.as_ref().map(|_| Vec::new()).map_err(Clone::clone);
     let mut ours = Vec::with_capacity(REPEATS);
     let mut lists = Vec::with_capacity(REPEATS);
     for _ in 0..REPEATS {
         if let (Ok(program), Ok(mode)) = (&program, &mode) {
-            let pass = run(program, &file, threads, Some(mode));
+            let pass = run(program, &file, threads, Some(mode), quality);
             embree = embree.and_then(|mut runs| {
                 runs.push(pass?);
                 Ok(runs)
@@ -202,10 +204,16 @@ fn run(
     file: &Path,
     threads: usize,
     mode: Option<&str>,
+    quality: BuildEffort,
 ) -> Result<EmbreeRun, String> {
+    let quality = match quality {
+        BuildEffort::Medium => "medium",
+        BuildEffort::High => "high",
+    };
     let out = Command::new(program)
         .arg(file)
         .args(["--threads", &threads.to_string()])
+        .args(["--quality", quality])
         .args(["--repeat", &EMBREE_PASSES.to_string()])
         .args(["--mode", mode.unwrap_or("all")])
         .output()

@@ -701,22 +701,86 @@ fn cross_one(
 
 #[cfg(test)]
 mod tests {
+    use super::super::{BuildEffort, sort_by_line};
     use super::*;
     use rand::rngs::Xoshiro256PlusPlus;
     use rand::{RngExt, SeedableRng};
 
-    /// A mesh of `n` small triangles scattered in the unit cube, corners on a grid of 1/64 so
-    /// that lines through edges and corners happen.
-    fn scattered(n: usize, rng: &mut Xoshiro256PlusPlus) -> TraceMesh {
+    /// `n` small triangles scattered in the unit cube, corners on a grid of 1/64 so that lines
+    /// through edges and corners happen.
+    fn scattered_triangles(n: usize, rng: &mut Xoshiro256PlusPlus) -> Vec<[Vec3; 3]> {
         let mut grid = || f32::from(rng.random_range(0u8..=64)) / 64.0;
-        let triangles: Vec<[Vec3; 3]> = (0..n)
+        (0..n)
             .map(|_| {
                 let a = Vec3::new(grid(), grid(), grid());
                 let mut near = || a + Vec3::new(grid(), grid(), grid()) * 0.25 - 0.125;
                 [a, near(), near()]
             })
-            .collect();
-        TraceMesh::new(triangles.into_iter(), 0).unwrap()
+            .collect()
+    }
+
+    /// A mesh of [`scattered_triangles`].
+    fn scattered(n: usize, rng: &mut Xoshiro256PlusPlus) -> TraceMesh {
+        TraceMesh::new(scattered_triangles(n, rng).into_iter(), 0).unwrap()
+    }
+
+    /// Bundles of `lines` lines on the grid of [`scattered_triangles`], from outside the cube.
+    fn bundles(count: usize, lines: usize, rng: &mut Xoshiro256PlusPlus) -> Vec<ParallelLines> {
+        (0..count)
+            .map(|_| {
+                let direction = Vec3::new(
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-1.0..1.0),
+                )
+                .normalize();
+                let origins = (0..lines)
+                    .map(|_| {
+                        let grid = |v: f32| (v * 64.0).round() / 64.0;
+                        let p = Vec3::new(
+                            grid(rng.random_range(-0.5..1.5)),
+                            grid(rng.random_range(-0.5..1.5)),
+                            grid(rng.random_range(-0.5..1.5)),
+                        );
+                        p - direction * 4.0
+                    })
+                    .collect();
+                ParallelLines::new(direction, origins)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_bvh_built_with_high_effort_finds_what_a_medium_one_does() {
+        let mut rng = Xoshiro256PlusPlus::seed_from_u64(17);
+        let triangles = scattered_triangles(5_000, &mut rng);
+        let [medium, high] = [BuildEffort::Medium, BuildEffort::High]
+            .map(|effort| TraceMesh::with_effort(triangles.iter().copied(), 0, effort).unwrap());
+        let mut scratch = Scratch::default();
+        let (mut a, mut b, mut crossings) = (Vec::new(), Vec::new(), 0);
+        for lines in bundles(30, 2_000, &mut rng) {
+            a.clear();
+            b.clear();
+            medium.trace_parallel(&lines, &mut scratch, &mut a);
+            high.trace_parallel(&lines, &mut scratch, &mut b);
+            sort_by_line(&mut a, lines.len(), &mut scratch);
+            sort_by_line(&mut b, lines.len(), &mut scratch);
+            assert_eq!(a, b);
+            crossings += a.len();
+        }
+        assert!(crossings > 10_000, "{crossings}");
+        // Another tree, walked differently: not the same number of nodes.
+        assert_ne!(medium.wide.len(), high.wide.len());
+    }
+
+    #[test]
+    fn the_high_effort_is_chosen_from_130_lines_a_triangle() {
+        assert_eq!(BuildEffort::for_lines(129_999, 1_000), BuildEffort::Medium);
+        assert_eq!(BuildEffort::for_lines(130_000, 1_000), BuildEffort::High);
+        assert_eq!(
+            BuildEffort::for_lines(u64::MAX, usize::MAX),
+            BuildEffort::High
+        );
     }
 
     #[test]
@@ -819,25 +883,7 @@ mod tests {
         let mut scratch = Scratch::default();
         let (mut plain, mut avx2) = (Vec::new(), Vec::new());
         let mut crossings = 0;
-        for _ in 0..50 {
-            let direction = Vec3::new(
-                rng.random_range(-1.0..1.0),
-                rng.random_range(-1.0..1.0),
-                rng.random_range(-1.0..1.0),
-            )
-            .normalize();
-            let origins = (0..2_000)
-                .map(|_| {
-                    let grid = |v: f32| (v * 64.0).round() / 64.0;
-                    let p = Vec3::new(
-                        grid(rng.random_range(-0.5..1.5)),
-                        grid(rng.random_range(-0.5..1.5)),
-                        grid(rng.random_range(-0.5..1.5)),
-                    );
-                    p - direction * 4.0
-                })
-                .collect();
-            let lines = ParallelLines::new(direction, origins);
+        for lines in bundles(50, 2_000, &mut rng) {
             plain.clear();
             avx2.clear();
             mesh.walk::<false>(&lines, &mut scratch, &mut plain);

@@ -138,6 +138,49 @@ impl Slabs {
     }
 }
 
+/// How much a BVH's build does to lower the cost of walking it: the same crossings either way.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum BuildEffort {
+    /// obvhs's medium build (PLOC, a few reinsertion passes).
+    Medium,
+    /// A wider PLOC search, finer Morton codes and reinsertion over all nodes. On the 207,616
+    /// triangles of `spheres.gltf` (`--patch-size 0.0695`) it built in 0.69 s instead of
+    /// 0.13 s (static and rigid meshes) and a bundle's walk of the static ones took 20% less
+    /// (0.076 s instead of 0.095 s for a million lines): worth it from about 130 lines traced
+    /// per triangle ([`BuildEffort::for_lines`]).
+    High,
+}
+
+impl BuildEffort {
+    /// Lines traced per triangle from which [`BuildEffort::High`]'s longer build is paid back
+    /// by the faster walks (measured on `spheres.gltf`; see [`BuildEffort::High`]).
+    pub const HIGH_FROM_LINES_PER_TRIANGLE: u64 = 130;
+
+    /// The effort for tracing `lines` lines through `triangles` triangles.
+    #[must_use]
+    pub fn for_lines(lines: u64, triangles: usize) -> Self {
+        if lines >= Self::HIGH_FROM_LINES_PER_TRIANGLE.saturating_mul(triangles as u64) {
+            Self::High
+        } else {
+            Self::Medium
+        }
+    }
+
+    fn params(self) -> BvhBuildParams {
+        match self {
+            Self::Medium => BvhBuildParams::medium_build(),
+            Self::High => BvhBuildParams {
+                ploc_search_distance: obvhs::ploc::PlocSearchDistance::High,
+                search_depth_threshold: 2,
+                reinsertion_batch_ratio: 1.0,
+                sort_precision: obvhs::ploc::SortPrecision::U128,
+                ..BvhBuildParams::medium_build()
+            },
+        }
+    }
+}
+
 /// Triangles with a BVH over them, in BVH order.
 pub struct TraceMesh {
     /// The triangles in slots of their own (few: most are in `blocks`), in the BVH's order.
@@ -161,9 +204,19 @@ const BOX_PADDING: f32 = 1e-6;
 
 impl TraceMesh {
     /// Builds a BVH over `triangles` (corners in any space), which have global indices
-    /// `first_id..`. `None` when there are no triangles.
+    /// `first_id..`, with [`BuildEffort::Medium`]. `None` when there are no triangles.
     #[must_use]
     pub fn new(triangles: impl Iterator<Item = [Vec3; 3]>, first_id: u32) -> Option<Self> {
+        Self::with_effort(triangles, first_id, BuildEffort::Medium)
+    }
+
+    /// [`TraceMesh::new`] with the build's `effort`.
+    #[must_use]
+    pub fn with_effort(
+        triangles: impl Iterator<Item = [Vec3; 3]>,
+        first_id: u32,
+        effort: BuildEffort,
+    ) -> Option<Self> {
         let corners: Vec<[Vec3; 3]> = triangles.collect();
         if corners.is_empty() {
             return None;
@@ -181,7 +234,7 @@ impl TraceMesh {
         // reads a triangle only for the lines inside its box (measured best of 1, 2 and 4).
         let params = BvhBuildParams {
             max_prims_per_leaf: 1,
-            ..BvhBuildParams::medium_build()
+            ..effort.params()
         };
         let bvh = build_bvh2(&boxes, params, &mut build_time);
         let order = &bvh.primitive_indices;
@@ -349,9 +402,35 @@ pub struct SceneTracer {
 }
 
 impl SceneTracer {
-    /// Builds the BVHs of the static geometry and of every rigid object.
+    /// Builds the BVHs of the static geometry and of every rigid object
+    /// ([`BuildEffort::Medium`]).
     #[must_use]
     pub fn new(scene: &Scene) -> Self {
+        Self::with_effort(scene, BuildEffort::Medium)
+    }
+
+    /// [`SceneTracer::new`] for tracing `lines` lines: the effort
+    /// [`BuildEffort::for_lines`] chooses for the scene's static and rigid triangles.
+    #[must_use]
+    pub fn for_lines(scene: &Scene, lines: u64) -> Self {
+        Self::with_effort(scene, Self::effort_for(scene, lines))
+    }
+
+    /// The effort [`SceneTracer::for_lines`] chooses: [`BuildEffort::for_lines`] for the
+    /// static and rigid triangles (deforming ones are built anew at each frame, with
+    /// [`BuildEffort::Medium`]).
+    #[must_use]
+    pub fn effort_for(scene: &Scene, lines: u64) -> BuildEffort {
+        let rigid = (scene.objects.iter())
+            .filter(|o| matches!(o.motion, Motion::Rigid { .. }))
+            .map(|o| o.mesh.triangles.len());
+        let triangles = scene.statics.triangles.len() + rigid.sum::<usize>();
+        BuildEffort::for_lines(lines, triangles)
+    }
+
+    /// [`SceneTracer::new`] with the BVHs' build `effort`.
+    #[must_use]
+    pub fn with_effort(scene: &Scene, effort: BuildEffort) -> Self {
         let statics = &scene.statics;
         let corners = |positions: &[Vec3], t: &[u32; 3]| t.map(|i| positions[i as usize]);
         let normal = |positions: &[Vec3], t: &[u32; 3]| {
@@ -395,13 +474,14 @@ impl SceneTracer {
                     .map(|t| corner_keys(&mesh.positions, t)),
             );
             rigid.push(match &object.motion {
-                Motion::Rigid { poses } => TraceMesh::new(
+                Motion::Rigid { poses } => TraceMesh::with_effort(
                     object
                         .mesh
                         .triangles
                         .iter()
                         .map(|t| corners(&object.mesh.positions, t)),
                     first,
+                    effort,
                 )
                 .map(|mesh| {
                     let local = mesh.bounds();
@@ -423,12 +503,13 @@ impl SceneTracer {
             spaces,
             normals,
             corners: keys,
-            statics: TraceMesh::new(
+            statics: TraceMesh::with_effort(
                 statics
                     .triangles
                     .iter()
                     .map(|t| corners(&statics.positions, t)),
                 0,
+                effort,
             ),
             rigid,
             first_ids,
