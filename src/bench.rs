@@ -170,14 +170,11 @@ impl std::fmt::Display for TraceReport {
             "lines            {} on {} threads",
             self.lines, self.threads
         )?;
-        let effort = match self.bvh_effort {
-            BuildEffort::Medium => "medium",
-            BuildEffort::High => "high",
-        };
         writeln!(
             f,
-            "BVH build        {:.3} s ({effort} effort)",
-            self.bvh_seconds
+            "BVH build        {:.3} s ({} effort)",
+            self.bvh_seconds,
+            self.bvh_effort.name()
         )?;
         writeln!(
             f,

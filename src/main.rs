@@ -260,17 +260,10 @@ struct BenchArgs {
     /// The BVHs' build effort; by default the one a bake of as many lines would choose
     /// (high from 130 lines per static or rigid triangle).
     #[arg(long, value_enum)]
-    bvh: Option<BvhEffort>,
+    bvh: Option<BuildEffort>,
     /// Print the report as JSON.
     #[arg(long)]
     json: bool,
-}
-
-/// `radiosity bench --bvh`: [`radiosity::trace::BuildEffort`].
-#[derive(Clone, Copy, clap::ValueEnum)]
-enum BvhEffort {
-    Medium,
-    High,
 }
 
 /// The options of `radiosity bench-accuracy`.
@@ -589,11 +582,7 @@ impl BenchArgs {
         let scene = loader::load_file(&file, &settings.load)?;
         let LineParams { lines, seed } = settings.lines;
         let native = Path::new(env!("CARGO_MANIFEST_DIR")).join("target/embree");
-        let effort = match bvh {
-            Some(BvhEffort::Medium) => BuildEffort::Medium,
-            Some(BvhEffort::High) => BuildEffort::High,
-            None => SceneTracer::effort_for(&scene, lines),
-        };
+        let effort = bvh.unwrap_or_else(|| SceneTracer::effort_for(&scene, lines));
         let native = embree.then_some(&*native);
         let report = radiosity::bench::trace(&scene, lines, seed, native, effort)?;
         print_report(json, &report, &report)

@@ -206,14 +206,10 @@ fn run(
     mode: Option<&str>,
     quality: BuildEffort,
 ) -> Result<EmbreeRun, String> {
-    let quality = match quality {
-        BuildEffort::Medium => "medium",
-        BuildEffort::High => "high",
-    };
     let out = Command::new(program)
         .arg(file)
         .args(["--threads", &threads.to_string()])
-        .args(["--quality", quality])
+        .args(["--quality", quality.name()])
         .args(["--repeat", &EMBREE_PASSES.to_string()])
         .args(["--mode", mode.unwrap_or("all")])
         .output()

@@ -300,49 +300,36 @@ fn children_around<const AVX: bool>(rects: &Rects, p: &Point) -> u32 {
 #[inline]
 #[target_feature(enable = "avx")]
 unsafe fn children_around_avx(rects: &Rects, p: &Point) -> u32 {
-    use std::arch::x86_64::{_mm256_loadu_ps, _mm256_movemask_ps};
+    use std::arch::x86_64::{
+        _CMP_GE_OQ, _CMP_LE_OQ, _mm256_and_ps, _mm256_cmp_ps, _mm256_loadu_ps, _mm256_movemask_ps,
+        _mm256_set1_ps,
+    };
     // SAFETY: the eight-float loads stay inside the rectangles' arrays.
     unsafe {
-        let sides = std::array::from_fn(|k| _mm256_loadu_ps(rects[k].as_ptr()));
-        _mm256_movemask_ps(inside_avx(&sides, p)) as u32
+        let (x, y, d) = (
+            _mm256_set1_ps(p.x),
+            _mm256_set1_ps(p.y),
+            _mm256_set1_ps(p.d),
+        );
+        let side = |k: usize| _mm256_loadu_ps(rects[k].as_ptr());
+        let inside = _mm256_and_ps(
+            _mm256_and_ps(
+                _mm256_and_ps(
+                    _mm256_cmp_ps::<_CMP_GE_OQ>(x, side(0)),
+                    _mm256_cmp_ps::<_CMP_GE_OQ>(y, side(1)),
+                ),
+                _mm256_and_ps(
+                    _mm256_cmp_ps::<_CMP_LE_OQ>(x, side(2)),
+                    _mm256_cmp_ps::<_CMP_LE_OQ>(y, side(3)),
+                ),
+            ),
+            _mm256_and_ps(
+                _mm256_cmp_ps::<_CMP_GE_OQ>(d, side(4)),
+                _mm256_cmp_ps::<_CMP_LE_OQ>(d, side(5)),
+            ),
+        );
+        _mm256_movemask_ps(inside) as u32
     }
-}
-
-/// All ones in the lanes of the children whose images (`sides`: [`Rects`]' six sides, eight
-/// children each) hold `p`, zeros elsewhere.
-///
-/// # Safety
-/// The processor must have AVX.
-#[cfg(target_arch = "x86_64")]
-#[inline]
-#[target_feature(enable = "avx")]
-unsafe fn inside_avx(
-    sides: &[std::arch::x86_64::__m256; 6],
-    p: &Point,
-) -> std::arch::x86_64::__m256 {
-    use std::arch::x86_64::{_CMP_GE_OQ, _CMP_LE_OQ, _mm256_and_ps, _mm256_cmp_ps, _mm256_set1_ps};
-    let (x, y, d) = (
-        _mm256_set1_ps(p.x),
-        _mm256_set1_ps(p.y),
-        _mm256_set1_ps(p.d),
-    );
-    let [x0, y0, x1, y1, d0, d1] = *sides;
-    _mm256_and_ps(
-        _mm256_and_ps(
-            _mm256_and_ps(
-                _mm256_cmp_ps::<_CMP_GE_OQ>(x, x0),
-                _mm256_cmp_ps::<_CMP_GE_OQ>(y, y0),
-            ),
-            _mm256_and_ps(
-                _mm256_cmp_ps::<_CMP_LE_OQ>(x, x1),
-                _mm256_cmp_ps::<_CMP_LE_OQ>(y, y1),
-            ),
-        ),
-        _mm256_and_ps(
-            _mm256_cmp_ps::<_CMP_GE_OQ>(d, d0),
-            _mm256_cmp_ps::<_CMP_LE_OQ>(d, d1),
-        ),
-    )
 }
 
 /// The images of `node`'s children, their diagonal bands widened by `margin`; with `AVX`,

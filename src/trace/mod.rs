@@ -139,16 +139,20 @@ impl Slabs {
 }
 
 /// How much a BVH's build does to lower the cost of walking it: the same crossings either way.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, clap::ValueEnum)]
 #[serde(rename_all = "lowercase")]
 pub enum BuildEffort {
     /// obvhs's medium build (PLOC, a few reinsertion passes).
+    #[value(help = "obvhs's medium build")]
     Medium,
     /// A wider PLOC search, finer Morton codes and reinsertion over all nodes. On the 207,616
     /// triangles of `spheres.gltf` (`--patch-size 0.0695`) it built in 0.69 s instead of
     /// 0.13 s (static and rigid meshes) and a bundle's walk of the static ones took 20% less
     /// (0.076 s instead of 0.095 s for a million lines): worth it from about 130 lines traced
     /// per triangle ([`BuildEffort::for_lines`]).
+    #[value(
+        help = "a wider search and reinsertion over all nodes: about 5x the build, 20% faster walks"
+    )]
     High,
 }
 
@@ -164,6 +168,15 @@ impl BuildEffort {
             Self::High
         } else {
             Self::Medium
+        }
+    }
+
+    /// Its name, as `radiosity bench --bvh` and the report spell it.
+    #[must_use]
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Medium => "medium",
+            Self::High => "high",
         }
     }
 
