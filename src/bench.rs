@@ -2,6 +2,7 @@
 //! one run so that ratios are meaningful on a shared machine.
 
 pub mod native;
+pub mod vertices;
 
 use std::array::from_fn;
 use std::borrow::Borrow;

@@ -96,6 +96,11 @@ enum Command {
     /// of the source's triangles, uniform sizes and auto, on the Cornell box, the panel room,
     /// the level and the level lit by lamps (README, "Against physics").
     BenchPatches(BenchPatchesArgs),
+    /// Measure the light the baked glTF shows at its vertices against a path tracer evaluated
+    /// at the same points, beside the per-vertex averaging of patches outputs carried before:
+    /// error (RMS, on creases, median, 90th percentile), bias, error-bar coverage, the light
+    /// left where none arrives, and what evaluating every frame's vertices costs.
+    BenchVertices(BenchVerticesArgs),
     /// Write the sample scenes (deterministic) into a directory.
     Samples(SamplesArgs),
 }
@@ -337,6 +342,33 @@ struct BenchPatchesArgs {
     whole: bool,
 }
 
+/// The options of `radiosity bench-vertices`.
+#[derive(clap::Args)]
+struct BenchVerticesArgs {
+    /// Directory of the sample scenes.
+    #[arg(long, default_value = "scenes")]
+    scenes: PathBuf,
+    /// Only these scenes (file names in --scenes), comma-separated; by default the level, the
+    /// moving Cornell box, the lamp room and the panel room.
+    #[arg(long, value_delimiter = ',')]
+    only: Vec<String>,
+    /// Lines of every bake (the `default` preset's by default).
+    #[arg(long, default_value_t = 1_000_000)]
+    lines: u64,
+    /// Seed of the bakes' lines (the reference's paths take others from it).
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Frames per second for the animated scenes.
+    #[arg(long, default_value_t = 12.0)]
+    fps: f64,
+    /// Frames measured, spread over the timeline from frame 0.
+    #[arg(long, default_value_t = 1)]
+    frames: usize,
+    /// Paths of the reference per vertex, in each of its two halves.
+    #[arg(long, default_value_t = 2048)]
+    paths: usize,
+}
+
 /// The options of `radiosity samples`.
 #[derive(clap::Args)]
 struct SamplesArgs {
@@ -429,6 +461,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Bench(args) => args.run(),
         Command::BenchAccuracy(args) => args.run(),
         Command::BenchPatches(args) => args.run(),
+        Command::BenchVertices(args) => args.run(),
         Command::Samples(args) => args.run(),
     }
 }
@@ -667,6 +700,61 @@ impl BenchAccuracyArgs {
         };
         let report = serde_json::json!({ "points": points, "multiframe_gain": gain });
         println!("{}", serde_json::to_string_pretty(&report)?);
+        Ok(())
+    }
+}
+
+impl BenchVerticesArgs {
+    fn run(self) -> anyhow::Result<()> {
+        use radiosity::bench::vertices::{VERTEX_SCENES, VertexBench, vertex_points};
+        let names: Vec<String> = if self.only.is_empty() {
+            VERTEX_SCENES.iter().map(|s| (*s).to_string()).collect()
+        } else {
+            self.only.clone()
+        };
+        let options = LoadOptions {
+            fps: self.fps,
+            ..LoadOptions::default()
+        };
+        let scenes = (names.iter())
+            .map(|name| {
+                radiosity::bench::load_sample(&self.scenes, name, &options)
+                    .map(|scene| (name.clone(), scene))
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        let bench = VertexBench {
+            lines: self.lines,
+            seed: self.seed,
+            frames: self.frames,
+            paths: self.paths,
+        };
+        let points = vertex_points(&scenes, bench, |p| {
+            let show = |x: Option<f64>| x.map_or_else(|| "-".to_string(), |x| format!("{:.2}%", 100.0 * x));
+            for (what, m) in [("at vertices", &p.evaluated), ("averaged  ", &p.averaged)] {
+                eprintln!(
+                    "{:<20} {what}  RMS {}  creases {} ({} too bright)  median {}  p90 {}  bias {}  within 2σ {}  dark max {}  reference noise {}",
+                    p.scene,
+                    show(m.rms),
+                    show(m.crease_rms),
+                    show(m.crease_too_bright),
+                    show(m.median),
+                    show(m.p90),
+                    show(m.bias),
+                    show(m.coverage),
+                    show(m.dark_max),
+                    show(m.reference_noise),
+                );
+            }
+            eprintln!(
+                "{:<20} {} vertices, bake {:.2} s, every frame's vertices {:.2} s ({:.0}%)",
+                p.scene,
+                p.vertices,
+                p.bake_seconds,
+                p.vertex_seconds,
+                100.0 * p.vertex_seconds / p.bake_seconds
+            );
+        })?;
+        println!("{}", serde_json::to_string_pretty(&points)?);
         Ok(())
     }
 }

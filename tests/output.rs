@@ -48,8 +48,14 @@ fn radiance(scene: &Scene) -> Vec<[f64; 3]> {
         .collect()
 }
 
-/// The output vertex at `corner` (scene units) whose normal is `normal`.
-fn vertex(scene: &Scene, mesh: &radiosity::output::NodeMesh, corner: DVec3, normal: DVec3) -> f64 {
+/// The output vertex at `corner` (scene units) whose normal is `normal`: the faces' corners
+/// it stands for, as (triangle, back).
+fn vertex(
+    scene: &Scene,
+    mesh: &radiosity::output::NodeMesh,
+    corner: DVec3,
+    normal: DVec3,
+) -> Vec<(u32, bool)> {
     let found: Vec<usize> = (0..mesh.positions.len())
         .filter(|&v| {
             scene
@@ -61,15 +67,17 @@ fn vertex(scene: &Scene, mesh: &radiosity::output::NodeMesh, corner: DVec3, norm
         })
         .collect();
     assert_eq!(found.len(), 1, "vertices at {corner} facing {normal}");
-    let l = mesh.radiance[found[0]];
-    assert!((l[1] - 2.0 * l[0]).abs() < 1e-9 && (l[2] - 0.5 * l[0]).abs() < 1e-9);
-    l[0]
+    let mut corners: Vec<(u32, bool)> = (mesh.corners_of(found[0]).iter())
+        .map(|c| (c.triangle, c.back))
+        .collect();
+    corners.sort_unstable();
+    corners
 }
 
 #[test]
-fn vertex_radiance_is_area_weighted_and_split_at_creases() {
+fn vertices_are_split_at_creases_and_stand_for_their_own_faces() {
     let scene = corner(false);
-    let meshes = frame_geometry(&scene, 0, &radiance(&scene));
+    let meshes = frame_geometry(&scene, 0);
     assert_eq!(meshes.len(), 1);
     let mesh = &meshes[0];
     // 6 source vertices; the two on the crease are split: 8.
@@ -77,42 +85,69 @@ fn vertex_radiance_is_area_weighted_and_split_at_creases() {
     assert_eq!(mesh.triangles.len(), 4);
     let at = |x: f64, y: f64, z: f64| DVec3::new(1e6 + x, y, z);
     let (up, out) = (DVec3::Y, DVec3::Z);
-    // Floor: vertices 0 and 2 are shared by both floor triangles (equal areas): the mean.
-    assert_eq!(vertex(&scene, mesh, at(0.0, 0.0, 0.0), up), 2.0);
-    assert_eq!(vertex(&scene, mesh, at(1.0, 0.0, 1.0), up), 2.0);
-    assert_eq!(vertex(&scene, mesh, at(0.0, 0.0, 1.0), up), 1.0);
-    assert_eq!(vertex(&scene, mesh, at(1.0, 0.0, 0.0), up), 3.0);
-    // Wall: the crease vertices have their own copies, with the wall's light only.
-    assert_eq!(vertex(&scene, mesh, at(0.0, 0.0, 0.0), out), 15.0);
-    assert_eq!(vertex(&scene, mesh, at(1.0, 0.0, 0.0), out), 10.0);
-    assert_eq!(vertex(&scene, mesh, at(1.0, 1.0, 0.0), out), 15.0);
-    assert_eq!(vertex(&scene, mesh, at(0.0, 1.0, 0.0), out), 20.0);
+    // Floor: vertices 0 and 2 are shared by both floor triangles; the others by one.
+    let floor = |t: &[u32]| t.iter().map(|&t| (t, false)).collect::<Vec<_>>();
+    assert_eq!(vertex(&scene, mesh, at(0.0, 0.0, 0.0), up), floor(&[0, 1]));
+    assert_eq!(vertex(&scene, mesh, at(1.0, 0.0, 1.0), up), floor(&[0, 1]));
+    assert_eq!(vertex(&scene, mesh, at(0.0, 0.0, 1.0), up), floor(&[0]));
+    assert_eq!(vertex(&scene, mesh, at(1.0, 0.0, 0.0), up), floor(&[1]));
+    // Wall: the crease vertices have their own copies, standing for the wall's faces only
+    // (their light is evaluated on the wall, never averaged with the floor's).
+    assert_eq!(vertex(&scene, mesh, at(0.0, 0.0, 0.0), out), floor(&[2, 3]));
+    assert_eq!(vertex(&scene, mesh, at(1.0, 0.0, 0.0), out), floor(&[2]));
+    assert_eq!(vertex(&scene, mesh, at(1.0, 1.0, 0.0), out), floor(&[2, 3]));
+    assert_eq!(vertex(&scene, mesh, at(0.0, 1.0, 0.0), out), floor(&[3]));
     // Every triangle faces its patch's side: its winding agrees with its vertices' normals.
     for t in &mesh.triangles {
         let [a, b, c] = t.map(|i| mesh.positions[i as usize]);
         let n = (b - a).cross(c - a).normalize();
         assert!(n.dot(mesh.normals[t[0] as usize].as_dvec3()) > 0.99);
     }
+    // Each corner's angle is the face's at that vertex: a right angle at the floor's corner
+    // (0, 0, 1), half of one at (0, 0, 0) on each of the two triangles there.
+    let v = (0..mesh.positions.len())
+        .find(|&v| mesh.corners_of(v).len() == 2 && mesh.normals[v].as_dvec3() == up)
+        .unwrap();
+    let angles: f64 = mesh.corners_of(v).iter().map(|c| c.angle).sum();
+    assert!((angles - std::f64::consts::FRAC_PI_2).abs() < 1e-9, "{angles}");
 }
 
 #[test]
 fn back_faces_get_their_own_triangles_and_vertices() {
     let scene = corner(true);
-    let meshes = frame_geometry(&scene, 0, &radiance(&scene));
+    let meshes = frame_geometry(&scene, 0);
     let mesh = &meshes[0];
     assert_eq!(mesh.triangles.len(), 8);
     assert_eq!(mesh.positions.len(), 16);
     let at = |x: f64, y: f64, z: f64| DVec3::new(1e6 + x, y, z);
-    assert_eq!(vertex(&scene, mesh, at(0.0, 0.0, 0.0), -DVec3::Y), 200.0);
-    assert_eq!(vertex(&scene, mesh, at(0.0, 0.0, 0.0), DVec3::Y), 2.0);
-    assert_eq!(vertex(&scene, mesh, at(0.0, 1.0, 0.0), -DVec3::Z), 2000.0);
+    let origin = at(0.0, 0.0, 0.0);
+    assert_eq!(
+        vertex(&scene, mesh, origin, -DVec3::Y),
+        vec![(0, true), (1, true)]
+    );
+    assert_eq!(
+        vertex(&scene, mesh, origin, DVec3::Y),
+        vec![(0, false), (1, false)]
+    );
+    assert_eq!(
+        vertex(&scene, mesh, at(0.0, 1.0, 0.0), -DVec3::Z),
+        vec![(3, true)]
+    );
 }
 
 #[test]
 fn the_baked_glb_loads_back_with_colours_per_vertex() {
     let mut scene = corner(true);
-    let radiance = radiance(&scene);
-    let meshes = frame_geometry(&scene, 0, &radiance);
+    let mut meshes = frame_geometry(&scene, 0);
+    // Values of any kind, one per vertex: the file carries what it is given.
+    let mesh = &mut meshes[0];
+    for (v, (l, e)) in (mesh.radiance.iter_mut())
+        .zip(&mut mesh.stderr)
+        .enumerate()
+    {
+        *l = [v as f64, 2.0 * v as f64, 0.5];
+        *e = [0.1 * v as f64, 0.2, 0.3];
+    }
     let tone = ToneMap { exposure: 0.01 };
     let unnamed = frame_glb(&scene, 0, &meshes, &tone).unwrap();
     let unnamed = gltf::Gltf::from_slice(&unnamed).unwrap();
@@ -142,6 +177,11 @@ fn the_baked_glb_loads_back_with_colours_per_vertex() {
         .find(|(s, _)| *s == gltf::Semantic::Extras("RADIANCE".into()))
         .expect("a _RADIANCE attribute");
     assert_eq!(radiance_attribute.1.count(), positions.len());
+    let stderr_attribute = primitive
+        .attributes()
+        .find(|(s, _)| *s == gltf::Semantic::Extras("RADIANCE_STDERR".into()))
+        .expect("a _RADIANCE_STDERR attribute");
+    assert_eq!(stderr_attribute.1.count(), positions.len());
     assert!(positions.iter().flatten().all(|c| c.abs() <= 1.0 + 1e-6));
     let indices: Vec<u32> = reader.read_indices().unwrap().into_u32().collect();
     assert_eq!(indices.len(), 3 * meshes[0].triangles.len());
@@ -156,7 +196,9 @@ fn a_preview_shows_the_scene_lit_from_its_automatic_camera() {
     let scene = corner(false);
     let radiance = radiance(&scene);
     let tone = ToneMap { exposure: 0.05 };
-    let image = preview_image(&scene, 0, &radiance, (&tone, Shading::Flat), 160, 120);
+    let meshes = frame_geometry(&scene, 0);
+    let shown = (&meshes[..], &radiance[..]);
+    let image = preview_image(&scene, 0, shown, (&tone, Shading::Flat), 160, 120);
     assert_eq!(image.dimensions(), (160, 120));
     let background = *image.get_pixel(0, 0);
     let lit = image.pixels().filter(|p| **p != background).count();
@@ -183,7 +225,14 @@ fn sample_preview(name: &str) -> (Scene, Vec<[u8; 3]>) {
     let scene = bake.shown();
     let tone = ToneMap::for_timeline(scene, std::slice::from_ref(&solved));
     let look = (&tone, Shading::Smooth);
-    let image = preview_image(scene, 0, &solved.radiance, look, 160, 120);
+    let power = bake.light_power();
+    let lighting = radiosity::direct::points::Lighting {
+        materials: &bake.scene.materials,
+        power: &power,
+        sky: [0.0; 3],
+    };
+    let meshes = radiosity::output::lit_geometry(&bake, 0, &solved, lighting);
+    let image = preview_image(scene, 0, (&meshes, &solved.radiance), look, 160, 120);
     let background = *image.get_pixel(0, 0);
     let drawn: Vec<[u8; 3]> = (image.pixels())
         .filter(|p| **p != background)
@@ -263,10 +312,9 @@ fn the_baked_glb_names_each_triangle_s_patch_and_carries_the_cameras_posed_at_it
         ..LoadOptions::default()
     };
     let scene = load(&d.gltf(), &options).unwrap();
-    let radiance = vec![[1.0; 3]; scene.patches.len()];
     let tone = ToneMap { exposure: 1.0 };
     for frame in [0, 2, 4] {
-        let meshes = frame_geometry(&scene, frame, &radiance);
+        let meshes = frame_geometry(&scene, frame);
         let bytes = frame_glb(&scene, frame, &meshes, &tone).unwrap();
         let gltf = gltf::Gltf::from_slice(&bytes).unwrap();
         let blob = gltf.blob.as_deref().unwrap();

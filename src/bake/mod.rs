@@ -4,6 +4,7 @@
 //! reflectance per material — re-solves from the kept tallies without tracing a line.
 
 pub mod gaps;
+mod points;
 mod stored;
 
 use std::ops::ControlFlow;
@@ -637,6 +638,12 @@ impl Bake {
             self.inherited = false;
         }
         Ok(())
+    }
+
+    /// The seed of the bake's lines, which also seeds its outputs' sampling.
+    #[must_use]
+    pub fn seed(&self) -> u64 {
+        self.seed
     }
 
     /// What the lines found that the user should know: nodes with coplanar overlapping faces

@@ -23,8 +23,10 @@
 
 pub mod shard;
 
+use std::collections::HashMap;
 use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use rayon::prelude::*;
@@ -33,11 +35,11 @@ use serde::Serialize;
 use crate::adaptive;
 use crate::bake::Bake;
 use crate::control::{Control, Stop};
+use crate::direct::points::Lighting;
 use crate::loader;
 use crate::output::{self, FrameSpec, ToneMap};
 use crate::params::{BakeSettings, PatchSize};
 use crate::progress::Progress;
-use crate::scene::Scene;
 use crate::solve::{FrameSolution, SolveParams};
 
 /// What to bake with; the same names as the service's parameters.
@@ -283,15 +285,18 @@ fn gif_frames(count: usize, fps: f64) -> (Vec<usize>, u32) {
 }
 
 /// Writes the baked glTF files and the previews into `dir`, counting one unit of `control`'s
-/// stage per file or GIF frame. Returns the GIF's frames.
+/// stage per frame written. The light at the vertices is evaluated once per frame any of them
+/// needs (once for frames that share their solution, [`Bake::representatives`]), with the
+/// scene's materials and lights under `sky`. Returns the GIF's frames.
 fn write_outputs(
     dir: &Path,
-    scene: &Scene,
+    (bake, sky): (&Bake, [f64; 3]),
     frames: &[std::sync::Arc<FrameSolution>],
     outputs: &Outputs,
     tone: &ToneMap,
     control: &Control,
 ) -> Result<Vec<usize>, String> {
+    let scene = bake.shown();
     let count = frames.len();
     let glbs = outputs.glb_frames.frames(count);
     let pngs = outputs.preview_frames.frames(count);
@@ -300,7 +305,10 @@ fn write_outputs(
     } else {
         (Vec::new(), 0)
     };
-    control.start_stage((glbs.len() + pngs.len() + gif.len()) as u64);
+    let mut wanted: Vec<usize> = glbs.iter().chain(&pngs).chain(&gif).copied().collect();
+    wanted.sort_unstable();
+    wanted.dedup();
+    control.start_stage(wanted.len() as u64);
     let io = |e: std::io::Error| format!("writing {}: {e}", dir.display());
     if !glbs.is_empty() {
         std::fs::create_dir_all(dir.join("baked")).map_err(io)?;
@@ -308,53 +316,74 @@ fn write_outputs(
     if !pngs.is_empty() {
         std::fs::create_dir_all(dir.join("preview")).map_err(io)?;
     }
-    glbs.par_iter().try_for_each(|&f| {
-        if control.is_cancelled() {
-            return Err("cancelled".to_string());
-        }
-        let meshes = output::frame_geometry(scene, f, &frames[f].radiance);
-        let bytes = output::frame_glb(scene, f, &meshes, tone).map_err(|e| e.to_string())?;
-        std::fs::write(dir.join("baked").join(frame_name(f, count, "glb")), bytes).map_err(io)?;
-        control.advance(1);
-        Ok(())
-    })?;
-    let (width, height) = outputs.preview_size;
-    // Renders at once: each holds its sample buffers, so large previews take turns.
-    let at_once = |w: u32, h: u32| {
-        let bytes = output::preview::render_bytes(w, h).max(1);
-        (RENDER_MEMORY / bytes).max(1)
+    let power = bake.light_power();
+    let lighting = Lighting {
+        materials: &bake.scene.materials,
+        power: &power,
+        sky,
     };
-    let png_threads = at_once(width, height);
-    pngs.par_iter()
-        .with_min_len(pngs.len().div_ceil(png_threads))
-        .try_for_each(|&f| {
-            if control.is_cancelled() {
-                return Err("cancelled".to_string());
-            }
-            let look = (tone, outputs.shading);
-            let image = output::preview_image(scene, f, &frames[f].radiance, look, width, height);
-            let bytes = output::preview::encode_png(&image).map_err(|e| e.to_string())?;
-            std::fs::write(dir.join("preview").join(frame_name(f, count, "png")), bytes)
-                .map_err(io)?;
-            control.advance(1);
-            Ok(())
-        })?;
-    if !gif.is_empty() {
-        let (w, h) = ((width / 2).max(1), (height / 2).max(1));
-        let images: Vec<image::RgbImage> = gif
+    let representatives = bake.representatives();
+    // The frames after which each distinct frame's light is needed no more.
+    let mut last_use: HashMap<usize, usize> = HashMap::new();
+    for &f in &wanted {
+        last_use.insert(representatives[f], f);
+    }
+    let lit: Mutex<HashMap<usize, Arc<Vec<output::NodeMesh>>>> = Mutex::default();
+    let (width, height) = outputs.preview_size;
+    let small = ((width / 2).max(1), (height / 2).max(1));
+    // Frames at once: each render holds its sample buffers, so large previews take turns.
+    let bytes = output::preview::render_bytes(width, height).max(1);
+    let at_once = (RENDER_MEMORY / bytes).clamp(1, 4 * rayon::current_num_threads());
+    let mut gif_images = Vec::with_capacity(gif.len());
+    for batch in wanted.chunks(at_once) {
+        let made: Vec<Result<Option<image::RgbImage>, String>> = batch
             .par_iter()
-            .with_min_len(gif.len().div_ceil(at_once(w, h)))
             .map(|&f| {
+                if control.is_cancelled() {
+                    return Err("cancelled".to_string());
+                }
+                let r = representatives[f];
+                let known = lit.lock().map(|l| l.get(&r).cloned()).unwrap_or_default();
+                let meshes = known.unwrap_or_else(|| {
+                    let meshes = Arc::new(output::lit_geometry(bake, r, &frames[r], lighting));
+                    if let Ok(mut l) = lit.lock() {
+                        l.insert(r, meshes.clone());
+                    }
+                    meshes
+                });
+                if glbs.binary_search(&f).is_ok() {
+                    let bytes =
+                        output::frame_glb(scene, f, &meshes, tone).map_err(|e| e.to_string())?;
+                    let name = frame_name(f, count, "glb");
+                    std::fs::write(dir.join("baked").join(name), bytes).map_err(io)?;
+                }
                 let look = (tone, outputs.shading);
-                let image = output::preview_image(scene, f, &frames[f].radiance, look, w, h);
+                let shown = (&meshes[..], &frames[f].radiance[..]);
+                if pngs.binary_search(&f).is_ok() {
+                    let image = output::preview_image(scene, f, shown, look, width, height);
+                    let bytes = output::preview::encode_png(&image).map_err(|e| e.to_string())?;
+                    let name = frame_name(f, count, "png");
+                    std::fs::write(dir.join("preview").join(name), bytes).map_err(io)?;
+                }
+                let image = (gif.binary_search(&f).is_ok())
+                    .then(|| output::preview_image(scene, f, shown, look, small.0, small.1));
                 control.advance(1);
-                image
+                Ok(image)
             })
             .collect();
+        for image in made {
+            gif_images.extend(image?);
+        }
+        let done = batch.last().copied().unwrap_or_default();
+        if let Ok(mut l) = lit.lock() {
+            l.retain(|r, _| last_use.get(r).is_some_and(|&last| last > done));
+        }
+    }
+    if !gif.is_empty() {
         if control.is_cancelled() {
             return Err("cancelled".to_string());
         }
-        let bytes = output::preview::encode_gif(&images, delay).map_err(|e| e.to_string())?;
+        let bytes = output::preview::encode_gif(&gif_images, delay).map_err(|e| e.to_string())?;
         std::fs::write(dir.join("preview.gif"), bytes).map_err(io)?;
     }
     Ok(gif)
@@ -633,7 +662,14 @@ fn write_scene(
         write_radiance(&staging.join("radiance.bin"), &times, &frames).map_err(io)?;
         let table = serde_json::to_vec(&output::patch_table(scene)).map_err(|e| e.to_string())?;
         std::fs::write(staging.join("patches.json"), table).map_err(io)?;
-        write_outputs(&staging, scene, &frames, &params.outputs, &tone, control)
+        write_outputs(
+            &staging,
+            (&bake, params.settings.sky),
+            &frames,
+            &params.outputs,
+            &tone,
+            control,
+        )
     })();
     let gif = written.map_err(|e| {
         let _ = std::fs::remove_dir_all(&staging);

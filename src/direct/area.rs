@@ -334,15 +334,27 @@ impl AreaLights {
         triangles: &[([glam::Vec3; 3], Faces)],
         emission: impl Fn(u32) -> f64,
     ) -> Vec<(Emitter, f64)> {
+        (self.posed_materials(scene, tracer, triangles).into_iter())
+            .filter_map(|(emitter, m)| {
+                let le = emission(m);
+                (le > 0.0).then_some((emitter, std::f64::consts::PI * le))
+            })
+            .collect()
+    }
+
+    /// The sampled emitters posed with `triangles` (every traced triangle at one frame), each
+    /// with its material (an index into the scene's).
+    pub(super) fn posed_materials(
+        &self,
+        scene: &Scene,
+        tracer: &SceneTracer,
+        triangles: &[([glam::Vec3; 3], Faces)],
+    ) -> Vec<(Emitter, u32)> {
         if self.is_empty() {
             return Vec::new();
         }
-        clusters(scene, tracer, triangles, &self.slot)
-            .iter()
-            .filter_map(|c| {
-                let le = emission(self.materials[c.slot]);
-                (le > 0.0).then(|| (pose(c, triangles), std::f64::consts::PI * le))
-            })
+        (clusters(scene, tracer, triangles, &self.slot).iter())
+            .map(|c| (pose(c, triangles), self.materials[c.slot]))
             .collect()
     }
 
@@ -1008,19 +1020,7 @@ pub(super) fn form_factor(
         if e.dot(x - origin) <= 0.0 {
             continue;
         }
-        // The emitter's part above the face's plane, as triangles.
-        fans.clear();
-        for t in &emitter.triangles {
-            let mut polygon = [DVec3::ZERO; 4];
-            match clip(t, n, x, &mut polygon) {
-                3 => fans.push([polygon[0], polygon[1], polygon[2]]),
-                4 => fans.extend([
-                    [polygon[0], polygon[1], polygon[2]],
-                    [polygon[0], polygon[2], polygon[3]],
-                ]),
-                _ => {}
-            }
-        }
+        fans_above(emitter, n, x, &mut fans);
         if fans.is_empty() {
             continue;
         }
@@ -1044,11 +1044,37 @@ pub(super) fn form_factor(
             }
         }
     }
-    // Neighbouring cells (k, k + 1 in a row of the grid) make the pairs. Across a shadow's
-    // edge that estimate is unreliable (neighbouring strata on the same side of the edge agree,
-    // and the strata the edge cuts are few): there, never less than the binomial variance of
-    // the visible fraction, as if the rays were independent (wider than stratified sampling's).
-    let (mean, collapsed) = super::collapsed_variance(&values);
+    stratified_estimate(&values, (eligible, seen), squares)
+}
+
+/// The parts of `emitter`'s triangles in front of the plane through `x` with normal `n`, as
+/// triangles, into `fans` (cleared first).
+fn fans_above(emitter: &Emitter, n: DVec3, x: DVec3, fans: &mut Vec<[DVec3; 3]>) {
+    fans.clear();
+    for t in &emitter.triangles {
+        let mut polygon = [DVec3::ZERO; 4];
+        match clip(t, n, x, &mut polygon) {
+            3 => fans.push([polygon[0], polygon[1], polygon[2]]),
+            4 => fans.extend([
+                [polygon[0], polygon[1], polygon[2]],
+                [polygon[0], polygon[2], polygon[3]],
+            ]),
+            _ => {}
+        }
+    }
+}
+
+/// The mean of `values` (one per stratum of a grid, 0 where a ray was blocked) and its
+/// variance, of which `eligible` rays were traced, `seen` got through, and `squares` is the sum
+/// of the squared values the traced rays would have had unblocked.
+///
+/// Neighbouring cells (k, k + 1 in a row of the grid) make the pairs. Across a shadow's edge
+/// that estimate is unreliable (neighbouring strata on the same side of the edge agree, and the
+/// strata the edge cuts are few): there, never less than the binomial variance of the visible
+/// fraction, as if the rays were independent (wider than stratified sampling's).
+fn stratified_estimate(values: &[f64], (eligible, seen): (usize, usize), squares: f64) -> (f64, f64) {
+    let count = values.len();
+    let (mean, collapsed) = super::collapsed_variance(values);
     let binomial = if seen > 0 && seen < eligible {
         let p = seen as f64 / eligible as f64;
         p * (1.0 - p) * squares / (count * count) as f64
@@ -1056,6 +1082,62 @@ pub(super) fn form_factor(
         0.0
     };
     (mean, collapsed.max(binomial))
+}
+
+/// The form factor from the point `x` of face `back` (or the front) of traced triangle `own`,
+/// of unit normal `n` on that side, to `emitter` with `at`'s occluders, and its variance: the
+/// mean over `g × g` stratified directions uniform in the solid angle of the emitter's part
+/// above the point's plane of `(Ω/π)·cos θ·V` ([`form_factor`] at one point). Unbiased; 0 where
+/// every ray is blocked, and only the variation of cos θ over the emitter left where none is.
+pub(super) fn point_form_factor(
+    at: &Frame<'_>,
+    (x, n, own, back): (DVec3, DVec3, u32, bool),
+    emitter: &Emitter,
+    (seed, g): (u64, usize),
+) -> (f64, f64) {
+    let e = emitter.normal;
+    if n == DVec3::ZERO || e == DVec3::ZERO || e.dot(x - emitter.hull[0]) <= 0.0 {
+        return (0.0, 0.0);
+    }
+    let mut fans = Vec::with_capacity(2 * emitter.triangles.len());
+    fans_above(emitter, n, x, &mut fans);
+    if fans.is_empty() {
+        return (0.0, 0.0);
+    }
+    let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed);
+    let count = g * g;
+    let (mut eligible, mut seen, mut squares) = (0usize, 0usize, 0.0);
+    let mut values = vec![0.0; count];
+    for (k, value) in values.iter_mut().enumerate() {
+        let u = ((k / g) as f64 + rng.random::<f64>()) / g as f64;
+        let v = ((k % g) as f64 + rng.random::<f64>()) / g as f64;
+        let Some((y, f)) = sample_fans(x, n, e, &fans, u, v) else {
+            continue;
+        };
+        if f <= 0.0 {
+            continue;
+        }
+        squares += f * f;
+        eligible += 1;
+        if !at.blocked(x, y, own, back) {
+            seen += 1;
+            *value = f;
+        }
+    }
+    stratified_estimate(&values, (eligible, seen), squares)
+}
+
+/// The side of the grid of strata [`point_form_factor`] samples `emitter` from `x` with: as
+/// [`grid`] for a face of no size, 4, 8 or 16 as the emitter looks small or as large as its
+/// distance, times the square root of `density`, from 4 to 64.
+pub(super) fn point_grid(x: DVec3, emitter: &Emitter, density: f64) -> usize {
+    let distance = x.distance(emitter.centre).max(f64::MIN_POSITIVE);
+    let base: f64 = match emitter.edge / distance {
+        r if r < 0.1 => 4.0,
+        r if r < 0.5 => 8.0,
+        _ => 16.0,
+    };
+    (base * density.sqrt()).round().clamp(4.0, 64.0) as usize
 }
 
 /// Below this solid angle (steradians), a fan triangle of the emitter is sampled by area: the

@@ -20,6 +20,7 @@
 //! fixed lamp over static geometry is computed once for the whole timeline.
 
 pub mod area;
+pub mod points;
 pub mod reference;
 
 use std::collections::HashMap;

@@ -31,12 +31,13 @@ use rand::rngs::Xoshiro256PlusPlus;
 use rand::{RngExt, SeedableRng};
 use rayon::prelude::*;
 
+use super::points::{PointRadiance, Points, Site, site_point, site_seed};
 use super::{
     Frame, Occluders, Posed, inset, into_inset, range_window, spot_attenuation, triangle_point,
 };
 use crate::scene::subdivide::normal_and_area;
 use crate::scene::{LightKind, Scene};
-use crate::trace::coincident::COINCIDENT;
+use crate::trace::coincident::{COINCIDENT, resolve};
 use crate::trace::{Hit, Line, SceneTracer};
 
 /// The reference radiance of one patch.
@@ -85,11 +86,11 @@ impl Emitter {
 
 /// Where a face lies: its triangle (global id), the side, its corners and the unit normal on
 /// its side, at one frame.
-struct Place {
-    triangle: u32,
-    back: bool,
-    corners: [DVec3; 3],
-    normal: DVec3,
+pub(super) struct Place {
+    pub(super) triangle: u32,
+    pub(super) back: bool,
+    pub(super) corners: [DVec3; 3],
+    pub(super) normal: DVec3,
 }
 
 /// The path-traced reference of every patch at `frame`, from `paths` paths per patch (in pairs
@@ -117,6 +118,65 @@ pub fn path_traced_each(
     sky: [f64; 3],
     seed: u64,
 ) -> Vec<Estimate> {
+    with_tracer((scene, tracer, frame, sky), |tracer| {
+        (0..scene.patches.len())
+            .into_par_iter()
+            .map(|i| {
+                let mut rng = Xoshiro256PlusPlus::seed_from_u64(
+                    seed ^ (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+                );
+                match paths(i) {
+                    0 => Estimate {
+                        radiance: [0.0; 3],
+                        stderr: [0.0; 3],
+                        spread: [0.0; 3],
+                        visible: 0.0,
+                    },
+                    n => tracer.patch(i, n.max(2), &mut rng),
+                }
+            })
+            .collect()
+    })
+}
+
+/// The path-traced reference at `points` at `frame`: each site's outgoing radiance at its
+/// point ([`super::points`], the same point the bake's outputs are evaluated at) from
+/// `paths` times its weight paths (at least 2), the point's the sites' weighted mean, with
+/// its standard error. A point a surface touches gets its emission alone.
+#[must_use]
+pub fn path_traced_points(
+    (scene, tracer, frame): (&Scene, &SceneTracer, usize),
+    points: &Points,
+    paths: usize,
+    sky: [f64; 3],
+    seed: u64,
+) -> Vec<PointRadiance> {
+    with_tracer((scene, tracer, frame, sky), |tracer| {
+        (0..points.len())
+            .into_par_iter()
+            .map_init(Vec::new, |hits, i| {
+                let (mut radiance, mut variance) = ([0.0; 3], [0.0; 3]);
+                for site in points.point(i) {
+                    let (l, v) = tracer.site(site, paths, seed, hits);
+                    for c in 0..3 {
+                        radiance[c] += site.weight * l[c];
+                        variance[c] += site.weight * site.weight * v[c];
+                    }
+                }
+                PointRadiance {
+                    radiance,
+                    stderr: variance.map(f64::sqrt),
+                }
+            })
+            .collect()
+    })
+}
+
+/// Runs `f` with the path tracer of `scene` posed at `frame` under `sky`.
+fn with_tracer<R>(
+    (scene, tracer, frame, sky): (&Scene, &SceneTracer, usize, [f64; 3]),
+    f: impl FnOnce(&Tracer<'_>) -> R,
+) -> R {
     let posed = Posed::at(scene, tracer, frame);
     let view = posed.frame(scene, tracer, Occluders::All);
     let (places, members) = places(scene, &view);
@@ -125,43 +185,17 @@ pub fn path_traced_each(
     for (k, e) in emitters.iter().enumerate() {
         emitter_of[e.place] = Some(k);
     }
-    let tracer = Tracer {
+    let power: Vec<[f64; 3]> = scene.lights.iter().map(crate::scene::Light::power).collect();
+    f(&Tracer {
         scene,
         view: &view,
+        sight: Sight::new(scene, &view, frame, &power),
         places: &places,
         members: &members,
         emitters: &emitters,
         emitter_of,
-        punctual: scene
-            .lights
-            .iter()
-            .map(|light| Punctual {
-                kind: light.kind,
-                position: light.position(frame),
-                direction: light.direction(frame),
-                power: light.power(),
-                range: light.range,
-            })
-            .collect(),
         sky,
-    };
-    (0..scene.patches.len())
-        .into_par_iter()
-        .map(|i| {
-            let mut rng = Xoshiro256PlusPlus::seed_from_u64(
-                seed ^ (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
-            );
-            match paths(i) {
-                0 => Estimate {
-                    radiance: [0.0; 3],
-                    stderr: [0.0; 3],
-                    spread: [0.0; 3],
-                    visible: 0.0,
-                },
-                n => tracer.patch(i, n.max(2), &mut rng),
-            }
-        })
-        .collect()
+    })
 }
 
 /// A punctual light as posed at the frame.
@@ -179,7 +213,7 @@ struct Punctual {
 /// Every face's place at the frame (face `2t + back` of triangle `t`; a face no patch covers
 /// has triangle `u32::MAX`), and each patch's faces with their cumulative share of its area
 /// (one face, or several merged by [`crate::scene::refine::merge`]).
-fn places(scene: &Scene, view: &Frame<'_>) -> (Vec<Place>, Vec<Vec<(usize, f64)>>) {
+pub(super) fn places(scene: &Scene, view: &Frame<'_>) -> (Vec<Place>, Vec<Vec<(usize, f64)>>) {
     let mut places = Vec::with_capacity(2 * view.triangles.len());
     let mut members: Vec<Vec<(usize, f64)>> = vec![Vec::new(); scene.patches.len()];
     for (t, (corners, faces)) in view.triangles.iter().enumerate() {
@@ -248,7 +282,7 @@ fn emitters(scene: &Scene, view: &Frame<'_>, places: &[Place]) -> Vec<Emitter> {
 }
 
 /// What a ray meets first.
-enum Met {
+pub(super) enum Met {
     /// Nothing: it leaves the scene.
     Sky,
     /// The back of a one-sided face, which absorbs.
@@ -270,15 +304,141 @@ const MAX_BOUNCES: usize = 100_000;
 struct Tracer<'a> {
     scene: &'a Scene,
     view: &'a Frame<'a>,
+    /// What a point sees: the punctual lights and the first surface along a ray.
+    sight: Sight<'a>,
     places: &'a [Place],
     /// Per patch, its faces' places with their cumulative share of its area.
     members: &'a [Vec<(usize, f64)>],
     emitters: &'a [Emitter],
     /// Per face's place, its index among the emitters.
     emitter_of: Vec<Option<usize>>,
-    /// The punctual lights.
-    punctual: Vec<Punctual>,
     sky: [f64; 3],
+}
+
+/// What a point of the scene posed at one frame sees: the first surface along a ray, and the
+/// punctual lights' exact irradiance (shared by the reference and by the final gather at the
+/// outputs' points, [`super::points`]).
+pub(super) struct Sight<'a> {
+    pub(super) scene: &'a Scene,
+    pub(super) view: &'a Frame<'a>,
+    /// The punctual lights, posed.
+    punctual: Vec<Punctual>,
+}
+
+impl<'a> Sight<'a> {
+    /// The sight of `view`, the scene posed at `frame`, with the punctual lights at `power`
+    /// (colour × intensity, in the scene's order).
+    pub(super) fn new(
+        scene: &'a Scene,
+        view: &'a Frame<'a>,
+        frame: usize,
+        power: &[[f64; 3]],
+    ) -> Self {
+        let punctual = (scene.lights.iter().zip(power))
+            .map(|(light, &power)| Punctual {
+                kind: light.kind,
+                position: light.position(frame),
+                direction: light.direction(frame),
+                power,
+                range: light.range,
+            })
+            .collect();
+        Self {
+            scene,
+            view,
+            punctual,
+        }
+    }
+
+    /// The irradiance at `x` (on `place`) from the punctual lights, shadows included.
+    pub(super) fn punctual(&self, x: DVec3, place: &Place, hits: &mut Vec<Hit>) -> [f64; 3] {
+        let mut total = [0.0; 3];
+        // Point and spot lights' intensities are per square metre at a metre: distances in
+        // normalised units are `radius` metres each.
+        let radius = self.scene.normalisation.radius;
+        for light in &self.punctual {
+            let e = match light.kind {
+                LightKind::Directional => {
+                    let cos = -place.normal.dot(light.direction);
+                    if cos <= 0.0 {
+                        continue;
+                    }
+                    match self.first_hit(x, -light.direction, place, hits) {
+                        Met::Sky => cos,
+                        _ => continue,
+                    }
+                }
+                LightKind::Point | LightKind::Spot { .. } => {
+                    let to_light = light.position - x;
+                    let d = to_light.length();
+                    let cos = place.normal.dot(to_light) / d;
+                    if d <= 0.0 || cos <= 0.0 {
+                        continue;
+                    }
+                    let mut e = cos / (d * d) * range_window(d, light.range);
+                    if let LightKind::Spot { inner, outer } = light.kind {
+                        e *= spot_attenuation(light.direction.dot(-to_light / d), inner, outer);
+                    }
+                    if e <= 0.0
+                        || self
+                            .view
+                            .blocked(x, light.position, place.triangle, place.back)
+                    {
+                        continue;
+                    }
+                    e / (radius * radius)
+                }
+            };
+            (0..3).for_each(|c| total[c] += e * light.power[c]);
+        }
+        total
+    }
+
+    /// What the ray from `x` (on `place`) along unit `w` meets first.
+    pub(super) fn first_hit(&self, x: DVec3, w: DVec3, place: &Place, hits: &mut Vec<Hit>) -> Met {
+        let behind = f64::from(4.0 * COINCIDENT);
+        let line = Line {
+            origin: (x - w * behind).as_vec3(),
+            direction: w.as_vec3(),
+        };
+        self.view.trace(&line, hits);
+        let start = behind as f32 + COINCIDENT;
+        // A surface touching the point's face (a contact: a box resting on the floor) meets
+        // the ray where it starts: nothing gets through (as for the lines and shadow rays).
+        let surfaces = self.view.tracer.surfaces();
+        if hits.iter().any(|&h| {
+            h.surface() != place.triangle
+                && (h.t - behind as f32).abs() <= COINCIDENT
+                && surfaces.touching(place.triangle, place.back, h)
+        }) {
+            return Met::Nothing;
+        }
+        // The crossings past the point's own, coincident ones as the lines resolve them:
+        // where two surfaces touch (a box on the floor), the ray meets the one it arrives in
+        // first, never the floor's lit face from inside the box. (The point's own crossing is
+        // left out first: along a ray that grazes its face, it and a wall meeting the face
+        // would be taken for one seam.)
+        hits.retain(|h| h.t > start && h.surface() != place.triangle);
+        let resolved = resolve(hits, &surfaces.along(line.direction));
+        let Some(hit) = resolved.as_deref().unwrap_or(hits).first()
+        else {
+            return Met::Sky;
+        };
+        let faces = self.view.triangles[hit.surface() as usize].1;
+        let (patch, back) = if hit.front() {
+            (Some(faces.front), false)
+        } else {
+            (faces.back, true)
+        };
+        match patch {
+            Some(patch) => Met::Patch(
+                2 * hit.surface() as usize + usize::from(back),
+                patch as usize,
+                f64::from(hit.t) - behind,
+            ),
+            None => Met::Nothing,
+        }
+    }
 }
 
 impl Tracer<'_> {
@@ -359,6 +519,42 @@ impl Tracer<'_> {
         }
     }
 
+    /// The radiance at `site`'s point from `paths × weight` paths (at least 2), and the
+    /// variance of that mean.
+    fn site(&self, site: &Site, paths: usize, seed: u64, hits: &mut Vec<Hit>) -> ([f64; 3], [f64; 3]) {
+        let place = &self.places[2 * site.triangle as usize + usize::from(site.back)];
+        let faces = self.view.triangles[site.triangle as usize].1;
+        let patch = if site.back { faces.back } else { Some(faces.front) };
+        let Some(patch) = patch else {
+            return ([0.0; 3], [0.0; 3]);
+        };
+        let material = &self.scene.materials[self.scene.patches[patch as usize].material as usize];
+        let x = site_point(site, place);
+        let own = (place.triangle, place.back);
+        if material.reflectance == [0.0; 3] || self.view.covered(x, place.normal, own) {
+            return (material.emission, [0.0; 3]);
+        }
+        let n = ((paths as f64 * site.weight).round() as usize).max(2);
+        let mut rng = Xoshiro256PlusPlus::seed_from_u64(site_seed(seed, site));
+        let (mut sum, mut squares) = ([0.0; 3], [0.0; 3]);
+        for _ in 0..n {
+            let e = self.irradiance(x, place, &mut rng, hits);
+            for c in 0..3 {
+                let l = material.reflectance[c] * e[c] * std::f64::consts::FRAC_1_PI;
+                sum[c] += l;
+                squares[c] += l * l;
+            }
+        }
+        let n = n as f64;
+        (
+            std::array::from_fn(|c| material.emission[c] + sum[c] / n),
+            std::array::from_fn(|c| {
+                let mean = sum[c] / n;
+                (squares[c] - n * mean * mean).max(0.0) / (n - 1.0) / n
+            }),
+        )
+    }
+
     /// An estimate of the irradiance at `x` on `place` (module docs).
     fn irradiance(
         &self,
@@ -372,12 +568,12 @@ impl Tracer<'_> {
         let mut throughput = [1.0; 3];
         for bounce in 0..MAX_BOUNCES {
             let direct = self.next_event(x, place, rng);
-            let punctual = self.punctual(x, place, hits);
+            let punctual = self.sight.punctual(x, place, hits);
             (0..3).for_each(|c| total[c] += throughput[c] * (direct[c] + punctual[c]));
             // A cosine-weighted direction: the irradiance is π times the mean radiance coming
             // in along it.
             let w = cosine_direction(place.normal, rng);
-            let (face, patch, t) = match self.first_hit(x, w, place, hits) {
+            let (face, patch, t) = match self.sight.first_hit(x, w, place, hits) {
                 Met::Sky => {
                     (0..3).for_each(|c| {
                         total[c] += throughput[c] * std::f64::consts::PI * self.sky[c];
@@ -446,95 +642,17 @@ impl Tracer<'_> {
         light.emission.map(|le| le * g)
     }
 
-    /// The irradiance at `x` (on `place`) from the punctual lights, shadows included.
-    fn punctual(&self, x: DVec3, place: &Place, hits: &mut Vec<Hit>) -> [f64; 3] {
-        let mut total = [0.0; 3];
-        // Point and spot lights' intensities are per square metre at a metre: distances in
-        // normalised units are `radius` metres each.
-        let radius = self.scene.normalisation.radius;
-        for light in &self.punctual {
-            let e = match light.kind {
-                LightKind::Directional => {
-                    let cos = -place.normal.dot(light.direction);
-                    if cos <= 0.0 {
-                        continue;
-                    }
-                    match self.first_hit(x, -light.direction, place, hits) {
-                        Met::Sky => cos,
-                        _ => continue,
-                    }
-                }
-                LightKind::Point | LightKind::Spot { .. } => {
-                    let to_light = light.position - x;
-                    let d = to_light.length();
-                    let cos = place.normal.dot(to_light) / d;
-                    if d <= 0.0 || cos <= 0.0 {
-                        continue;
-                    }
-                    let mut e = cos / (d * d) * range_window(d, light.range);
-                    if let LightKind::Spot { inner, outer } = light.kind {
-                        e *= spot_attenuation(light.direction.dot(-to_light / d), inner, outer);
-                    }
-                    if e <= 0.0
-                        || self
-                            .view
-                            .blocked(x, light.position, place.triangle, place.back)
-                    {
-                        continue;
-                    }
-                    e / (radius * radius)
-                }
-            };
-            (0..3).for_each(|c| total[c] += e * light.power[c]);
-        }
-        total
-    }
-
-    /// What the ray from `x` (on `place`) along unit `w` meets first.
-    fn first_hit(&self, x: DVec3, w: DVec3, place: &Place, hits: &mut Vec<Hit>) -> Met {
-        let behind = f64::from(4.0 * COINCIDENT);
-        let line = Line {
-            origin: (x - w * behind).as_vec3(),
-            direction: w.as_vec3(),
-        };
-        self.view.trace(&line, hits);
-        let start = behind as f32 + COINCIDENT;
-        // A surface touching the point's face (a contact: a box resting on the floor) meets
-        // the ray where it starts: nothing gets through (as for the lines and shadow rays).
-        let surfaces = self.view.tracer.surfaces();
-        if hits.iter().any(|&h| {
-            h.surface() != place.triangle
-                && (h.t - behind as f32).abs() <= COINCIDENT
-                && surfaces.touching(place.triangle, place.back, h)
-        }) {
-            return Met::Nothing;
-        }
-        let Some(hit) = hits
-            .iter()
-            .find(|h| h.t > start && h.surface() != place.triangle)
-        else {
-            return Met::Sky;
-        };
-        let faces = self.view.triangles[hit.surface() as usize].1;
-        let (patch, back) = if hit.front() {
-            (Some(faces.front), false)
-        } else {
-            (faces.back, true)
-        };
-        match patch {
-            Some(patch) => Met::Patch(
-                2 * hit.surface() as usize + usize::from(back),
-                patch as usize,
-                f64::from(hit.t) - behind,
-            ),
-            None => Met::Nothing,
-        }
-    }
 }
 
 /// A direction about unit `n` with density cos θ / π.
 fn cosine_direction(n: DVec3, rng: &mut Xoshiro256PlusPlus) -> DVec3 {
-    let (u, v): (f64, f64) = (rng.random(), rng.random());
+    cosine_direction_at(n, rng.random(), rng.random())
+}
+
+/// The direction about unit `n` at `(u, v)` in the unit square, mapped so that uniform `(u, v)`
+/// give density cos θ / π (equal areas of the square, equal shares of the cosine-weighted
+/// hemisphere: a grid of strata in the square stratifies the hemisphere).
+pub(super) fn cosine_direction_at(n: DVec3, u: f64, v: f64) -> DVec3 {
     let r = u.sqrt();
     let phi = 2.0 * std::f64::consts::PI * v;
     let (a, b) = n.any_orthonormal_pair();

@@ -1,16 +1,23 @@
 //! The scene at one frame as drawable geometry: one triangle per face of a traced triangle
-//! (a patch merged from several faces draws them all), facing the patch's side,
-//! with per-vertex radiance averaged (area-weighted) over the patches around each vertex.
+//! (a patch merged from several faces draws them all), facing the patch's side, with the
+//! radiance evaluated at each vertex ([`light_vertices`]: the direct light from the vertex
+//! itself, the rest gathered from the solved patches, [`crate::direct::points`]), never the
+//! mean of the patches around it.
 //!
-//! A vertex is shared only by patches of the same source node, on the same side, whose planes
-//! meet at less than [`CREASE_DEGREES`]: where a floor meets a wall the vertex is split, so the
-//! wall's light does not bleed onto the floor (the "smoothing groups" of modelling tools).
+//! A vertex is shared only by faces of the same source node, on the same side, of the same
+//! material, whose planes meet at less than [`CREASE_DEGREES`]: where a floor meets a wall the
+//! vertex is split, so each side of the crease carries its own light (the "smoothing groups"
+//! of modelling tools), and each copy is evaluated on its own faces.
 
 use std::collections::HashMap;
 
 use glam::{DVec3, Vec3};
 
+use crate::bake::Bake;
+pub use crate::direct::points::Corner;
+use crate::direct::points::{Gather, Lighting, PointRadiance, Points, Solved};
 use crate::scene::{Scene, TriangleMesh};
+use crate::solve::FrameSolution;
 
 /// Patches meeting at a larger angle than this get their own copy of a shared vertex.
 pub const CREASE_DEGREES: f64 = 30.0;
@@ -22,10 +29,18 @@ pub struct NodeMesh {
     pub node: u32,
     /// Vertex positions, normalised space.
     pub positions: Vec<DVec3>,
-    /// Unit vertex normals: the area-weighted mean of the faces sharing the vertex.
+    /// Unit vertex normals: the mean of the faces sharing the vertex, weighed by their angles
+    /// at it.
     pub normals: Vec<Vec3>,
-    /// Area-weighted mean radiance of the patches sharing each vertex.
+    /// Radiance at each vertex ([`light_vertices`]; zero until then).
     pub radiance: Vec<[f64; 3]>,
+    /// Its standard error.
+    pub stderr: Vec<[f64; 3]>,
+    /// The face corners each vertex stands for (where its light is evaluated): vertex `v`'s are
+    /// `corners[corner_offsets[v]..corner_offsets[v + 1]]`.
+    pub corners: Vec<Corner>,
+    /// Where each vertex's corners start in `corners` (vertices + 1 values).
+    pub corner_offsets: Vec<u32>,
     /// Vertex indices, counter-clockwise seen from the patch's side.
     pub triangles: Vec<[u32; 3]>,
     /// The patch each triangle draws.
@@ -34,44 +49,56 @@ pub struct NodeMesh {
 
 /// One face to place: which mesh vertices, which patch, and its geometry at the frame.
 struct Face {
+    /// The triangle's global index.
+    triangle: u32,
     corners: [u32; 3],
     back: bool,
     patch: u32,
+    material: u32,
     normal: DVec3,
-    area: f64,
+    /// The face's angles at its corners (in `corners`' order).
+    angles: [f64; 3],
 }
 
-/// The scene posed at `frame`, grouped by source node (in node order), with each vertex's
-/// radiance averaged from `radiance` (per patch) over the faces that share it.
+/// The scene posed at `frame`, grouped by source node (in node order), its vertices' radiance
+/// zero until [`light_vertices`].
 #[must_use]
-pub fn frame_geometry(scene: &Scene, frame: usize, radiance: &[[f64; 3]]) -> Vec<NodeMesh> {
+pub fn frame_geometry(scene: &Scene, frame: usize) -> Vec<NodeMesh> {
     let mut by_node: std::collections::BTreeMap<u32, NodeMesh> = Default::default();
+    let mut first = 0u32;
     let mut add = |positions: &[DVec3], mesh: &TriangleMesh| {
         let mut faces: HashMap<u32, Vec<Face>> = HashMap::new();
-        for (t, f) in mesh.triangles.iter().zip(&mesh.faces) {
+        for (k, (t, f)) in mesh.triangles.iter().zip(&mesh.faces).enumerate() {
             let [a, b, c] = t.map(|i| positions[i as usize]);
-            let cross = (b - a).cross(c - a);
-            let area = 0.5 * cross.length();
-            let normal = cross.normalize_or_zero();
-            let node = scene.patches[f.front as usize].source.node;
-            let list = faces.entry(node).or_default();
+            let normal = (b - a).cross(c - a).normalize_or_zero();
+            let angle = |p: DVec3, q: DVec3, r: DVec3| (q - p).angle_between(r - p);
+            let angles = [angle(a, b, c), angle(b, c, a), angle(c, a, b)]
+                .map(|x| if x.is_finite() { x } else { 0.0 });
+            let patch = &scene.patches[f.front as usize];
+            let list = faces.entry(patch.source.node).or_default();
+            let triangle = first + k as u32;
             list.push(Face {
+                triangle,
                 corners: *t,
                 back: false,
                 patch: f.front,
+                material: patch.material,
                 normal,
-                area,
+                angles,
             });
             if let Some(back) = f.back {
                 list.push(Face {
+                    triangle,
                     corners: [t[0], t[2], t[1]],
                     back: true,
                     patch: back,
+                    material: scene.patches[back as usize].material,
                     normal: -normal,
-                    area,
+                    angles: [angles[0], angles[2], angles[1]],
                 });
             }
         }
+        first += mesh.triangles.len() as u32;
         let mut nodes: Vec<(u32, Vec<Face>)> = faces.into_iter().collect();
         nodes.sort_unstable_by_key(|(n, _)| *n);
         for (node, faces) in nodes {
@@ -79,7 +106,7 @@ pub fn frame_geometry(scene: &Scene, frame: usize, radiance: &[[f64; 3]]) -> Vec
                 node,
                 ..NodeMesh::default()
             });
-            place(out, positions, &faces, radiance);
+            place(out, positions, &faces);
         }
     };
     let statics: Vec<DVec3> = scene
@@ -100,30 +127,20 @@ pub fn frame_geometry(scene: &Scene, frame: usize, radiance: &[[f64; 3]]) -> Vec
     by_node.into_values().collect()
 }
 
-/// Sums towards one output vertex.
-#[derive(Default)]
-struct Accumulator {
-    weight: f64,
-    radiance: [f64; 3],
-    normal: DVec3,
-    /// Unweighted sums, for a vertex whose faces all have zero area at this frame.
-    count: f64,
-    plain: [f64; 3],
-}
-
-/// Appends `faces` (all of one node) to `out`, splitting vertices at creases.
-fn place(out: &mut NodeMesh, positions: &[DVec3], faces: &[Face], radiance: &[[f64; 3]]) {
+/// Appends `faces` (all of one node) to `out`, splitting vertices at creases and between
+/// materials.
+fn place(out: &mut NodeMesh, positions: &[DVec3], faces: &[Face]) {
     let crease = CREASE_DEGREES.to_radians().cos();
-    // Per (mesh vertex, side): the output vertices made for it, each with the normal of the
-    // face that made it.
-    let mut made: HashMap<(u32, bool), Vec<(DVec3, u32)>> = HashMap::new();
+    // Per (mesh vertex, side, material): the output vertices made for it, each with the normal
+    // of the face that made it.
+    let mut made: HashMap<(u32, bool, u32), Vec<(DVec3, u32)>> = HashMap::new();
     let first = out.positions.len();
-    let mut sums: Vec<Accumulator> = Vec::new();
+    // Per output vertex: the sum of its faces' normals weighed by their angles, and its corners.
+    let mut sums: Vec<(DVec3, Vec<Corner>)> = Vec::new();
     for face in faces {
-        let l = radiance[face.patch as usize];
         let mut tri = [0u32; 3];
         for (k, &v) in face.corners.iter().enumerate() {
-            let copies = made.entry((v, face.back)).or_default();
+            let copies = made.entry((v, face.back, face.material)).or_default();
             // A face without a normal (zero area at this frame) joins any copy.
             let found = copies
                 .iter()
@@ -133,29 +150,77 @@ fn place(out: &mut NodeMesh, positions: &[DVec3], faces: &[Face], radiance: &[[f
                 let i = (first + sums.len()) as u32;
                 copies.push((face.normal, i));
                 out.positions.push(positions[v as usize]);
-                sums.push(Accumulator::default());
+                sums.push((DVec3::ZERO, Vec::new()));
                 i
             });
-            let s = &mut sums[index as usize - first];
-            s.weight += face.area;
-            s.normal += face.normal * face.area;
-            s.count += 1.0;
-            for ((sum, plain), &c) in s.radiance.iter_mut().zip(&mut s.plain).zip(&l) {
-                *sum += face.area * c;
-                *plain += c;
-            }
+            let (normal, corners) = &mut sums[index as usize - first];
+            *normal += face.normal * face.angles[k];
+            // The triangle's own corner (a back face lists its corners 0, 2, 1).
+            let corner = if face.back { [0, 2, 1][k] } else { k as u8 };
+            corners.push(Corner {
+                triangle: face.triangle,
+                back: face.back,
+                corner,
+                angle: face.angles[k],
+            });
             tri[k] = index;
         }
         out.triangles.push(tri);
         out.patches.push(face.patch);
     }
-    for s in sums {
-        out.radiance.push(if s.weight > 0.0 {
-            s.radiance.map(|x| x / s.weight)
-        } else {
-            s.plain.map(|x| x / s.count)
-        });
-        out.normals.push(unit_normal(s.normal));
+    if out.corner_offsets.is_empty() {
+        out.corner_offsets.push(0);
+    }
+    for (normal, corners) in sums {
+        out.normals.push(unit_normal(normal));
+        out.corners.extend(corners);
+        out.corner_offsets.push(out.corners.len() as u32);
+        out.radiance.push([0.0; 3]);
+        out.stderr.push([0.0; 3]);
+    }
+}
+
+impl NodeMesh {
+    /// The face corners vertex `v` stands for.
+    #[must_use]
+    pub fn corners_of(&self, v: usize) -> &[Corner] {
+        &self.corners[self.corner_offsets[v] as usize..self.corner_offsets[v + 1] as usize]
+    }
+}
+
+/// The points where the light at every vertex of `meshes` (of `bake`'s scene as shown) is
+/// evaluated, in the meshes' order ([`Bake::points_at_corners`]).
+#[must_use]
+pub fn vertex_points(bake: &Bake, meshes: &[NodeMesh]) -> Points {
+    bake.points_at_corners(
+        (meshes.iter()).flat_map(|mesh| (0..mesh.positions.len()).map(|v| mesh.corners_of(v))),
+    )
+}
+
+/// Evaluates the light at every vertex of `meshes` (frame `frame` of `bake`'s scene as shown,
+/// [`frame_geometry`]) from `solution`, solved with `lighting`, sampled as `gather` says:
+/// each vertex at its own faces' corners ([`Bake::radiance_at`]), into the meshes' `radiance`
+/// and `stderr`.
+pub fn light_vertices(
+    bake: &Bake,
+    frame: usize,
+    meshes: &mut [NodeMesh],
+    (solution, lighting): (&FrameSolution, Lighting<'_>),
+    gather: Gather,
+) {
+    let points = vertex_points(bake, meshes);
+    let solved = Solved {
+        radiance: &solution.radiance,
+        stderr: &solution.stderr,
+        direct: &[],
+    };
+    let values = bake.radiance_at(frame, &points, (solved, lighting), gather);
+    let mut values = values.into_iter();
+    for mesh in meshes {
+        for (l, e) in mesh.radiance.iter_mut().zip(&mut mesh.stderr) {
+            let PointRadiance { radiance, stderr } = values.next().unwrap_or_default();
+            (*l, *e) = (radiance, stderr);
+        }
     }
 }
 

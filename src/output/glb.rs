@@ -2,7 +2,9 @@
 //!
 //! Each file is the scene posed at its frame, one node and mesh per source node (its index in
 //! `extras.source_node`), one triangle per face of a traced triangle, with per-vertex:
-//! - `_RADIANCE`: the HDR radiance (f32 RGB, the scene's emission units);
+//! - `_RADIANCE`: the HDR radiance at the vertex (f32 RGB, the scene's emission units),
+//!   evaluated at the vertex itself ([`super::light_vertices`]);
+//! - `_RADIANCE_STDERR`: its standard error;
 //! - `COLOR_0`: the same tone-mapped to [0, 1] ([`ToneMap`]), which ordinary viewers show;
 //! - `NORMAL`;
 //!
@@ -146,10 +148,12 @@ pub fn frame_glb(
         let normals: Vec<[f32; 3]> = mesh.normals.iter().map(|n| n.to_array()).collect();
         let colours: Vec<[f32; 3]> = mesh.radiance.iter().map(|&l| tone.apply(l)).collect();
         let radiance: Vec<[f32; 3]> = mesh.radiance.iter().map(|l| l.map(finite_f32)).collect();
+        let stderr: Vec<[f32; 3]> = mesh.stderr.iter().map(|e| e.map(finite_f32)).collect();
         let position = buffers.vec3(&positions, true);
         let normal = buffers.vec3(&normals, false);
         let colour = buffers.vec3(&colours, false);
         let hdr = buffers.vec3(&radiance, false);
+        let hdr_error = buffers.vec3(&stderr, false);
         let indices = buffers.indices(&mesh.triangles);
         let patches = buffers.per_triangle(&mesh.patches);
         // The source node's name, or its index.
@@ -164,6 +168,7 @@ pub fn frame_glb(
                     "NORMAL": normal,
                     "COLOR_0": colour,
                     "_RADIANCE": hdr,
+                    "_RADIANCE_STDERR": hdr_error,
                 },
                 "indices": indices,
                 "material": 0,

@@ -13,7 +13,7 @@ pub mod tonemap;
 
 use std::str::FromStr;
 
-pub use geometry::{NodeMesh, frame_geometry};
+pub use geometry::{NodeMesh, frame_geometry, light_vertices};
 pub use glb::frame_glb;
 pub use preview::Camera;
 pub use tonemap::ToneMap;
@@ -21,7 +21,10 @@ use tonemap::luminance;
 
 use serde_json::json;
 
+use crate::bake::Bake;
+use crate::direct::points::{Gather, Lighting};
 use crate::scene::Scene;
+use crate::solve::FrameSolution;
 
 /// Why an output could not be made.
 #[derive(Debug, thiserror::Error)]
@@ -85,13 +88,30 @@ impl std::fmt::Display for Shading {
     }
 }
 
-/// A preview of one frame: the tone-mapped radiance, shaded per vertex as the baked glTF is or
-/// flat per patch (`shading`), the unlit sides of triangles lit on their other side cut away.
+/// The scene as drawn at `frame` ([`Bake::shown`]) with the light evaluated at its vertices
+/// from `solution`, solved with `lighting` ([`light_vertices`], the standard sampling of the
+/// bake's seed): what the baked glTF and the previews show.
+#[must_use]
+pub fn lit_geometry(
+    bake: &Bake,
+    frame: usize,
+    solution: &FrameSolution,
+    lighting: Lighting<'_>,
+) -> Vec<NodeMesh> {
+    let mut meshes = frame_geometry(bake.shown(), frame);
+    let gather = Gather::standard(bake.seed());
+    light_vertices(bake, frame, &mut meshes, (solution, lighting), gather);
+    meshes
+}
+
+/// A preview of one frame: the tone-mapped radiance, shaded per vertex as the baked glTF is
+/// (`meshes`, lit: [`lit_geometry`]) or flat per patch (`radiance`, by `shading`), the unlit
+/// sides of triangles lit on their other side cut away.
 #[must_use]
 pub fn preview_image(
     scene: &Scene,
     frame: usize,
-    radiance: &[[f64; 3]],
+    (meshes, radiance): (&[NodeMesh], &[[f64; 3]]),
     (tone, shading): (&ToneMap, Shading),
     width: u32,
     height: u32,
@@ -103,8 +123,8 @@ pub fn preview_image(
     let brightest = radiance.iter().map(|&l| luminance(l)).fold(0.0, f64::max);
     let lit = |p: u32| luminance(radiance[p as usize]) > tonemap::UNLIT * brightest;
     let mut other_side = vec![None; scene.patches.len()];
-    let meshes = std::iter::once(&scene.statics).chain(scene.objects.iter().map(|o| &o.mesh));
-    for f in meshes.flat_map(|m| &m.faces) {
+    let traced = std::iter::once(&scene.statics).chain(scene.objects.iter().map(|o| &o.mesh));
+    for f in traced.flat_map(|m| &m.faces) {
         if let Some(back) = f.back {
             other_side[f.front as usize] = Some(back);
             other_side[back as usize] = Some(f.front);
@@ -112,7 +132,7 @@ pub fn preview_image(
     }
     let hidden = |p: u32| !lit(p) && other_side[p as usize].is_some_and(lit);
     let mut triangles = Vec::new();
-    for mesh in frame_geometry(scene, frame, radiance) {
+    for mesh in meshes {
         for (t, &patch) in mesh.triangles.iter().zip(&mesh.patches) {
             if hidden(patch) {
                 continue;

@@ -11,11 +11,11 @@ use axum::http::{HeaderMap, header};
 use axum::response::{IntoResponse, Response};
 use serde_json::json;
 
-use super::jobs::Job;
+use super::jobs::{Job, LightSetting};
 use super::query::{BakedQuery, NoParameters, PreviewQuery, StrictQuery};
 use super::{ApiError, AppState, job};
 use crate::bake::Bake;
-use crate::scene::Scene;
+use crate::direct::points::Lighting;
 use crate::solve::FrameSolution;
 
 /// Binary layout of a frame (`Accept: application/octet-stream`), little-endian: u32 frame,
@@ -111,9 +111,16 @@ pub(super) async fn frame_preview(
         exposure,
         "image/png",
         "a preview",
-        move |shown, f, radiance, tone| {
-            let image =
-                crate::output::preview_image(shown, f, radiance, (tone, shading), width, height);
+        move |bake, f, meshes, radiance, tone| {
+            let look = (tone, shading);
+            let image = crate::output::preview_image(
+                bake.shown(),
+                f,
+                (meshes, radiance),
+                look,
+                width,
+                height,
+            );
             crate::output::preview::encode_png(&image)
         },
     )
@@ -136,10 +143,7 @@ pub(super) async fn frame_baked(
         exposure,
         "model/gltf-binary",
         "a glTF",
-        |shown, f, radiance, tone| {
-            let meshes = crate::output::frame_geometry(shown, f, radiance);
-            crate::output::frame_glb(shown, f, &meshes, tone)
-        },
+        |bake, f, meshes, _, tone| crate::output::frame_glb(bake.shown(), f, meshes, tone),
     )
     .await
 }
@@ -163,7 +167,13 @@ async fn frame_file<E: std::fmt::Display + Send + 'static>(
     exposure: Option<f64>,
     content_type: &str,
     what: &str,
-    make: impl FnOnce(&Scene, usize, &[[f64; 3]], &crate::output::ToneMap) -> Result<Vec<u8>, E>
+    make: impl FnOnce(
+        &Bake,
+        usize,
+        &[crate::output::NodeMesh],
+        &[[f64; 3]],
+        &crate::output::ToneMap,
+    ) -> Result<Vec<u8>, E>
     + Send
     + 'static,
 ) -> Result<Response, ApiError> {
@@ -174,8 +184,25 @@ async fn frame_file<E: std::fmt::Display + Send + 'static>(
     let made = tokio::task::spawn_blocking(move || {
         job.with_bake(|bake| {
             let tone = tone_map(&job, bake, exposure);
+            // The light at the vertices, with the materials and lights the frame was solved
+            // with (the scene's for a job that recorded none).
+            let (mut materials, lights) = job.lighting();
+            if materials.is_empty() {
+                materials.clone_from(&bake.scene.materials);
+            }
+            let power: Vec<[f64; 3]> = if lights.is_empty() {
+                bake.light_power()
+            } else {
+                lights.iter().map(LightSetting::power).collect()
+            };
+            let lighting = Lighting {
+                materials: &materials,
+                power: &power,
+                sky: job.solve.sky,
+            };
+            let meshes = crate::output::lit_geometry(bake, f, &solution, lighting);
             (
-                make(bake.shown(), f, &solution.radiance, &tone),
+                make(bake, f, &meshes, &solution.radiance, &tone),
                 tone.exposure,
             )
         })

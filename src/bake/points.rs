@@ -1,0 +1,111 @@
+//! The outputs' points on the traced scene: where a drawn vertex's light is evaluated, and its
+//! value there ([`crate::direct::points`]).
+
+use glam::DVec3;
+
+use super::Bake;
+use crate::direct::points::{
+    Corner, Gather, Lighting, NEAR_CORNER, PointRadiance, Points, Site, Solved,
+};
+
+impl Bake {
+    /// The points of `vertices`, each the face corners around a drawn vertex (of
+    /// [`Bake::shown`]'s triangles), as sites on the traced triangles (which [`Bake::split`]
+    /// may have cut finer): each corner a hair towards its face's centroid ([`NEAR_CORNER`]),
+    /// on the traced triangle of the same patch and side that holds that point, weighed by the
+    /// corner's angle. Located at frame 0; a site moves with its triangle.
+    #[must_use]
+    pub fn points_at_corners<'a>(&self, vertices: impl IntoIterator<Item = &'a [Corner]>) -> Points {
+        let shown = self.shown().triangles_at(0);
+        let traced = self.scene.triangles_at(0);
+        let corners = |t: usize, list: &[([glam::Vec3; 3], _)]| list[t].0.map(|c| c.as_dvec3());
+        // The traced faces of each patch, when the drawn triangles are not the traced ones.
+        let mut by_patch: Vec<Vec<(u32, bool)>> = Vec::new();
+        if self.shown.is_some() {
+            by_patch = vec![Vec::new(); self.scene.patches.len()];
+            for (t, (_, faces)) in traced.iter().enumerate() {
+                by_patch[faces.front as usize].push((t as u32, false));
+                if let Some(back) = faces.back {
+                    by_patch[back as usize].push((t as u32, true));
+                }
+            }
+        }
+        let mut points = Points::default();
+        for vertex in vertices {
+            points.push(vertex.iter().filter_map(|c| {
+                let (t, k) = (c.triangle as usize, usize::from(c.corner));
+                let triangle = corners(t, &shown);
+                let centre = (triangle[0] + triangle[1] + triangle[2]) / 3.0;
+                let x = triangle[k] + (centre - triangle[k]) * NEAR_CORNER;
+                let site = |triangle: u32, back: bool, bary: [f64; 3]| Site {
+                    triangle,
+                    back,
+                    bary,
+                    weight: c.angle,
+                };
+                if by_patch.is_empty() {
+                    return Some(site(c.triangle, c.back, barycentric(x, &triangle)));
+                }
+                let faces = shown[t].1;
+                let patch = if c.back { faces.back? } else { faces.front };
+                // The face of the patch that holds x (the nearest, for rounding).
+                let (best, bary) = (by_patch[patch as usize].iter())
+                    .filter(|&&(_, back)| back == c.back)
+                    .map(|&(u, _)| (u, barycentric(x, &corners(u as usize, &traced))))
+                    .max_by(|a, b| min3(a.1).total_cmp(&min3(b.1)))?;
+                Some(site(best, c.back, clamped(bary)))
+            }));
+        }
+        points
+    }
+
+    /// The radiance at `points` at `frame`, from `solved`, this frame's patches solved with
+    /// `lighting`, sampled as `gather` says ([`crate::direct::points::radiance_at`]).
+    #[must_use]
+    pub fn radiance_at(
+        &self,
+        frame: usize,
+        points: &Points,
+        (solved, lighting): (Solved<'_>, Lighting<'_>),
+        gather: Gather,
+    ) -> Vec<PointRadiance> {
+        let (direct, _) = self.direct_light(frame, lighting.materials, lighting.power);
+        let solved = Solved {
+            direct: &direct,
+            ..solved
+        };
+        let state = (&self.scene, &self.tracer, &self.area);
+        crate::direct::points::radiance_at(state, frame, points, (solved, lighting), gather)
+    }
+}
+
+/// The barycentric coordinates of `x` (projected onto the triangle's plane) in `t`; those of
+/// the centroid if `t` is degenerate.
+fn barycentric(x: DVec3, t: &[DVec3; 3]) -> [f64; 3] {
+    let (e0, e1, d) = (t[1] - t[0], t[2] - t[0], x - t[0]);
+    let (d00, d01, d11) = (e0.dot(e0), e0.dot(e1), e1.dot(e1));
+    let (d20, d21) = (d.dot(e0), d.dot(e1));
+    let det = d00 * d11 - d01 * d01;
+    if !(det > 0.0) || !det.is_finite() {
+        return [1.0 / 3.0; 3];
+    }
+    let v = (d11 * d20 - d01 * d21) / det;
+    let w = (d00 * d21 - d01 * d20) / det;
+    [1.0 - v - w, v, w]
+}
+
+/// The smallest of three coordinates.
+fn min3(b: [f64; 3]) -> f64 {
+    b[0].min(b[1]).min(b[2])
+}
+
+/// Barycentric coordinates moved into the triangle (negative ones to 0, the rest rescaled).
+fn clamped(b: [f64; 3]) -> [f64; 3] {
+    let b = b.map(|x| x.max(0.0));
+    let sum = b[0] + b[1] + b[2];
+    if sum > 0.0 {
+        b.map(|x| x / sum)
+    } else {
+        [1.0 / 3.0; 3]
+    }
+}

@@ -1,0 +1,414 @@
+//! Radiance at points: what the outputs people look at show (the baked glTF's vertices; lightmap
+//! texels next), each value evaluated at its own point rather than averaged from the patches
+//! around it (issue 46), the way production radiosity renders a solution:
+//!
+//! `L(x) = Le + (ρ/π) (E_direct(x) + E_gathered(x))`
+//!
+//! - **Direct light at the point.** Each punctual light exactly (`I·cos θ/d²` behind one shadow
+//!   ray, [`Sight::punctual`]); each emitter the bake samples as an area light
+//!   ([`super::area`]) by `g × g` stratified directions uniform in its solid angle, a shadow ray
+//!   each ([`super::area::point_form_factor`]). Contact shadows, penumbrae and the edge of a
+//!   light are resolved at the point, not averaged over a patch.
+//! - **The rest gathered from the solution** (a final gather): stratified cosine-weighted rays
+//!   from the point, each reading the solved radiance of the patch it meets first, less the
+//!   emission of the sampled emitters (their light is the direct term above: nothing is counted
+//!   twice), or the sky's if it leaves the scene; the back of a one-sided face absorbs.
+//!
+//! A point where a surface touches its face (under a box resting on the floor) gets no light.
+//! A point sits a hair inside its face ([`super::into_inset`]), so that rays from a vertex do
+//! not start on the edges through it; an output vertex is the weighted mean of its **sites**,
+//! one per face around it on its side of a crease (each face's corner angle its weight): the
+//! mean of the light over a tiny disc about the vertex, which is the light at the vertex where
+//! the light is continuous and the mean of the two sides where a shadow's or a contact's edge
+//! runs through it.
+//!
+//! Each value carries its standard error: the sampling's (pairs of neighbouring strata, as the
+//! bake's direct light) in quadrature, plus the error of the patches the gather read, taken as
+//! wholly correlated between them (the mean of their error bars, added linearly: the patches of
+//! one neighbourhood share their lines' noise). The directions at a point are the same at every
+//! frame (its seed does not depend on the frame): a still surface does not flicker between
+//! frames whose light is the same.
+
+use glam::DVec3;
+use rand::rngs::Xoshiro256PlusPlus;
+use rand::{RngExt, SeedableRng};
+use rayon::prelude::*;
+
+use super::area::{AreaLights, point_form_factor, point_grid};
+use super::reference::{Met, Place, Sight, cosine_direction_at, places};
+use super::{Occluders, Posed, into_inset};
+use crate::scene::{Material, Scene};
+use crate::trace::coincident::mix;
+use crate::trace::{Hit, SceneTracer};
+
+/// A point on one face of a traced triangle, with its share of an output point.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Site {
+    /// The traced triangle (global index: the static triangles first, then each object's).
+    pub triangle: u32,
+    /// Whether the point is on the triangle's back face.
+    pub back: bool,
+    /// The point in barycentric coordinates of the triangle's corners: it moves with the
+    /// triangle.
+    pub bary: [f64; 3],
+    /// Its share of the output point's value (the shares of a point sum to 1).
+    pub weight: f64,
+}
+
+/// A corner of a face of the scene as drawn (a patch's own triangles, [`crate::bake::Bake::shown`]),
+/// around an output vertex: where the vertex's light is evaluated
+/// ([`crate::bake::Bake::points_at_corners`] places it on the traced triangles).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Corner {
+    /// The triangle (global index in the scene drawn: the static triangles first, then each
+    /// object's).
+    pub triangle: u32,
+    /// Whether it is the triangle's back face.
+    pub back: bool,
+    /// Which of the triangle's corners (in the triangle's own order).
+    pub corner: u8,
+    /// The face's angle at the corner, radians: its share of the light about the vertex.
+    pub angle: f64,
+}
+
+/// How far towards its face's centroid a corner's point is taken, as a share of the way: a
+/// vertex's light is its faces' limit at the vertex, not at the vertex itself, where rays
+/// would start on the edges of every face around it.
+pub const NEAR_CORNER: f64 = 1e-3;
+
+/// Output points, each a weighted set of [`Site`]s.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Points {
+    /// Where each point's sites start in `sites` (points + 1 values).
+    pub offsets: Vec<u32>,
+    /// Every point's sites, point after point.
+    pub sites: Vec<Site>,
+}
+
+impl Points {
+    /// Number of points.
+    #[must_use]
+    pub fn len(&self) -> usize {
+        self.offsets.len().saturating_sub(1)
+    }
+
+    /// Whether there are no points.
+    #[must_use]
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The sites of point `i`.
+    #[must_use]
+    pub fn point(&self, i: usize) -> &[Site] {
+        &self.sites[self.offsets[i] as usize..self.offsets[i + 1] as usize]
+    }
+
+    /// Appends a point of `sites` (their weights are scaled to sum to 1; equal if they sum to
+    /// nothing).
+    pub fn push(&mut self, sites: impl IntoIterator<Item = Site>) {
+        if self.offsets.is_empty() {
+            self.offsets.push(0);
+        }
+        let start = self.sites.len();
+        self.sites.extend(sites);
+        let added = &mut self.sites[start..];
+        let total: f64 = added.iter().map(|s| s.weight).sum();
+        let count = added.len() as f64;
+        for s in added.iter_mut() {
+            s.weight = if total > 0.0 {
+                s.weight / total
+            } else {
+                1.0 / count
+            };
+        }
+        self.offsets.push(self.sites.len() as u32);
+    }
+}
+
+/// How densely a point is sampled.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Gather {
+    /// Gather rays per point (shared among its sites by weight, at least 16 per site, on a
+    /// square grid of strata).
+    pub rays: usize,
+    /// Shadow rays per sampled emitter relative to the standard 16 to 256
+    /// ([`super::area::Sampling::density`]).
+    pub density: f64,
+    /// Seeds the sampling (with each site's place, not the frame).
+    pub seed: u64,
+}
+
+/// Gather rays per point of [`Gather::standard`].
+pub const GATHER_RAYS: usize = 256;
+
+impl Gather {
+    /// The standard sampling with `seed`: [`GATHER_RAYS`] gather rays per point, and each
+    /// emitter sampled with the standard grid.
+    #[must_use]
+    pub fn standard(seed: u64) -> Self {
+        Self {
+            rays: GATHER_RAYS,
+            density: 1.0,
+            seed,
+        }
+    }
+}
+
+/// What a frame is lit with: materials (the scene's or a relighting's), the punctual lights'
+/// power (colour × intensity, in the scene's order) and the sky's radiance.
+#[derive(Clone, Copy, Debug)]
+pub struct Lighting<'a> {
+    /// Reflectance and emission per material.
+    pub materials: &'a [Material],
+    /// Colour × intensity per punctual light.
+    pub power: &'a [[f64; 3]],
+    /// Radiance of everything outside the scene.
+    pub sky: [f64; 3],
+}
+
+/// A frame's solved patches, as the gather reads them.
+#[derive(Clone, Copy, Debug)]
+pub struct Solved<'a> {
+    /// Outgoing radiance per patch.
+    pub radiance: &'a [[f64; 3]],
+    /// Its standard error (`None`: no line crossed the patch).
+    pub stderr: &'a [Option<[f64; 3]>],
+    /// The irradiance each patch receives straight from the punctual lights and the sampled
+    /// emitters (its mean over the patch; empty when there are none): a gather ray that meets a
+    /// patch nearby reads the patch's light less this, plus the direct light where it lands.
+    pub direct: &'a [[f64; 3]],
+}
+
+/// The radiance at one output point and its standard error.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct PointRadiance {
+    /// Outgoing radiance, RGB, in the scene's emission units.
+    pub radiance: [f64; 3],
+    /// Its standard error.
+    pub stderr: [f64; 3],
+}
+
+/// The point of `site` on `place` (its face at the frame), a hair inside the face's edges.
+pub(super) fn site_point(site: &Site, place: &Place) -> DVec3 {
+    let [a, b, c] = place.corners;
+    let x = a * site.bary[0] + b * site.bary[1] + c * site.bary[2];
+    into_inset(x, &place.corners)
+}
+
+/// A gather ray that meets a patch closer than this many times the patch's size (the square
+/// root of its area) reads the direct light where it lands rather than the patch's mean: in a
+/// corner, the wall beside a floor's vertex is lit unlike its mean (darker, or in a lamp's
+/// pool), and the wall's part the vertex sees is that one.
+pub const NEAR_HIT: f64 = 1.0;
+
+/// The seed of `site`'s sampling: its place, whatever the frame.
+pub(super) fn site_seed(seed: u64, site: &Site) -> u64 {
+    let bary = (site.bary[1] * f64::from(1u32 << 30)) as u64
+        ^ ((site.bary[2] * f64::from(1u32 << 30)) as u64) << 30;
+    mix(seed ^ mix((u64::from(site.triangle) << 1 | u64::from(site.back)) ^ mix(bary)))
+}
+
+/// The radiance at each of `points` at `frame`: the scene and its tracer, the bake's sampled
+/// emitters `area`, the frame's solved patches `solved` and the `lighting` they were solved
+/// with, sampled as `gather` says (module docs).
+#[must_use]
+pub fn radiance_at(
+    (scene, tracer, area): (&Scene, &SceneTracer, &AreaLights),
+    frame: usize,
+    points: &Points,
+    (solved, lighting): (Solved<'_>, Lighting<'_>),
+    gather: Gather,
+) -> Vec<PointRadiance> {
+    let posed = Posed::at(scene, tracer, frame);
+    let view = posed.frame(scene, tracer, Occluders::All);
+    let (places, _) = places(scene, &view);
+    let emitters: Vec<_> = (area.posed_materials(scene, tracer, &posed.triangles).into_iter())
+        .filter_map(|(emitter, m)| {
+            let le = lighting.materials.get(m as usize)?.emission;
+            le.iter().any(|&e| e > 0.0).then_some((emitter, le))
+        })
+        .collect();
+    // The emission the gather leaves out: the sampled emitters', which the direct term has.
+    let seen: Vec<[f64; 3]> = (scene.patches.iter())
+        .map(|p| match lighting.materials.get(p.material as usize) {
+            Some(m) if area.samples(p.material) => m.emission,
+            _ => [0.0; 3],
+        })
+        .collect();
+    // Each patch's size, in normalised units, for [`NEAR_HIT`].
+    let radius = scene.normalisation.radius;
+    let sizes: Vec<f64> = (scene.patches.iter())
+        .map(|p| p.area.sqrt() / radius)
+        .collect();
+    let gatherer = Gatherer {
+        scene,
+        sight: Sight::new(scene, &view, frame, lighting.power),
+        places: &places,
+        emitters: &emitters,
+        seen: &seen,
+        sizes: &sizes,
+        solved,
+        lighting,
+        gather,
+    };
+    (0..points.len())
+        .into_par_iter()
+        .map_init(Vec::new, |hits, i| gatherer.point(points.point(i), hits))
+        .collect()
+}
+
+/// What a point's evaluation reads.
+struct Gatherer<'a> {
+    scene: &'a Scene,
+    sight: Sight<'a>,
+    places: &'a [Place],
+    /// The sampled emitters posed at the frame, with their emission.
+    emitters: &'a [(super::area::Emitter, [f64; 3])],
+    /// Per patch, the emission the gather leaves out.
+    seen: &'a [[f64; 3]],
+    /// Per patch, its size (normalised units).
+    sizes: &'a [f64],
+    solved: Solved<'a>,
+    lighting: Lighting<'a>,
+    gather: Gather,
+}
+
+impl Gatherer<'_> {
+    /// The weighted mean of `sites`' radiance.
+    fn point(&self, sites: &[Site], hits: &mut Vec<Hit>) -> PointRadiance {
+        let (mut radiance, mut variance, mut read) = ([0.0; 3], [0.0; 3], [0.0; 3]);
+        for site in sites {
+            let (l, v, r) = self.site(site, hits);
+            for c in 0..3 {
+                radiance[c] += site.weight * l[c];
+                variance[c] += site.weight * site.weight * v[c];
+                read[c] += site.weight * r[c];
+            }
+        }
+        PointRadiance {
+            radiance,
+            stderr: std::array::from_fn(|c| (variance[c] + read[c] * read[c]).sqrt()),
+        }
+    }
+
+    /// The radiance at `site`, the variance of its sampling, and the error of the patches its
+    /// gather read (a standard error, correlated between sites).
+    fn site(&self, site: &Site, hits: &mut Vec<Hit>) -> ([f64; 3], [f64; 3], [f64; 3]) {
+        let place = &self.places[2 * site.triangle as usize + usize::from(site.back)];
+        let faces = self.sight.view.triangles[site.triangle as usize].1;
+        let patch = if site.back { faces.back } else { Some(faces.front) };
+        let Some(material) = patch
+            .and_then(|p| self.scene.patches.get(p as usize))
+            .and_then(|p| self.lighting.materials.get(p.material as usize))
+        else {
+            return ([0.0; 3], [0.0; 3], [0.0; 3]);
+        };
+        let (le, rho) = (material.emission, material.reflectance);
+        let x = site_point(site, place);
+        let (n, own) = (place.normal, (place.triangle, place.back));
+        if rho == [0.0; 3] || n == DVec3::ZERO || self.sight.view.covered(x, n, own) {
+            return (le, [0.0; 3], [0.0; 3]);
+        }
+        let seed = site_seed(self.gather.seed, site);
+        let pi = std::f64::consts::PI;
+        let mut e = self.sight.punctual(x, place, hits);
+        let mut variance = [0.0; 3];
+        // The sampled emitters, by solid angle.
+        let scale = site.weight.sqrt();
+        for (k, (emitter, emission)) in self.emitters.iter().enumerate() {
+            let g = point_grid(x, emitter, self.gather.density);
+            let g = ((g as f64 * scale).round() as usize).max(4);
+            let (f, v) = point_form_factor(
+                self.sight.view,
+                (x, n, own.0, own.1),
+                emitter,
+                (mix(seed ^ k as u64), g),
+            );
+            for c in 0..3 {
+                e[c] += pi * emission[c] * f;
+                variance[c] += (pi * emission[c]).powi(2) * v;
+            }
+        }
+        // The rest, gathered from the solution along stratified cosine-weighted rays.
+        let g = ((self.gather.rays as f64 * site.weight).sqrt().ceil() as usize).max(4);
+        let mut rng = Xoshiro256PlusPlus::seed_from_u64(mix(seed ^ 0x6761_7468));
+        let mut values = vec![[0.0; 3]; g * g];
+        let mut read = [0.0; 3];
+        for (k, value) in values.iter_mut().enumerate() {
+            let u = ((k / g) as f64 + rng.random::<f64>()) / g as f64;
+            let v = ((k % g) as f64 + rng.random::<f64>()) / g as f64;
+            let w = cosine_direction_at(n, u, v);
+            let met = self.sight.first_hit(x, w, place, hits);
+            *value = match met {
+                Met::Sky => self.lighting.sky.map(|s| pi * s),
+                Met::Nothing => [0.0; 3],
+                Met::Patch(face, p, t) => {
+                    if let Some(Some(s)) = self.solved.stderr.get(p) {
+                        (0..3).for_each(|c| read[c] += pi * s[c]);
+                    }
+                    let l = self.reflected(p, (face, x + w * t), t, (mix(seed ^ k as u64), hits));
+                    l.map(|l| pi * l)
+                }
+            };
+        }
+        let count = (g * g) as f64;
+        for c in 0..3 {
+            let channel: Vec<f64> = values.iter().map(|v| v[c]).collect();
+            let (mean, var) = super::collapsed_variance(&channel);
+            e[c] += mean;
+            variance[c] += var;
+        }
+        let to_radiance = |c: usize| rho[c] * std::f64::consts::FRAC_1_PI;
+        (
+            std::array::from_fn(|c| le[c] + to_radiance(c) * e[c]),
+            std::array::from_fn(|c| to_radiance(c).powi(2) * variance[c]),
+            std::array::from_fn(|c| to_radiance(c) * read[c] / count),
+        )
+    }
+
+    /// The radiance patch `p` sends back along a gather ray that meets its face `face` at
+    /// `y`, `t` from the point, less the sampled emitters' emission: the patch's solved
+    /// radiance; or, closer than [`NEAR_HIT`] times the patch's size, its emission plus the
+    /// light reflected at `y` itself, from one sample of each light (one stratum, `seed`) and
+    /// one cosine-weighted ray reading the patch it meets: unbiased for the light at `y` given
+    /// the solution, and the many rays of a point average it.
+    fn reflected(
+        &self,
+        p: usize,
+        (face, y): (usize, DVec3),
+        t: f64,
+        (seed, hits): (u64, &mut Vec<Hit>),
+    ) -> [f64; 3] {
+        let read = |q: usize| -> [f64; 3] {
+            let l = self.solved.radiance.get(q).copied().unwrap_or_default();
+            std::array::from_fn(|c| (l[c] - self.seen[q][c]).max(0.0))
+        };
+        let material = (self.scene.patches.get(p))
+            .and_then(|patch| self.lighting.materials.get(patch.material as usize));
+        let Some(material) = material.filter(|_| t < NEAR_HIT * self.sizes[p]) else {
+            return read(p);
+        };
+        let pi = std::f64::consts::PI;
+        let place = &self.places[face];
+        let y = into_inset(y, &place.corners);
+        let (n, tri, back) = (place.normal, place.triangle, place.back);
+        let mut e = self.sight.punctual(y, place, hits);
+        let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed);
+        for (k, (emitter, emission)) in self.emitters.iter().enumerate() {
+            let sample = (mix(seed ^ k as u64), 1);
+            let (f, _) = point_form_factor(self.sight.view, (y, n, tri, back), emitter, sample);
+            (0..3).for_each(|c| e[c] += pi * emission[c] * f);
+        }
+        let w = cosine_direction_at(n, rng.random(), rng.random());
+        let gathered = match self.sight.first_hit(y, w, place, hits) {
+            Met::Sky => self.lighting.sky,
+            Met::Nothing => [0.0; 3],
+            Met::Patch(_, q, _) => read(q),
+        };
+        std::array::from_fn(|c| {
+            let le = material.emission[c] - self.seen[p][c];
+            le.max(0.0) + material.reflectance[c] / pi * (e[c] + pi * gathered[c])
+        })
+    }
+}
