@@ -729,7 +729,9 @@ impl BenchVerticesArgs {
             paths: self.paths,
         };
         let points = vertex_points(&scenes, bench, |p| {
-            let show = |x: Option<f64>| x.map_or_else(|| "-".to_string(), |x| format!("{:.2}%", 100.0 * x));
+            let show = |x: Option<f64>| {
+                x.map_or_else(|| "-".to_string(), |x| format!("{:.2}%", 100.0 * x))
+            };
             for (what, m) in [("at vertices", &p.evaluated), ("averaged  ", &p.averaged)] {
                 eprintln!(
                     "{:<20} {what}  RMS {}  creases {} ({} too bright)  median {}  p90 {}  bias {}  within 2σ {}  dark max {}  reference noise {}",

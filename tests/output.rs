@@ -109,7 +109,10 @@ fn vertices_are_split_at_creases_and_stand_for_their_own_faces() {
         .find(|&v| mesh.corners_of(v).len() == 2 && mesh.normals[v].as_dvec3() == up)
         .unwrap();
     let angles: f64 = mesh.corners_of(v).iter().map(|c| c.angle).sum();
-    assert!((angles - std::f64::consts::FRAC_PI_2).abs() < 1e-9, "{angles}");
+    assert!(
+        (angles - std::f64::consts::FRAC_PI_2).abs() < 1e-9,
+        "{angles}"
+    );
 }
 
 #[test]
@@ -141,10 +144,7 @@ fn the_baked_glb_loads_back_with_colours_per_vertex() {
     let mut meshes = frame_geometry(&scene, 0);
     // Values of any kind, one per vertex: the file carries what it is given.
     let mesh = &mut meshes[0];
-    for (v, (l, e)) in (mesh.radiance.iter_mut())
-        .zip(&mut mesh.stderr)
-        .enumerate()
-    {
+    for (v, (l, e)) in (mesh.radiance.iter_mut()).zip(&mut mesh.stderr).enumerate() {
         *l = [v as f64, 2.0 * v as f64, 0.5];
         *e = [0.1 * v as f64, 0.2, 0.3];
     }

@@ -45,6 +45,8 @@ pub struct Bake {
     /// The scene as it was before [`Bake::split`] cut its triangles for the pieces: the same
     /// patches, drawn with their own triangles ([`Bake::shown`]).
     shown: Option<Scene>,
+    /// What the light at the outputs' points keeps across frames ([`Bake::radiance_at`]).
+    gathered: crate::direct::points::GatherCache,
 }
 
 /// What [`Bake::split`] solves: every face of the patches, cut finer where the lines cross it
@@ -165,6 +167,7 @@ impl Bake {
             inherited: false,
             pieces: None,
             shown: None,
+            gathered: Default::default(),
         })
     }
 
@@ -676,6 +679,7 @@ impl Bake {
             + self.direct.memory()
             + self.area.memory()
             + pieces
+            + self.gathered.bytes()
     }
 
     /// The scene to draw: the bake's patches on the triangles they had before [`Bake::split`]

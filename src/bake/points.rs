@@ -15,7 +15,10 @@ impl Bake {
     /// on the traced triangle of the same patch and side that holds that point, weighed by the
     /// corner's angle. Located at frame 0; a site moves with its triangle.
     #[must_use]
-    pub fn points_at_corners<'a>(&self, vertices: impl IntoIterator<Item = &'a [Corner]>) -> Points {
+    pub fn points_at_corners<'a>(
+        &self,
+        vertices: impl IntoIterator<Item = &'a [Corner]>,
+    ) -> Points {
         let shown = self.shown().triangles_at(0);
         let traced = self.scene.triangles_at(0);
         let corners = |t: usize, list: &[([glam::Vec3; 3], _)]| list[t].0.map(|c| c.as_dvec3());
@@ -75,7 +78,8 @@ impl Bake {
             ..solved
         };
         let state = (&self.scene, &self.tracer, &self.area);
-        crate::direct::points::radiance_at(state, frame, points, (solved, lighting), gather)
+        let sampling = (gather, &self.gathered);
+        crate::direct::points::radiance_at(state, frame, points, (solved, lighting), sampling)
     }
 }
 
@@ -86,7 +90,7 @@ fn barycentric(x: DVec3, t: &[DVec3; 3]) -> [f64; 3] {
     let (d00, d01, d11) = (e0.dot(e0), e0.dot(e1), e1.dot(e1));
     let (d20, d21) = (d.dot(e0), d.dot(e1));
     let det = d00 * d11 - d01 * d01;
-    if !(det > 0.0) || !det.is_finite() {
+    if det <= 0.0 || !det.is_finite() {
         return [1.0 / 3.0; 3];
     }
     let v = (d11 * d20 - d01 * d21) / det;

@@ -122,6 +122,7 @@ impl Bake {
             inherited: read.inherited,
             pieces,
             shown: read.shown,
+            gathered: Default::default(),
         })
     }
 }

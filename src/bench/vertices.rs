@@ -154,10 +154,8 @@ pub fn vertex_points(
             let at = Vertices::of(bake, f, meshes, &run.solved[f].radiance);
             let values: Vec<PointRadiance> = (meshes.iter())
                 .flat_map(|m| {
-                    (m.radiance.iter().zip(&m.stderr)).map(|(&radiance, &stderr)| PointRadiance {
-                        radiance,
-                        stderr,
-                    })
+                    (m.radiance.iter().zip(&m.stderr))
+                        .map(|(&radiance, &stderr)| PointRadiance { radiance, stderr })
                 })
                 .collect();
             evaluated.add(&at, &values, &halves);
@@ -218,7 +216,9 @@ impl Vertices {
         for mesh in meshes {
             let mut at: std::collections::HashMap<[u64; 3], Vec<usize>> = Default::default();
             for (v, p) in mesh.positions.iter().enumerate() {
-                at.entry(p.to_array().map(f64::to_bits)).or_default().push(v);
+                at.entry(p.to_array().map(f64::to_bits))
+                    .or_default()
+                    .push(v);
             }
             for v in 0..mesh.positions.len() {
                 let corners = mesh.corners_of(v);
@@ -228,7 +228,11 @@ impl Vertices {
                     let (t, faces) = &triangles[c.triangle as usize];
                     let [a, b, d] = t.map(|x| x.as_dvec3());
                     let face_area = 0.5 * (b - a).cross(d - a).length();
-                    let patch = if c.back { faces.back } else { Some(faces.front) };
+                    let patch = if c.back {
+                        faces.back
+                    } else {
+                        Some(faces.front)
+                    };
                     let Some(patch) = patch else { continue };
                     let m = &shown.materials[shown.patches[patch as usize].material as usize];
                     material = (m.reflectance, m.emission);
@@ -259,11 +263,14 @@ impl Vertices {
 /// The cosine of the angle past which two vertices at one place are on a crease.
 const CREASE_COS: f64 = 0.866_025_403_784_438_6;
 
+/// One lit value: its weight, relative error, the reference's relative half difference, and
+/// whether its vertex is on a crease.
+type LitValue = (f64, f64, f64, bool);
+
 /// Sums towards a [`VertexMeasured`].
 #[derive(Default)]
 struct Tally {
-    /// (weight, relative error, reference's relative half difference, crease, too bright)
-    lit: Vec<(f64, f64, f64, bool)>,
+    lit: Vec<LitValue>,
     within: f64,
     baked: f64,
     traced: f64,
@@ -321,7 +328,7 @@ impl Tally {
     }
 
     fn finish(mut self) -> VertexMeasured {
-        let rms = |keep: &dyn Fn(&(f64, f64, f64, bool)) -> bool| {
+        let rms = |keep: &dyn Fn(&LitValue) -> bool| {
             let (mut sum, mut noise, mut weight) = (0.0, 0.0, 0.0);
             for v in self.lit.iter().filter(|v| keep(v)) {
                 sum += v.0 * v.1 * v.1;
@@ -335,9 +342,8 @@ impl Tally {
         let creases: Vec<_> = self.lit.iter().filter(|v| v.3).collect();
         let too_bright = (!creases.is_empty())
             .then(|| creases.iter().filter(|v| v.1 > 0.0).count() as f64 / creases.len() as f64);
-        let noise = measured.then(|| {
-            (self.lit.iter().map(|v| v.0 * v.2 * v.2).sum::<f64>() / weight).sqrt()
-        });
+        let noise = measured
+            .then(|| (self.lit.iter().map(|v| v.0 * v.2 * v.2).sum::<f64>() / weight).sqrt());
         let out = VertexMeasured {
             rms: rms(&|_| true),
             crease_rms: rms(&|v| v.3),

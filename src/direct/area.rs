@@ -1017,7 +1017,7 @@ pub(super) fn form_factor(
         };
         let (u, v) = cell(k, jitter[0], jitter[1]);
         let x = triangle_point(&receiver, u, v);
-        if e.dot(x - origin) <= 0.0 {
+        if !in_front(e.dot(x - origin)) {
             continue;
         }
         fans_above(emitter, n, x, &mut fans);
@@ -1047,6 +1047,15 @@ pub(super) fn form_factor(
     stratified_estimate(&values, (eligible, seen), squares)
 }
 
+/// Whether a point `height` above an emitter's plane (along its normal, normalised units) is
+/// in front of it: by more than rounding. A point in the emitter's own plane (a double-sided
+/// panel's other face, a coplanar neighbour) gets none of its light; by rounding a hair in
+/// front, it would see the emitter under a whole hemisphere's solid angle at grazing angles,
+/// and sampled there, a direction a hair out of the plane reads as a bright one.
+fn in_front(height: f64) -> bool {
+    height > f64::from(crate::trace::coincident::COINCIDENT)
+}
+
 /// The parts of `emitter`'s triangles in front of the plane through `x` with normal `n`, as
 /// triangles, into `fans` (cleared first).
 fn fans_above(emitter: &Emitter, n: DVec3, x: DVec3, fans: &mut Vec<[DVec3; 3]>) {
@@ -1072,7 +1081,11 @@ fn fans_above(emitter: &Emitter, n: DVec3, x: DVec3, fans: &mut Vec<[DVec3; 3]>)
 /// that estimate is unreliable (neighbouring strata on the same side of the edge agree, and the
 /// strata the edge cuts are few): there, never less than the binomial variance of the visible
 /// fraction, as if the rays were independent (wider than stratified sampling's).
-fn stratified_estimate(values: &[f64], (eligible, seen): (usize, usize), squares: f64) -> (f64, f64) {
+fn stratified_estimate(
+    values: &[f64],
+    (eligible, seen): (usize, usize),
+    squares: f64,
+) -> (f64, f64) {
     let count = values.len();
     let (mean, collapsed) = super::collapsed_variance(values);
     let binomial = if seen > 0 && seen < eligible {
@@ -1096,7 +1109,7 @@ pub(super) fn point_form_factor(
     (seed, g): (u64, usize),
 ) -> (f64, f64) {
     let e = emitter.normal;
-    if n == DVec3::ZERO || e == DVec3::ZERO || e.dot(x - emitter.hull[0]) <= 0.0 {
+    if n == DVec3::ZERO || e == DVec3::ZERO || !in_front(e.dot(x - emitter.hull[0])) {
         return (0.0, 0.0);
     }
     let mut fans = Vec::with_capacity(2 * emitter.triangles.len());
@@ -1378,6 +1391,32 @@ mod tests {
                 let (y, f) = sample_fans(DVec3::ZERO, DVec3::Z, -DVec3::Z, &fans(&square), u, v)
                     .expect("a sample");
                 assert!((y.z - h).abs() < 1e-12 && (0.0..=0.5).contains(&y.x), "{y}");
+                sum += f;
+            }
+        }
+        let f = sum / (g * g) as f64;
+        assert!((f / exact - 1.0).abs() < 1e-3, "{f} vs {exact}");
+    }
+
+    #[test]
+    fn sampling_in_solid_angle_integrates_a_large_square_seen_from_close_by() {
+        // A point 1 cm under the middle of an edge of a 1 m square (a panel under a ceiling):
+        // two rectangles of 0.5 × 1 under a corner, F = 0.4999.
+        let h = 0.01;
+        let square = [
+            DVec3::new(-0.5, 0.0, h),
+            DVec3::new(0.5, 0.0, h),
+            DVec3::new(0.5, 1.0, h),
+            DVec3::new(-0.5, 1.0, h),
+        ];
+        let exact = 2.0 * corner(0.5, 1.0, h);
+        let g = 256;
+        let mut sum = 0.0;
+        for i in 0..g {
+            for j in 0..g {
+                let (u, v) = ((i as f64 + 0.5) / g as f64, (j as f64 + 0.5) / g as f64);
+                let (_, f) = sample_fans(DVec3::ZERO, DVec3::Z, -DVec3::Z, &fans(&square), u, v)
+                    .expect("a sample");
                 sum += f;
             }
         }

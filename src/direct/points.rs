@@ -202,6 +202,12 @@ pub(super) fn site_point(site: &Site, place: &Place) -> DVec3 {
 /// pool), and the wall's part the vertex sees is that one.
 pub const NEAR_HIT: f64 = 1.0;
 
+/// Bounces at most that [`NEAR_HIT`] follows on from a gather ray's point before reading a
+/// patch's solved radiance (Russian roulette ends most paths long before: in a 1 cm gap
+/// between a ceiling and a panel, where every surface is near, the path goes on until it
+/// leaves the gap or is absorbed, as light does).
+pub const NEAR_BOUNCES: usize = 64;
+
 /// The seed of `site`'s sampling: its place, whatever the frame.
 pub(super) fn site_seed(seed: u64, site: &Site) -> u64 {
     let bary = (site.bary[1] * f64::from(1u32 << 30)) as u64
@@ -218,17 +224,23 @@ pub fn radiance_at(
     frame: usize,
     points: &Points,
     (solved, lighting): (Solved<'_>, Lighting<'_>),
-    gather: Gather,
+    (gather, cache): (Gather, &GatherCache),
 ) -> Vec<PointRadiance> {
     let posed = Posed::at(scene, tracer, frame);
     let view = posed.frame(scene, tracer, Occluders::All);
+    let statics = posed.frame(scene, tracer, Occluders::Static);
+    let moving = posed.frame(scene, tracer, Occluders::Moving);
+    let statics_count = scene.statics.triangles.len();
+    cache.keep_for(statics_count);
     let (places, _) = places(scene, &view);
-    let emitters: Vec<_> = (area.posed_materials(scene, tracer, &posed.triangles).into_iter())
-        .filter_map(|(emitter, m)| {
-            let le = lighting.materials.get(m as usize)?.emission;
-            le.iter().any(|&e| e > 0.0).then_some((emitter, le))
-        })
-        .collect();
+    let emitters: Vec<_> = (area
+        .posed_materials(scene, tracer, &posed.triangles)
+        .into_iter())
+    .filter_map(|(emitter, m)| {
+        let le = lighting.materials.get(m as usize)?.emission;
+        le.iter().any(|&e| e > 0.0).then_some((emitter, le))
+    })
+    .collect();
     // The emission the gather leaves out: the sampled emitters', which the direct term has.
     let seen: Vec<[f64; 3]> = (scene.patches.iter())
         .map(|p| match lighting.materials.get(p.material as usize) {
@@ -244,6 +256,11 @@ pub fn radiance_at(
     let gatherer = Gatherer {
         scene,
         sight: Sight::new(scene, &view, frame, lighting.power),
+        statics: Sight::new(scene, &statics, frame, lighting.power),
+        moving: (!scene.objects.is_empty())
+            .then(|| Sight::new(scene, &moving, frame, lighting.power)),
+        statics_count,
+        cache,
         places: &places,
         emitters: &emitters,
         seen: &seen,
@@ -262,6 +279,13 @@ pub fn radiance_at(
 struct Gatherer<'a> {
     scene: &'a Scene,
     sight: Sight<'a>,
+    /// The static geometry alone, and the moving geometry alone (if any).
+    statics: Sight<'a>,
+    moving: Option<Sight<'a>>,
+    /// Traced triangles below this index are static.
+    statics_count: usize,
+    /// The static crossings of the static sites' gather rays.
+    cache: &'a GatherCache,
     places: &'a [Place],
     /// The sampled emitters posed at the frame, with their emission.
     emitters: &'a [(super::area::Emitter, [f64; 3])],
@@ -297,7 +321,11 @@ impl Gatherer<'_> {
     fn site(&self, site: &Site, hits: &mut Vec<Hit>) -> ([f64; 3], [f64; 3], [f64; 3]) {
         let place = &self.places[2 * site.triangle as usize + usize::from(site.back)];
         let faces = self.sight.view.triangles[site.triangle as usize].1;
-        let patch = if site.back { faces.back } else { Some(faces.front) };
+        let patch = if site.back {
+            faces.back
+        } else {
+            Some(faces.front)
+        };
         let Some(material) = patch
             .and_then(|p| self.scene.patches.get(p as usize))
             .and_then(|p| self.lighting.materials.get(p.material as usize))
@@ -331,15 +359,24 @@ impl Gatherer<'_> {
             }
         }
         // The rest, gathered from the solution along stratified cosine-weighted rays.
-        let g = ((self.gather.rays as f64 * site.weight).sqrt().ceil() as usize).max(4);
-        let mut rng = Xoshiro256PlusPlus::seed_from_u64(mix(seed ^ 0x6761_7468));
-        let mut values = vec![[0.0; 3]; g * g];
+        let directions = self.directions(site, n, seed);
+        // On static geometry, the rays' static crossings are the same at every frame: traced
+        // once, and each frame traces the moving objects alone, as far as the static crossing.
+        let crossings = (site.triangle as usize) < self.statics_count;
+        let crossings = crossings.then(|| {
+            self.cache.crossings(site, || {
+                (directions.iter())
+                    .map(|&w| Crossing::of(self.statics.first_hit(x, w, place, hits)))
+                    .collect()
+            })
+        });
+        let mut values = vec![[0.0; 3]; directions.len()];
         let mut read = [0.0; 3];
-        for (k, value) in values.iter_mut().enumerate() {
-            let u = ((k / g) as f64 + rng.random::<f64>()) / g as f64;
-            let v = ((k % g) as f64 + rng.random::<f64>()) / g as f64;
-            let w = cosine_direction_at(n, u, v);
-            let met = self.sight.first_hit(x, w, place, hits);
+        for (k, (value, &w)) in values.iter_mut().zip(&directions).enumerate() {
+            let met = match &crossings {
+                Some(crossings) => self.with_moving(crossings[k], (x, w, place), hits),
+                None => self.sight.first_hit(x, w, place, hits),
+            };
             *value = match met {
                 Met::Sky => self.lighting.sky.map(|s| pi * s),
                 Met::Nothing => [0.0; 3],
@@ -347,12 +384,13 @@ impl Gatherer<'_> {
                     if let Some(Some(s)) = self.solved.stderr.get(p) {
                         (0..3).for_each(|c| read[c] += pi * s[c]);
                     }
-                    let l = self.reflected(p, (face, x + w * t), t, (mix(seed ^ k as u64), hits));
+                    let on = (mix(seed ^ k as u64), &mut *hits);
+                    let l = self.reflected(p, (face, x + w * t), (t, 0), on);
                     l.map(|l| pi * l)
                 }
             };
         }
-        let count = (g * g) as f64;
+        let count = directions.len() as f64;
         for c in 0..3 {
             let channel: Vec<f64> = values.iter().map(|v| v[c]).collect();
             let (mean, var) = super::collapsed_variance(&channel);
@@ -367,17 +405,58 @@ impl Gatherer<'_> {
         )
     }
 
+    /// The gather rays' directions at `site` (normal `n`): a square grid of strata of the
+    /// cosine-weighted hemisphere, of about the site's share of [`Gather::rays`] (at least
+    /// 16), jittered by `seed`: the same at every frame.
+    fn directions(&self, site: &Site, n: DVec3, seed: u64) -> Vec<DVec3> {
+        let g = ((self.gather.rays as f64 * site.weight).sqrt().ceil() as usize).max(4);
+        let mut rng = Xoshiro256PlusPlus::seed_from_u64(mix(seed ^ 0x6761_7468));
+        (0..g * g)
+            .map(|k| {
+                let u = ((k / g) as f64 + rng.random::<f64>()) / g as f64;
+                let v = ((k % g) as f64 + rng.random::<f64>()) / g as f64;
+                cosine_direction_at(n, u, v)
+            })
+            .collect()
+    }
+
+    /// What the ray from `x` (on `place`) along `w`, whose first static crossing is
+    /// `crossing`, meets first at this frame: a moving object before it, or it.
+    fn with_moving(
+        &self,
+        crossing: Crossing,
+        (x, w, place): (DVec3, DVec3, &Place),
+        hits: &mut Vec<Hit>,
+    ) -> Met {
+        let fixed = crossing.met(self.sight.view);
+        let Some(moving) = &self.moving else {
+            return fixed;
+        };
+        let reach = match fixed {
+            Met::Patch(_, _, t) => t,
+            _ => f64::INFINITY,
+        };
+        match moving.first_hit_within(x, w, place, hits, reach) {
+            Met::Patch(face, p, t) if t < reach => Met::Patch(face, p, t),
+            Met::Nothing => Met::Nothing,
+            _ => fixed,
+        }
+    }
+
     /// The radiance patch `p` sends back along a gather ray that meets its face `face` at
     /// `y`, `t` from the point, less the sampled emitters' emission: the patch's solved
     /// radiance; or, closer than [`NEAR_HIT`] times the patch's size, its emission plus the
     /// light reflected at `y` itself, from one sample of each light (one stratum, `seed`) and
-    /// one cosine-weighted ray reading the patch it meets: unbiased for the light at `y` given
-    /// the solution, and the many rays of a point average it.
+    /// one cosine-weighted ray on from `y`, itself read the same way up to [`NEAR_BOUNCES`]
+    /// times with Russian roulette (in a gap or a corner, where the light falls off within a
+    /// patch, the next surface is near too, and a patch's mean is far from the light where the
+    /// ray lands): unbiased for the light at `y` given the solution far from it, and the many
+    /// rays of a point average it.
     fn reflected(
         &self,
         p: usize,
         (face, y): (usize, DVec3),
-        t: f64,
+        (t, depth): (f64, usize),
         (seed, hits): (u64, &mut Vec<Hit>),
     ) -> [f64; 3] {
         let read = |q: usize| -> [f64; 3] {
@@ -386,7 +465,8 @@ impl Gatherer<'_> {
         };
         let material = (self.scene.patches.get(p))
             .and_then(|patch| self.lighting.materials.get(patch.material as usize));
-        let Some(material) = material.filter(|_| t < NEAR_HIT * self.sizes[p]) else {
+        let near = depth < NEAR_BOUNCES && t < NEAR_HIT * self.sizes[p];
+        let Some(material) = material.filter(|_| near) else {
             return read(p);
         };
         let pi = std::f64::consts::PI;
@@ -400,15 +480,137 @@ impl Gatherer<'_> {
             let (f, _) = point_form_factor(self.sight.view, (y, n, tri, back), emitter, sample);
             (0..3).for_each(|c| e[c] += pi * emission[c] * f);
         }
+        // Russian roulette after the first bounces: the path goes on with the largest
+        // reflectance's probability, and what it brings back is divided by it.
+        let rho = material.reflectance;
+        let survive = if depth >= 2 {
+            rho.iter().fold(0.0f64, |m, &r| m.max(r)).min(1.0)
+        } else {
+            1.0
+        };
         let w = cosine_direction_at(n, rng.random(), rng.random());
-        let gathered = match self.sight.first_hit(y, w, place, hits) {
-            Met::Sky => self.lighting.sky,
-            Met::Nothing => [0.0; 3],
-            Met::Patch(_, q, _) => read(q),
+        let gathered = if survive > 0.0 && rng.random::<f64>() < survive {
+            let met = self.sight.first_hit(y, w, place, hits);
+            let l = match met {
+                Met::Sky => self.lighting.sky,
+                Met::Nothing => [0.0; 3],
+                Met::Patch(next, q, t) => {
+                    let on = (mix(seed ^ 0x6e65_6172), &mut *hits);
+                    self.reflected(q, (next, y + w * t), (t, depth + 1), on)
+                }
+            };
+            l.map(|l| l / survive)
+        } else {
+            [0.0; 3]
         };
         std::array::from_fn(|c| {
             let le = material.emission[c] - self.seen[p][c];
-            le.max(0.0) + material.reflectance[c] / pi * (e[c] + pi * gathered[c])
+            le.max(0.0) + rho[c] / pi * (e[c] + pi * gathered[c])
+        })
+    }
+}
+
+/// The first static crossing of a gather ray: a face (`2 × triangle + back`) at a distance,
+/// the sky, or nothing (a one-sided face's back, a contact).
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Crossing {
+    face: u32,
+    t: f32,
+}
+
+impl Crossing {
+    const SKY: u32 = u32::MAX;
+    const NOTHING: u32 = u32::MAX - 1;
+
+    fn of(met: Met) -> Self {
+        match met {
+            Met::Sky => Self {
+                face: Self::SKY,
+                t: 0.0,
+            },
+            Met::Nothing => Self {
+                face: Self::NOTHING,
+                t: 0.0,
+            },
+            Met::Patch(face, _, t) => Self {
+                face: face as u32,
+                t: t as f32,
+            },
+        }
+    }
+
+    /// What it is in the scene `view` shows (its face's patch as the scene's faces say now).
+    fn met(self, view: &super::Frame<'_>) -> Met {
+        match self.face {
+            Self::SKY => Met::Sky,
+            Self::NOTHING => Met::Nothing,
+            face => {
+                let faces = view.triangles[face as usize / 2].1;
+                let patch = if face % 2 == 1 {
+                    faces.back
+                } else {
+                    Some(faces.front)
+                };
+                patch.map_or(Met::Nothing, |p| {
+                    Met::Patch(face as usize, p as usize, f64::from(self.t))
+                })
+            }
+        }
+    }
+}
+
+/// What evaluating points keeps across frames: the first static crossing of every gather ray
+/// of every site on static geometry, filled as sites are first evaluated. Cost and memory
+/// grow with the static sites (8 bytes a ray), not with the frames; each later frame traces
+/// only the moving objects along them. Emptied when the scene's static triangles change (a
+/// bake's cuts and pieces).
+#[derive(Debug, Default)]
+pub struct GatherCache {
+    /// The static triangles the crossings were traced among, and the crossings by site.
+    inner: std::sync::RwLock<(usize, KeptCrossings)>,
+}
+
+/// A site, exactly.
+type SiteKey = (u32, bool, [u64; 3]);
+
+/// The static crossings of each site's gather rays.
+type KeptCrossings = std::collections::HashMap<SiteKey, std::sync::Arc<[Crossing]>>;
+
+impl GatherCache {
+    /// Empties the cache if its crossings were traced among another number of static
+    /// triangles than `statics`.
+    fn keep_for(&self, statics: usize) {
+        if let Ok(mut inner) = self.inner.write()
+            && inner.0 != statics
+        {
+            *inner = (statics, std::collections::HashMap::new());
+        }
+    }
+
+    /// The crossings of `site`, traced by `trace` if not kept.
+    fn crossings(
+        &self,
+        site: &Site,
+        trace: impl FnOnce() -> Vec<Crossing>,
+    ) -> std::sync::Arc<[Crossing]> {
+        let key = (site.triangle, site.back, site.bary.map(f64::to_bits));
+        if let Some(found) = self.inner.read().ok().and_then(|i| i.1.get(&key).cloned()) {
+            return found;
+        }
+        let traced: std::sync::Arc<[Crossing]> = trace().into();
+        if let Ok(mut inner) = self.inner.write() {
+            inner.1.insert(key, traced.clone());
+        }
+        traced
+    }
+
+    /// Bytes held.
+    #[must_use]
+    pub fn bytes(&self) -> usize {
+        self.inner.read().map_or(0, |i| {
+            i.1.values()
+                .map(|c| 48 + c.len() * size_of::<Crossing>())
+                .sum()
         })
     }
 }

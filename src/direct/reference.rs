@@ -35,6 +35,7 @@ use super::points::{PointRadiance, Points, Site, site_point, site_seed};
 use super::{
     Frame, Occluders, Posed, inset, into_inset, range_window, spot_attenuation, triangle_point,
 };
+use crate::lines::LINE_LENGTH;
 use crate::scene::subdivide::normal_and_area;
 use crate::scene::{LightKind, Scene};
 use crate::trace::coincident::{COINCIDENT, resolve};
@@ -185,7 +186,11 @@ fn with_tracer<R>(
     for (k, e) in emitters.iter().enumerate() {
         emitter_of[e.place] = Some(k);
     }
-    let power: Vec<[f64; 3]> = scene.lights.iter().map(crate::scene::Light::power).collect();
+    let power: Vec<[f64; 3]> = scene
+        .lights
+        .iter()
+        .map(crate::scene::Light::power)
+        .collect();
     f(&Tracer {
         scene,
         view: &view,
@@ -396,12 +401,26 @@ impl<'a> Sight<'a> {
 
     /// What the ray from `x` (on `place`) along unit `w` meets first.
     pub(super) fn first_hit(&self, x: DVec3, w: DVec3, place: &Place, hits: &mut Vec<Hit>) -> Met {
+        self.first_hit_within(x, w, place, hits, f64::INFINITY)
+    }
+
+    /// [`Sight::first_hit`] among the surfaces within `reach` of `x` (normalised units): the
+    /// sky beyond.
+    pub(super) fn first_hit_within(
+        &self,
+        x: DVec3,
+        w: DVec3,
+        place: &Place,
+        hits: &mut Vec<Hit>,
+        reach: f64,
+    ) -> Met {
         let behind = f64::from(4.0 * COINCIDENT);
         let line = Line {
             origin: (x - w * behind).as_vec3(),
             direction: w.as_vec3(),
         };
-        self.view.trace(&line, hits);
+        let t_max = (behind + reach + f64::from(COINCIDENT)).min(f64::from(LINE_LENGTH));
+        self.view.trace_until(&line, t_max as f32, hits);
         let start = behind as f32 + COINCIDENT;
         // A surface touching the point's face (a contact: a box resting on the floor) meets
         // the ray where it starts: nothing gets through (as for the lines and shadow rays).
@@ -420,8 +439,7 @@ impl<'a> Sight<'a> {
         // would be taken for one seam.)
         hits.retain(|h| h.t > start && h.surface() != place.triangle);
         let resolved = resolve(hits, &surfaces.along(line.direction));
-        let Some(hit) = resolved.as_deref().unwrap_or(hits).first()
-        else {
+        let Some(hit) = resolved.as_deref().unwrap_or(hits).first() else {
             return Met::Sky;
         };
         let faces = self.view.triangles[hit.surface() as usize].1;
@@ -521,10 +539,20 @@ impl Tracer<'_> {
 
     /// The radiance at `site`'s point from `paths × weight` paths (at least 2), and the
     /// variance of that mean.
-    fn site(&self, site: &Site, paths: usize, seed: u64, hits: &mut Vec<Hit>) -> ([f64; 3], [f64; 3]) {
+    fn site(
+        &self,
+        site: &Site,
+        paths: usize,
+        seed: u64,
+        hits: &mut Vec<Hit>,
+    ) -> ([f64; 3], [f64; 3]) {
         let place = &self.places[2 * site.triangle as usize + usize::from(site.back)];
         let faces = self.view.triangles[site.triangle as usize].1;
-        let patch = if site.back { faces.back } else { Some(faces.front) };
+        let patch = if site.back {
+            faces.back
+        } else {
+            Some(faces.front)
+        };
         let Some(patch) = patch else {
             return ([0.0; 3], [0.0; 3]);
         };
@@ -641,7 +669,6 @@ impl Tracer<'_> {
         let g = light.weight(cos_x, cos_y, r2);
         light.emission.map(|le| le * g)
     }
-
 }
 
 /// A direction about unit `n` with density cos θ / π.
