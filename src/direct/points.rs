@@ -202,6 +202,13 @@ pub(super) fn site_point(site: &Site, place: &Place) -> DVec3 {
 /// pool), and the wall's part the vertex sees is that one.
 pub const NEAR_HIT: f64 = 1.0;
 
+/// The relative standard error a site's radiance is gathered to: batches of gather rays are
+/// added until it is reached, or [`GATHER_BATCHES`] are traced.
+pub const GATHER_PRECISION: f64 = 0.05;
+
+/// Batches of gather rays a site gets at most (each about its share of [`Gather::rays`]).
+pub const GATHER_BATCHES: usize = 2;
+
 /// Bounces at most that [`NEAR_HIT`] follows on from a gather ray's point before reading a
 /// patch's solved radiance (Russian roulette ends most paths long before: in a 1 cm gap
 /// between a ceiling and a panel, where every surface is near, the path goes on until it
@@ -358,13 +365,69 @@ impl Gatherer<'_> {
                 variance[c] += (pi * emission[c]).powi(2) * v;
             }
         }
-        // The rest, gathered from the solution along stratified cosine-weighted rays.
-        let directions = self.directions(site, n, seed);
+        // The rest, gathered from the solution along stratified cosine-weighted rays, a batch
+        // at a time: more batches while the site's radiance is known to worse than
+        // [`GATHER_PRECISION`] by their noise (in a gap, where light arrives by rare paths),
+        // each batch with
+        // its own strata; the batches' means pooled.
+        let (mut gathered, mut spread, mut read, mut count) = ([0.0; 3], [0.0; 3], [0.0; 3], 0.0);
+        let mut batches = 0;
+        while batches < GATHER_BATCHES {
+            let batch_seed = if batches == 0 {
+                seed
+            } else {
+                mix(seed ^ batches as u64)
+            };
+            let (mean, var, r, n_rays) =
+                self.gather_batch(site, (x, place), (batch_seed, batches), hits);
+            batches += 1;
+            let b = batches as f64;
+            for c in 0..3 {
+                // Running means of equal batches: the pooled variance is Σ var / B².
+                gathered[c] += (mean[c] - gathered[c]) / b;
+                spread[c] += var[c];
+                read[c] += r[c];
+            }
+            count += n_rays;
+            let known = (0..3).all(|c| {
+                let total = le[c] + rho[c] / pi * (e[c] + gathered[c]);
+                let sigma = rho[c] / pi * spread[c].sqrt() / b;
+                sigma <= GATHER_PRECISION * total || rho[c] == 0.0
+            });
+            if known {
+                break;
+            }
+        }
+        let b = batches as f64;
+        for c in 0..3 {
+            e[c] += gathered[c];
+            variance[c] += spread[c] / (b * b);
+        }
+        let to_radiance = |c: usize| rho[c] * std::f64::consts::FRAC_1_PI;
+        (
+            std::array::from_fn(|c| le[c] + to_radiance(c) * e[c]),
+            std::array::from_fn(|c| to_radiance(c).powi(2) * variance[c]),
+            std::array::from_fn(|c| to_radiance(c) * read[c] / count),
+        )
+    }
+
+    /// One batch of gather rays from `x` on `place` (the site's `batch`-th, seeded by `seed`):
+    /// the mean of π times the radiance they read, its variance (pairs of neighbouring
+    /// strata), the sum of π times the error bars of the patches read, and the rays.
+    fn gather_batch(
+        &self,
+        site: &Site,
+        (x, place): (DVec3, &Place),
+        (seed, batch): (u64, usize),
+        hits: &mut Vec<Hit>,
+    ) -> ([f64; 3], [f64; 3], [f64; 3], f64) {
+        let pi = std::f64::consts::PI;
+        let directions = self.directions(site, place.normal, seed);
         // On static geometry, the rays' static crossings are the same at every frame: traced
         // once, and each frame traces the moving objects alone, as far as the static crossing.
         let crossings = (site.triangle as usize) < self.statics_count;
         let crossings = crossings.then(|| {
-            self.cache.crossings(site, || {
+            self.cache.crossings((site, batch), || {
                 (directions.iter())
                     .map(|&w| Crossing::of(self.statics.first_hit(x, w, place, hits)))
                     .collect()
@@ -390,19 +453,12 @@ impl Gatherer<'_> {
                 }
             };
         }
-        let count = directions.len() as f64;
+        let (mut mean, mut variance) = ([0.0; 3], [0.0; 3]);
         for c in 0..3 {
             let channel: Vec<f64> = values.iter().map(|v| v[c]).collect();
-            let (mean, var) = super::collapsed_variance(&channel);
-            e[c] += mean;
-            variance[c] += var;
+            (mean[c], variance[c]) = super::collapsed_variance(&channel);
         }
-        let to_radiance = |c: usize| rho[c] * std::f64::consts::FRAC_1_PI;
-        (
-            std::array::from_fn(|c| le[c] + to_radiance(c) * e[c]),
-            std::array::from_fn(|c| to_radiance(c).powi(2) * variance[c]),
-            std::array::from_fn(|c| to_radiance(c) * read[c] / count),
-        )
+        (mean, variance, read, directions.len() as f64)
     }
 
     /// The gather rays' directions at `site` (normal `n`): a square grid of strata of the
@@ -570,8 +626,8 @@ pub struct GatherCache {
     inner: std::sync::RwLock<(usize, KeptCrossings)>,
 }
 
-/// A site, exactly.
-type SiteKey = (u32, bool, [u64; 3]);
+/// A site, exactly, and a batch of its gather rays.
+type SiteKey = (u32, bool, usize, [u64; 3]);
 
 /// The static crossings of each site's gather rays.
 type KeptCrossings = std::collections::HashMap<SiteKey, std::sync::Arc<[Crossing]>>;
@@ -590,10 +646,10 @@ impl GatherCache {
     /// The crossings of `site`, traced by `trace` if not kept.
     fn crossings(
         &self,
-        site: &Site,
+        (site, batch): (&Site, usize),
         trace: impl FnOnce() -> Vec<Crossing>,
     ) -> std::sync::Arc<[Crossing]> {
-        let key = (site.triangle, site.back, site.bary.map(f64::to_bits));
+        let key = (site.triangle, site.back, batch, site.bary.map(f64::to_bits));
         if let Some(found) = self.inner.read().ok().and_then(|i| i.1.get(&key).cloned()) {
             return found;
         }
