@@ -21,14 +21,16 @@
 //!   [`direct::area`], from small emitting surfaces sampled as area lights, with shadows and
 //!   their sampling error: the light the interreflection starts from. [`direct::reference`]
 //!   is the path-traced reference the bake is judged against (the continuous scene's radiance
-//!   averaged over each patch, not a discretisation's).
+//!   averaged over each patch, or at given points, not a discretisation's).
+//!   [`direct::points`] evaluates the light at the outputs' own points (the baked vertices):
+//!   the direct light by shadow rays from the point, the rest gathered from the solved patches.
 //! - [`bake`]: a traced scene ready to solve, refine and relight any frame; its frames are
 //!   solved on finer pieces of the patches and each patch answered by their mean
 //!   ([`bake::Bake::split`]).
 //! - [`adaptive`]: `patch_size=auto`, patches cut after tracing where the light needs them
 //!   and merged where it does not (the cuts and merges themselves are [`scene::refine`]).
-//! - [`output`]: what people use and look at: the baked glTF (per-vertex radiance), PNG and
-//!   GIF previews, the tone map.
+//! - [`output`]: what people use and look at: the baked glTF (the radiance evaluated at each
+//!   vertex, with its error bar), PNG and GIF previews, the tone map.
 //! - [`params`]: the rules on parameters that the CLI and the HTTP API share (the sky's
 //!   `r,g,b`, a timeline's start and end), so the two front ends cannot disagree.
 //! - [`service`]: the HTTP service (axum): jobs, their status and their frames.

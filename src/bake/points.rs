@@ -72,11 +72,6 @@ impl Bake {
         (solved, lighting): (Solved<'_>, Lighting<'_>),
         gather: Gather,
     ) -> Vec<PointRadiance> {
-        let (direct, _) = self.direct_light(frame, lighting.materials, lighting.power);
-        let solved = Solved {
-            direct: &direct,
-            ..solved
-        };
         let state = (&self.scene, &self.tracer, &self.area);
         let sampling = (gather, &self.gathered);
         crate::direct::points::radiance_at(state, frame, points, (solved, lighting), sampling)

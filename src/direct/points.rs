@@ -12,7 +12,11 @@
 //! - **The rest gathered from the solution** (a final gather): stratified cosine-weighted rays
 //!   from the point, each reading the solved radiance of the patch it meets first, less the
 //!   emission of the sampled emitters (their light is the direct term above: nothing is counted
-//!   twice), or the sky's if it leaves the scene; the back of a one-sided face absorbs.
+//!   twice), or the sky's if it leaves the scene; the back of a one-sided face absorbs. A ray
+//!   that lands nearer than its patch's size (a corner, a gap) reads the light where it lands
+//!   instead, followed on ([`NEAR_BOUNCES`]); a second batch of rays where the first leaves the
+//!   value uncertain ([`GATHER_PRECISION`]). On static geometry, the rays' static crossings are
+//!   traced once per timeline ([`GatherCache`]).
 //!
 //! A point where a surface touches its face (under a box resting on the floor) gets no light.
 //! A point sits a hair inside its face ([`super::into_inset`]), so that rays from a vertex do
@@ -174,10 +178,6 @@ pub struct Solved<'a> {
     pub radiance: &'a [[f64; 3]],
     /// Its standard error (`None`: no line crossed the patch).
     pub stderr: &'a [Option<[f64; 3]>],
-    /// The irradiance each patch receives straight from the punctual lights and the sampled
-    /// emitters (its mean over the patch; empty when there are none): a gather ray that meets a
-    /// patch nearby reads the patch's light less this, plus the direct light where it lands.
-    pub direct: &'a [[f64; 3]],
 }
 
 /// The radiance at one output point and its standard error.
@@ -197,9 +197,9 @@ pub(super) fn site_point(site: &Site, place: &Place) -> DVec3 {
 }
 
 /// A gather ray that meets a patch closer than this many times the patch's size (the square
-/// root of its area) reads the direct light where it lands rather than the patch's mean: in a
-/// corner, the wall beside a floor's vertex is lit unlike its mean (darker, or in a lamp's
-/// pool), and the wall's part the vertex sees is that one.
+/// root of its area) reads the light where it lands rather than the patch's mean
+/// ([`NEAR_BOUNCES`]): in a corner, the wall beside a floor's vertex is lit unlike its mean
+/// (darker, or in a lamp's pool), and the wall's part the vertex sees is that one.
 pub const NEAR_HIT: f64 = 1.0;
 
 /// The relative standard error a site's radiance is gathered to: batches of gather rays are

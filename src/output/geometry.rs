@@ -212,7 +212,6 @@ pub fn light_vertices(
     let solved = Solved {
         radiance: &solution.radiance,
         stderr: &solution.stderr,
-        direct: &[],
     };
     let values = bake.radiance_at(frame, &points, (solved, lighting), gather);
     let mut values = values.into_iter();

@@ -1,4 +1,4 @@
-//! What a bake gives people to use and to look at: the baked glTF (per-vertex radiance), PNG
+//! What a bake gives people to use and to look at: the baked glTF (radiance at each vertex), PNG
 //! previews of chosen frames and an animated GIF of the timeline.
 //!
 //! - [`geometry`]: the scene at a frame as drawable triangles with per-vertex radiance;
