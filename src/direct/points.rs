@@ -616,46 +616,64 @@ impl Crossing {
 }
 
 /// What evaluating points keeps across frames: the first static crossing of every gather ray
-/// of every site on static geometry, filled as sites are first evaluated. Cost and memory
-/// grow with the static sites (8 bytes a ray), not with the frames; each later frame traces
-/// only the moving objects along them. Emptied when the scene's static triangles change (a
-/// bake's cuts and pieces).
+/// of every site on static geometry, filled as sites are first evaluated, up to
+/// [`GATHER_CACHE_BYTES`]. Cost and memory grow with the static sites (8 bytes a ray), not
+/// with the frames; each later frame traces only the moving objects along them. Emptied when
+/// the scene's static triangles change (a bake's cuts and pieces).
 #[derive(Debug, Default)]
 pub struct GatherCache {
-    /// The static triangles the crossings were traced among, and the crossings by site.
-    inner: std::sync::RwLock<(usize, KeptCrossings)>,
+    inner: std::sync::RwLock<Kept>,
+}
+
+/// Most bytes a [`GatherCache`] holds: past them, the sites not kept are traced whole at every
+/// frame (a 2,913-vertex level keeps about 20 MB).
+pub const GATHER_CACHE_BYTES: usize = 256 << 20;
+
+/// What a [`GatherCache`] holds.
+#[derive(Debug, Default)]
+struct Kept {
+    /// The static triangles the crossings were traced among.
+    statics: usize,
+    /// The crossings by site and batch.
+    crossings: std::collections::HashMap<SiteKey, std::sync::Arc<[Crossing]>>,
+    /// The bytes they take, about.
+    bytes: usize,
 }
 
 /// A site, exactly, and a batch of its gather rays.
 type SiteKey = (u32, bool, usize, [u64; 3]);
 
-/// The static crossings of each site's gather rays.
-type KeptCrossings = std::collections::HashMap<SiteKey, std::sync::Arc<[Crossing]>>;
-
 impl GatherCache {
     /// Empties the cache if its crossings were traced among another number of static
     /// triangles than `statics`.
     fn keep_for(&self, statics: usize) {
-        if let Ok(mut inner) = self.inner.write()
-            && inner.0 != statics
+        if let Ok(mut kept) = self.inner.write()
+            && kept.statics != statics
         {
-            *inner = (statics, std::collections::HashMap::new());
+            *kept = Kept {
+                statics,
+                ..Kept::default()
+            };
         }
     }
 
-    /// The crossings of `site`, traced by `trace` if not kept.
+    /// The crossings of `site`'s `batch`-th rays, traced by `trace` if not kept.
     fn crossings(
         &self,
         (site, batch): (&Site, usize),
         trace: impl FnOnce() -> Vec<Crossing>,
     ) -> std::sync::Arc<[Crossing]> {
         let key = (site.triangle, site.back, batch, site.bary.map(f64::to_bits));
-        if let Some(found) = self.inner.read().ok().and_then(|i| i.1.get(&key).cloned()) {
+        if let Some(found) = (self.inner.read().ok()).and_then(|k| k.crossings.get(&key).cloned()) {
             return found;
         }
         let traced: std::sync::Arc<[Crossing]> = trace().into();
-        if let Ok(mut inner) = self.inner.write() {
-            inner.1.insert(key, traced.clone());
+        let bytes = 64 + traced.len() * size_of::<Crossing>();
+        if let Ok(mut kept) = self.inner.write()
+            && kept.bytes + bytes <= GATHER_CACHE_BYTES
+            && kept.crossings.insert(key, traced.clone()).is_none()
+        {
+            kept.bytes += bytes;
         }
         traced
     }
@@ -663,10 +681,6 @@ impl GatherCache {
     /// Bytes held.
     #[must_use]
     pub fn bytes(&self) -> usize {
-        self.inner.read().map_or(0, |i| {
-            i.1.values()
-                .map(|c| 48 + c.len() * size_of::<Crossing>())
-                .sum()
-        })
+        self.inner.read().map_or(0, |k| k.bytes)
     }
 }
