@@ -383,3 +383,50 @@ fn a_wall_s_foot_is_darker_than_its_middle_as_the_path_tracer_says() {
     // Averaged with the patches along the floor, the foot is not darkened enough.
     assert!(old_worst > 0.03, "the averaging's ratio is {old_worst} off");
 }
+
+#[test]
+fn a_frame_s_vertices_do_not_depend_on_the_frames_evaluated_before_it() {
+    // The static crossings of the gather rays are kept across frames (GatherCache): a frame
+    // evaluated after others reads them, one evaluated first traces them; the two agree to the
+    // bit, as the service (which evaluates frames in any order) and the bake command need.
+    let sample = (radiosity::samples::all().into_iter())
+        .find(|s| s.file_name == "cornell_moving.gltf")
+        .unwrap();
+    let options = LoadOptions {
+        fps: 4.0,
+        ..LoadOptions::default()
+    };
+    let scene = load(sample.gltf.as_bytes(), &options).unwrap();
+    let lines = LineParams {
+        lines: 20_000,
+        seed: 2,
+    };
+    let (first, second) = (
+        Bake::trace(scene.clone(), &lines).unwrap(),
+        Bake::trace(scene, &lines).unwrap(),
+    );
+    let lit = |bake: &Bake, frame: usize| {
+        let solution = bake.solve_frame(frame, &bake.scene.materials, &SolveParams::default());
+        let power = bake.light_power();
+        let lighting = Lighting {
+            materials: &bake.scene.materials,
+            power: &power,
+            sky: [0.0; 3],
+        };
+        let meshes = radiosity::output::lit_geometry(bake, frame, &solution, lighting);
+        (meshes.iter())
+            .flat_map(|m| m.radiance.iter().chain(&m.stderr).copied())
+            .collect::<Vec<[f64; 3]>>()
+    };
+    let moved = 4;
+    let _ = lit(&first, 0);
+    let after = lit(&first, moved);
+    let alone = lit(&second, moved);
+    assert!(first.scene.frames.count > moved);
+    let differing =
+        |a: &[[f64; 3]], b: &[[f64; 3]]| a.iter().zip(b).filter(|(x, y)| x != y).count();
+    assert_eq!(after.len(), alone.len());
+    assert_eq!(differing(&after, &alone), 0, "of {} values", after.len());
+    // And the block did move: frame 0 differs.
+    assert!(differing(&lit(&second, 0), &alone) > 0);
+}
