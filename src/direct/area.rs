@@ -678,6 +678,13 @@ fn longest_edge(corners: &[DVec3; 3]) -> f64 {
         .fold(0.0, f64::max)
 }
 
+impl Emitter {
+    /// The bounding box of its corners.
+    pub(super) fn bounds(&self) -> (DVec3, DVec3) {
+        bounds(self.hull.iter().copied())
+    }
+}
+
 impl Face {
     /// Whether some of the face is in front of the emitter and some of the emitter in front of
     /// the face: otherwise nothing passes between them (both are flat).

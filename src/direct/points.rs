@@ -239,6 +239,7 @@ pub fn radiance_at(
     let moving = posed.frame(scene, tracer, Occluders::Moving);
     let statics_count = scene.statics.triangles.len();
     cache.keep_for(statics_count);
+    let swept = cache.swept(scene);
     let (places, _) = places(scene, &view);
     let emitters: Vec<_> = (area
         .posed_materials(scene, tracer, &posed.triangles)
@@ -268,6 +269,9 @@ pub fn radiance_at(
             .then(|| Sight::new(scene, &moving, frame, lighting.power)),
         statics_count,
         cache,
+        moving_lights: swept.lights_move,
+        swept,
+        lighting_key: lighting_key(lighting),
         places: &places,
         emitters: &emitters,
         seen: &seen,
@@ -291,8 +295,14 @@ struct Gatherer<'a> {
     moving: Option<Sight<'a>>,
     /// Traced triangles below this index are static.
     statics_count: usize,
-    /// The static crossings of the static sites' gather rays.
+    /// The static crossings of the static sites' gather rays, and their linear forms.
     cache: &'a GatherCache,
+    /// Where the moving geometry can be at any frame.
+    swept: std::sync::Arc<Swept>,
+    /// Whether a punctual light moves: no linear form is kept.
+    moving_lights: bool,
+    /// The lighting the linear forms are traced with (materials, lights' power, sky).
+    lighting_key: u64,
     places: &'a [Place],
     /// The sampled emitters posed at the frame, with their emission.
     emitters: &'a [(super::area::Emitter, [f64; 3])],
@@ -347,24 +357,24 @@ impl Gatherer<'_> {
         }
         let seed = site_seed(self.gather.seed, site);
         let pi = std::f64::consts::PI;
-        let mut e = self.sight.punctual(x, place, hits);
-        let mut variance = [0.0; 3];
-        // The sampled emitters, by solid angle.
-        let scale = site.weight.sqrt();
-        for (k, (emitter, emission)) in self.emitters.iter().enumerate() {
-            let g = point_grid(x, emitter, self.gather.density);
-            let g = ((g as f64 * scale).round() as usize).max(4);
-            let (f, v) = point_form_factor(
-                self.sight.view,
-                (x, n, own.0, own.1),
-                emitter,
-                (mix(seed ^ k as u64), g),
-            );
-            for c in 0..3 {
-                e[c] += pi * emission[c] * f;
-                variance[c] += (pi * emission[c]).powi(2) * v;
+        // The direct light, kept for a static site none of whose shadow rays can meet the
+        // moving geometry (with the lighting it was traced with).
+        let keeps = (site.triangle as usize) < self.statics_count && !self.moving_lights;
+        let kept = keeps
+            .then(|| self.cache.direct(site, self.lighting_key))
+            .flatten();
+        let (mut e, mut variance) = match kept {
+            Some(direct) => direct,
+            None => {
+                let direct = self.direct(site, (x, place), seed, hits);
+                let clear = self.swept.lights_clear(&self.sight, x)
+                    && (self.emitters.iter()).all(|(emitter, _)| self.swept.hull_clear(x, emitter));
+                if keeps && clear {
+                    self.cache.keep_direct(site, self.lighting_key, direct);
+                }
+                direct
             }
-        }
+        };
         // The rest, gathered from the solution along stratified cosine-weighted rays, a batch
         // at a time: more batches while the site's radiance is known to worse than
         // [`GATHER_PRECISION`] by their noise (in a gap, where light arrives by rare paths),
@@ -411,6 +421,38 @@ impl Gatherer<'_> {
         )
     }
 
+    /// The irradiance at `site`'s point `x` (on `place`) straight from the punctual lights and
+    /// the sampled emitters, and its variance.
+    fn direct(
+        &self,
+        site: &Site,
+        (x, place): (DVec3, &Place),
+        seed: u64,
+        hits: &mut Vec<Hit>,
+    ) -> ([f64; 3], [f64; 3]) {
+        let pi = std::f64::consts::PI;
+        let (n, own) = (place.normal, (place.triangle, place.back));
+        let mut e = self.sight.punctual(x, place, hits);
+        let mut variance = [0.0; 3];
+        // The sampled emitters, by solid angle.
+        let scale = site.weight.sqrt();
+        for (k, (emitter, emission)) in self.emitters.iter().enumerate() {
+            let g = point_grid(x, emitter, self.gather.density);
+            let g = ((g as f64 * scale).round() as usize).max(4);
+            let (f, v) = point_form_factor(
+                self.sight.view,
+                (x, n, own.0, own.1),
+                emitter,
+                (mix(seed ^ k as u64), g),
+            );
+            for c in 0..3 {
+                e[c] += pi * emission[c] * f;
+                variance[c] += (pi * emission[c]).powi(2) * v;
+            }
+        }
+        (e, variance)
+    }
+
     /// One batch of gather rays from `x` on `place` (the site's `batch`-th, seeded by `seed`):
     /// the mean of π times the radiance they read, its variance (pairs of neighbouring
     /// strata), the sum of π times the error bars of the patches read, and the rays.
@@ -433,25 +475,52 @@ impl Gatherer<'_> {
                     .collect()
             })
         });
+        // Rays whose form is clear of the moving geometry are kept as their linear form of the
+        // solution (with the lighting they were traced with): a later frame reads them.
+        let kept = (crossings.is_some() && !self.moving_lights)
+            .then(|| self.cache.forms((site, batch), self.lighting_key))
+            .flatten();
         let mut values = vec![[0.0; 3]; directions.len()];
         let mut read = [0.0; 3];
+        let mut forms: Vec<Option<Linear>> = Vec::new();
         for (k, (value, &w)) in values.iter_mut().zip(&directions).enumerate() {
-            let met = match &crossings {
-                Some(crossings) => self.with_moving(crossings[k], (x, w, place), hits),
-                None => self.sight.first_hit(x, w, place, hits),
-            };
-            *value = match met {
-                Met::Sky => self.lighting.sky.map(|s| pi * s),
-                Met::Nothing => [0.0; 3],
-                Met::Patch(face, p, t) => {
-                    if let Some(Some(s)) = self.solved.stderr.get(p) {
-                        (0..3).for_each(|c| read[c] += pi * s[c]);
+            let linear = match kept.as_ref().and_then(|kept| kept[k]) {
+                Some(linear) => linear,
+                None => {
+                    let met = match &crossings {
+                        Some(crossings) => self.with_moving(crossings[k], (x, w, place), hits),
+                        None => self.sight.first_hit(x, w, place, hits),
+                    };
+                    let mut linear = match met {
+                        Met::Sky => Linear::read(Read::Sky),
+                        Met::Nothing => Linear::read(Read::Nothing),
+                        Met::Patch(face, p, t) => {
+                            let on = (mix(seed ^ k as u64), &mut *hits);
+                            self.reflected(p, (face, x + w * t), (t, 0), on)
+                        }
+                    };
+                    linear.clear &= self.swept.ray_clear(x, w, met_distance(&met));
+                    // A form that may be kept is read as kept (in `f32`), whether or not it is.
+                    if linear.clear && crossings.is_some() && !self.moving_lights {
+                        Form::of(&linear).linear()
+                    } else {
+                        linear
                     }
-                    let on = (mix(seed ^ k as u64), &mut *hits);
-                    let l = self.reflected(p, (face, x + w * t), (t, 0), on);
-                    l.map(|l| pi * l)
                 }
             };
+            if kept.is_none() {
+                forms.push(linear.clear.then_some(linear));
+            }
+            if let Read::Patch(q) = linear.read
+                && let Some(Some(s)) = self.solved.stderr.get(q as usize)
+            {
+                (0..3).for_each(|c| read[c] += pi * linear.weight[c] * s[c]);
+            }
+            *value = self.value(&linear).map(|l| pi * l);
+        }
+        if crossings.is_some() && kept.is_none() && !self.moving_lights {
+            self.cache
+                .keep_forms((site, batch), self.lighting_key, forms);
         }
         let (mut mean, mut variance) = ([0.0; 3], [0.0; 3]);
         for c in 0..3 {
@@ -500,41 +569,40 @@ impl Gatherer<'_> {
     }
 
     /// The radiance patch `p` sends back along a gather ray that meets its face `face` at
-    /// `y`, `t` from the point, less the sampled emitters' emission: the patch's solved
-    /// radiance; or, closer than [`NEAR_HIT`] times the patch's size, its emission plus the
-    /// light reflected at `y` itself, from one sample of each light (one stratum, `seed`) and
-    /// one cosine-weighted ray on from `y`, itself read the same way up to [`NEAR_BOUNCES`]
-    /// times with Russian roulette (in a gap or a corner, where the light falls off within a
-    /// patch, the next surface is near too, and a patch's mean is far from the light where the
-    /// ray lands): unbiased for the light at `y` given the solution far from it, and the many
-    /// rays of a point average it.
+    /// `y`, `t` from the point, less the sampled emitters' emission, as a linear form of the
+    /// frame's solution: the patch's solved radiance; or, closer than [`NEAR_HIT`] times the
+    /// patch's size, its emission plus the light reflected at `y` itself, from one sample of
+    /// each light (one stratum, `seed`) and one cosine-weighted ray on from `y`, itself read the
+    /// same way up to [`NEAR_BOUNCES`] times with Russian roulette (in a gap or a corner, where
+    /// the light falls off within a patch, the next surface is near too, and a patch's mean is
+    /// far from the light where the ray lands): unbiased for the light at `y` given the solution
+    /// far from it, and the many rays of a point average it. The form is clear when none of its
+    /// rays can meet the moving geometry at any frame.
     fn reflected(
         &self,
         p: usize,
         (face, y): (usize, DVec3),
         (t, depth): (f64, usize),
         (seed, hits): (u64, &mut Vec<Hit>),
-    ) -> [f64; 3] {
-        let read = |q: usize| -> [f64; 3] {
-            let l = self.solved.radiance.get(q).copied().unwrap_or_default();
-            std::array::from_fn(|c| (l[c] - self.seen[q][c]).max(0.0))
-        };
+    ) -> Linear {
         let material = (self.scene.patches.get(p))
             .and_then(|patch| self.lighting.materials.get(patch.material as usize));
         let near = depth < NEAR_BOUNCES && t < NEAR_HIT * self.sizes[p];
         let Some(material) = material.filter(|_| near) else {
-            return read(p);
+            return Linear::read(Read::Patch(p as u32));
         };
         let pi = std::f64::consts::PI;
         let place = &self.places[face];
         let y = into_inset(y, &place.corners);
         let (n, tri, back) = (place.normal, place.triangle, place.back);
         let mut e = self.sight.punctual(y, place, hits);
+        let mut clear = self.swept.lights_clear(&self.sight, y);
         let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed);
         for (k, (emitter, emission)) in self.emitters.iter().enumerate() {
             let sample = (mix(seed ^ k as u64), 1);
             let (f, _) = point_form_factor(self.sight.view, (y, n, tri, back), emitter, sample);
             (0..3).for_each(|c| e[c] += pi * emission[c] * f);
+            clear &= self.swept.hull_clear(y, emitter);
         }
         // Russian roulette after the first bounces: the path goes on with the largest
         // reflectance's probability, and what it brings back is divided by it.
@@ -545,24 +613,193 @@ impl Gatherer<'_> {
             1.0
         };
         let w = cosine_direction_at(n, rng.random(), rng.random());
-        let gathered = if survive > 0.0 && rng.random::<f64>() < survive {
+        let on = if survive > 0.0 && rng.random::<f64>() < survive {
             let met = self.sight.first_hit(y, w, place, hits);
-            let l = match met {
-                Met::Sky => self.lighting.sky,
-                Met::Nothing => [0.0; 3],
+            let mut next = match met {
+                Met::Sky => Linear::read(Read::Sky),
+                Met::Nothing => Linear::read(Read::Nothing),
                 Met::Patch(next, q, t) => {
                     let on = (mix(seed ^ 0x6e65_6172), &mut *hits);
                     self.reflected(q, (next, y + w * t), (t, depth + 1), on)
                 }
             };
-            l.map(|l| l / survive)
+            next.clear &= self.swept.ray_clear(y, w, met_distance(&met));
+            next.scale(1.0 / survive)
         } else {
-            [0.0; 3]
+            Linear::read(Read::Nothing)
         };
-        std::array::from_fn(|c| {
+        let own: [f64; 3] = std::array::from_fn(|c| {
             let le = material.emission[c] - self.seen[p][c];
-            le.max(0.0) + rho[c] / pi * (e[c] + pi * gathered[c])
+            le.max(0.0) + rho[c] / pi * e[c]
+        });
+        Linear {
+            constant: std::array::from_fn(|c| own[c] + rho[c] * on.constant[c]),
+            weight: std::array::from_fn(|c| rho[c] * on.weight[c]),
+            read: on.read,
+            clear: clear && on.clear,
+        }
+    }
+
+    /// The value of `linear` with this frame's solution.
+    fn value(&self, linear: &Linear) -> [f64; 3] {
+        let read = match linear.read {
+            Read::Patch(q) => {
+                let l = (self.solved.radiance.get(q as usize))
+                    .copied()
+                    .unwrap_or_default();
+                std::array::from_fn(|c| (l[c] - self.seen[q as usize][c]).max(0.0))
+            }
+            Read::Sky => self.lighting.sky,
+            Read::Nothing => [0.0; 3],
+        };
+        std::array::from_fn(|c| linear.constant[c] + linear.weight[c] * read[c])
+    }
+}
+
+/// A hash of what the linear forms depend on beside the solution: every material's
+/// reflectance and emission, every light's power, the sky.
+fn lighting_key(lighting: Lighting<'_>) -> u64 {
+    let mut key = 0x6c69_6768_7473u64;
+    let mut add = |x: f64| key = mix(key ^ x.to_bits());
+    for m in lighting.materials {
+        m.reflectance
+            .iter()
+            .chain(&m.emission)
+            .for_each(|&x| add(x));
+    }
+    lighting.power.iter().flatten().for_each(|&x| add(x));
+    lighting.sky.iter().for_each(|&x| add(x));
+    key
+}
+
+/// How far a ray went to what it met (infinitely to the sky or to nothing).
+fn met_distance(met: &Met) -> f64 {
+    match met {
+        Met::Patch(_, _, t) => *t,
+        _ => f64::INFINITY,
+    }
+}
+
+/// What a gather ray's value reads of a frame's solution.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Read {
+    /// A patch's radiance, less its sampled emission.
+    Patch(u32),
+    /// The sky's radiance.
+    Sky,
+    /// Nothing.
+    Nothing,
+}
+
+/// A gather ray's value as a linear form of the frame's solution: `constant + weight × read`,
+/// per channel; `clear` when none of its rays can meet the moving geometry at any frame (the
+/// form then holds at every frame with the same lighting).
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Linear {
+    constant: [f64; 3],
+    weight: [f64; 3],
+    read: Read,
+    clear: bool,
+}
+
+impl Linear {
+    /// `read` itself.
+    fn read(read: Read) -> Self {
+        Self {
+            constant: [0.0; 3],
+            weight: if read == Read::Nothing {
+                [0.0; 3]
+            } else {
+                [1.0; 3]
+            },
+            read,
+            clear: true,
+        }
+    }
+
+    /// The form times `k`.
+    fn scale(self, k: f64) -> Self {
+        Self {
+            constant: self.constant.map(|x| x * k),
+            weight: self.weight.map(|x| x * k),
+            ..self
+        }
+    }
+}
+
+/// Where the moving geometry can be at any frame, and whether any light moves: a ray that meets
+/// none of these boxes meets the same surfaces at every frame.
+#[derive(Debug, Default)]
+struct Swept {
+    /// Each moving object's bounding box over every frame (normalised space), grown by a hair.
+    boxes: Vec<(DVec3, DVec3)>,
+    /// Whether a punctual light moves (its light then changes at points nothing moves near).
+    lights_move: bool,
+}
+
+impl Swept {
+    fn of(scene: &Scene) -> Self {
+        let pad = DVec3::splat(f64::from(16.0 * crate::trace::coincident::COINCIDENT));
+        let boxes = (scene.objects.iter())
+            .map(|object| {
+                let (mut lo, mut hi) =
+                    (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
+                for f in 0..scene.frames.count {
+                    for p in object.positions_at(f) {
+                        lo = lo.min(p.as_dvec3());
+                        hi = hi.max(p.as_dvec3());
+                    }
+                }
+                (lo - pad, hi + pad)
+            })
+            .collect();
+        let lights_move = scene.lights.iter().any(|light| {
+            (1..scene.frames.count).any(|f| {
+                light.position(f) != light.position(0) || light.direction(f) != light.direction(0)
+            })
+        });
+        Self { boxes, lights_move }
+    }
+
+    /// Whether the ray from `a` along unit `w`, as far as `reach`, misses every box.
+    fn ray_clear(&self, a: DVec3, w: DVec3, reach: f64) -> bool {
+        self.boxes.iter().all(|&(lo, hi)| {
+            let (mut t0, mut t1) = (0.0f64, reach);
+            for k in 0..3 {
+                if w[k].abs() < 1e-300 {
+                    if a[k] < lo[k] || a[k] > hi[k] {
+                        return true;
+                    }
+                    continue;
+                }
+                let (p, q) = ((lo[k] - a[k]) / w[k], (hi[k] - a[k]) / w[k]);
+                t0 = t0.max(p.min(q));
+                t1 = t1.min(p.max(q));
+            }
+            t0 > t1
         })
+    }
+
+    /// Whether every shadow ray from `y` to the punctual lights misses every box, and no light
+    /// moves.
+    fn lights_clear(&self, sight: &Sight<'_>, y: DVec3) -> bool {
+        !self.lights_move
+            && sight.lights().all(|(position, direction)| match position {
+                Some(position) => {
+                    let d = position - y;
+                    let length = d.length();
+                    length <= 0.0 || self.ray_clear(y, d / length, length)
+                }
+                None => self.ray_clear(y, -direction, f64::INFINITY),
+            })
+    }
+
+    /// Whether the box around `y` and `emitter` (which holds every ray between them) misses
+    /// every box.
+    fn hull_clear(&self, y: DVec3, emitter: &super::area::Emitter) -> bool {
+        let (lo, hi) = emitter.bounds();
+        let (lo, hi) = (lo.min(y), hi.max(y));
+        (self.boxes.iter()).all(|&(a, b)| (0..3).any(|k| hi[k] < a[k] || lo[k] > b[k]))
     }
 }
 
@@ -636,12 +873,71 @@ struct Kept {
     statics: usize,
     /// The crossings by site and batch.
     crossings: std::collections::HashMap<SiteKey, std::sync::Arc<[Crossing]>>,
+    /// The lighting the forms were traced with ([`lighting_key`]), and the gather rays' linear
+    /// forms by site and batch (`None` for a ray that may meet the moving geometry).
+    forms: (u64, KeptForms),
+    /// The direct light at static sites that nothing moving can shadow, with the lighting it
+    /// was traced with.
+    direct: (u64, std::collections::HashMap<SiteKey, DirectLight>),
+    /// The moving geometry's reach over the timeline.
+    swept: Option<std::sync::Arc<Swept>>,
     /// The bytes they take, about.
     bytes: usize,
 }
 
+/// The linear forms of each site's batches of gather rays.
+type KeptForms = std::collections::HashMap<SiteKey, std::sync::Arc<[Option<Form>]>>;
+
+/// A site's direct irradiance and its variance, RGB.
+type DirectLight = ([f64; 3], [f64; 3]);
+
+/// A [`Linear`] as kept, in `f32` (a ray's value is always read from this form, whether just
+/// traced or kept, so that frames agree to the bit whatever was evaluated before them).
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Form {
+    constant: [f32; 3],
+    weight: [f32; 3],
+    /// The patch read, or [`Form::SKY`], [`Form::NOTHING`].
+    read: u32,
+}
+
+impl Form {
+    const SKY: u32 = u32::MAX;
+    const NOTHING: u32 = u32::MAX - 1;
+
+    fn of(linear: &Linear) -> Self {
+        Self {
+            constant: linear.constant.map(|x| x as f32),
+            weight: linear.weight.map(|x| x as f32),
+            read: match linear.read {
+                Read::Patch(q) => q,
+                Read::Sky => Self::SKY,
+                Read::Nothing => Self::NOTHING,
+            },
+        }
+    }
+
+    fn linear(self) -> Linear {
+        Linear {
+            constant: self.constant.map(f64::from),
+            weight: self.weight.map(f64::from),
+            read: match self.read {
+                Self::SKY => Read::Sky,
+                Self::NOTHING => Read::Nothing,
+                q => Read::Patch(q),
+            },
+            clear: true,
+        }
+    }
+}
+
 /// A site, exactly, and a batch of its gather rays.
 type SiteKey = (u32, bool, usize, [u64; 3]);
+
+/// The key of `site`'s `batch`-th rays.
+fn site_key(site: &Site, batch: usize) -> SiteKey {
+    (site.triangle, site.back, batch, site.bary.map(f64::to_bits))
+}
 
 impl GatherCache {
     /// Empties the cache if its crossings were traced among another number of static
@@ -663,7 +959,7 @@ impl GatherCache {
         (site, batch): (&Site, usize),
         trace: impl FnOnce() -> Vec<Crossing>,
     ) -> std::sync::Arc<[Crossing]> {
-        let key = (site.triangle, site.back, batch, site.bary.map(f64::to_bits));
+        let key = site_key(site, batch);
         if let Some(found) = (self.inner.read().ok()).and_then(|k| k.crossings.get(&key).cloned()) {
             return found;
         }
@@ -676,6 +972,78 @@ impl GatherCache {
             kept.bytes += bytes;
         }
         traced
+    }
+
+    /// The moving geometry's reach over the timeline of `scene` (computed once).
+    fn swept(&self, scene: &Scene) -> std::sync::Arc<Swept> {
+        if let Some(swept) = self.inner.read().ok().and_then(|k| k.swept.clone()) {
+            return swept;
+        }
+        let swept = std::sync::Arc::new(Swept::of(scene));
+        if let Ok(mut kept) = self.inner.write() {
+            kept.swept = Some(swept.clone());
+        }
+        swept
+    }
+
+    /// The direct light at `site`, if kept for the lighting `key`.
+    fn direct(&self, site: &Site, key: u64) -> Option<DirectLight> {
+        let kept = self.inner.read().ok()?;
+        (kept.direct.0 == key)
+            .then(|| kept.direct.1.get(&site_key(site, 0)).copied())
+            .flatten()
+    }
+
+    /// Keeps `direct`, the direct light at `site` with the lighting `key` (forgetting that of
+    /// another lighting), within [`GATHER_CACHE_BYTES`].
+    fn keep_direct(&self, site: &Site, key: u64, direct: DirectLight) {
+        let bytes = 64 + size_of::<DirectLight>();
+        let Ok(mut kept) = self.inner.write() else {
+            return;
+        };
+        if kept.direct.0 != key {
+            let dropped = kept.direct.1.len() * bytes;
+            kept.bytes -= dropped.min(kept.bytes);
+            kept.direct = (key, std::collections::HashMap::new());
+        }
+        if kept.bytes + bytes <= GATHER_CACHE_BYTES
+            && kept.direct.1.insert(site_key(site, 0), direct).is_none()
+        {
+            kept.bytes += bytes;
+        }
+    }
+
+    /// The linear forms of `site`'s `batch`-th rays, if kept for the lighting `key`.
+    fn forms(&self, (site, batch): (&Site, usize), key: u64) -> Option<Vec<Option<Linear>>> {
+        let kept = self.inner.read().ok()?;
+        if kept.forms.0 != key {
+            return None;
+        }
+        let forms = kept.forms.1.get(&site_key(site, batch))?;
+        Some(forms.iter().map(|f| f.map(Form::linear)).collect())
+    }
+
+    /// Keeps `forms`, the linear forms of `site`'s `batch`-th rays with the lighting `key`
+    /// (forgetting those of another lighting), within [`GATHER_CACHE_BYTES`].
+    fn keep_forms(&self, (site, batch): (&Site, usize), key: u64, forms: Vec<Option<Linear>>) {
+        let forms: std::sync::Arc<[Option<Form>]> =
+            forms.iter().map(|f| f.as_ref().map(Form::of)).collect();
+        let bytes = 64 + forms.len() * size_of::<Option<Form>>();
+        let Ok(mut kept) = self.inner.write() else {
+            return;
+        };
+        if kept.forms.0 != key {
+            let dropped: usize = (kept.forms.1.values())
+                .map(|f| 64 + f.len() * size_of::<Option<Form>>())
+                .sum();
+            kept.bytes -= dropped.min(kept.bytes);
+            kept.forms = (key, std::collections::HashMap::new());
+        }
+        if kept.bytes + bytes <= GATHER_CACHE_BYTES
+            && kept.forms.1.insert(site_key(site, batch), forms).is_none()
+        {
+            kept.bytes += bytes;
+        }
     }
 
     /// Bytes held.

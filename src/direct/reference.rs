@@ -400,6 +400,14 @@ impl<'a> Sight<'a> {
     }
 
     /// What the ray from `x` (on `place`) along unit `w` meets first.
+    /// Each punctual light's position (`None` for a directional light) and direction, posed.
+    pub(super) fn lights(&self) -> impl Iterator<Item = (Option<DVec3>, DVec3)> + '_ {
+        self.punctual.iter().map(|light| {
+            let position = (light.kind != LightKind::Directional).then_some(light.position);
+            (position, light.direction)
+        })
+    }
+
     pub(super) fn first_hit(&self, x: DVec3, w: DVec3, place: &Place, hits: &mut Vec<Hit>) -> Met {
         self.first_hit_within(x, w, place, hits, f64::INFINITY)
     }
