@@ -247,12 +247,11 @@ fn a_lamp_lights_each_vertex_by_its_closed_form_with_a_sharp_shadow_and_none_und
     );
 }
 
-/// The sample panel room (a 4 × 4 × 2.7 m room, a double-sided 1 m emissive panel 1 cm under
-/// its ceiling, as Blender exports it) cut into patches of 0.25 m, baked with 200,000 lines and
-/// solved on pieces as the bake command solves it; its vertices at frame 0.
-fn panel_room() -> Vec<Vertex> {
+/// The sample scene `name` cut into patches of 0.25 m, baked with 200,000 lines and solved on
+/// pieces as the bake command solves it; its vertices at frame 0.
+fn sample_vertices(name: &str) -> Vec<Vertex> {
     let sample = (radiosity::samples::all().into_iter())
-        .find(|s| s.file_name == "panel_room.gltf")
+        .find(|s| s.file_name == name)
         .unwrap();
     let options = LoadOptions {
         patch_size: Some(0.25),
@@ -289,7 +288,9 @@ const PANEL_ROOM: [([f64; 3], [f64; 3], f64); 9] = [
 
 #[test]
 fn ceiling_vertices_beside_a_panel_under_the_ceiling_read_the_path_tracer_s_light() {
-    let vertices = panel_room();
+    // A 4 × 4 × 2.7 m room, a double-sided 1 m emissive panel 1 cm under its ceiling, as
+    // Blender exports it.
+    let vertices = sample_vertices("panel_room.gltf");
     let mut old_worst = 0.0f64;
     for (at, normal, reference) in PANEL_ROOM {
         let v = vertex_at(&vertices, DVec3::from(at), DVec3::from(normal));
@@ -311,28 +312,6 @@ fn ceiling_vertices_beside_a_panel_under_the_ceiling_read_the_path_tracer_s_ligh
     }
     // The patches' mean at such a vertex takes in the bright ceiling inside the gap.
     assert!(old_worst > 0.05, "the averaging is {old_worst} off");
-}
-
-/// The sample lamp room (a 5 × 4 × 2.7 m room lit by a point lamp and a spot, as Blender
-/// exports it) cut into patches of 0.25 m, baked with 200,000 lines and solved on pieces; its
-/// vertices at frame 0.
-fn lamp_room() -> Vec<Vertex> {
-    let sample = (radiosity::samples::all().into_iter())
-        .find(|s| s.file_name == "lamp_room.gltf")
-        .unwrap();
-    let options = LoadOptions {
-        patch_size: Some(0.25),
-        ..LoadOptions::default()
-    };
-    let scene = load(sample.gltf.as_bytes(), &options).unwrap();
-    let lines = LineParams {
-        lines: 200_000,
-        seed: 1,
-    };
-    let mut bake = Bake::trace(scene, &lines).unwrap();
-    bake.split(&SolveParams::default(), &Default::default())
-        .unwrap();
-    vertices(&bake).1
 }
 
 /// A wall's foot, its middle, the wall's normal, and the path tracer's radiance at the two.
@@ -361,7 +340,8 @@ const CREASES: [Crease; 2] = [
 
 #[test]
 fn a_wall_s_foot_is_darker_than_its_middle_as_the_path_tracer_says() {
-    let vertices = lamp_room();
+    // A 5 × 4 × 2.7 m room lit by a point lamp and a spot, as Blender exports it.
+    let vertices = sample_vertices("lamp_room.gltf");
     let mut old_worst = 0.0f64;
     for (foot, middle, wall, at_foot, at_middle) in CREASES {
         let wall = DVec3::from(wall);

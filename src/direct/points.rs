@@ -15,8 +15,12 @@
 //!   twice), or the sky's if it leaves the scene; the back of a one-sided face absorbs. A ray
 //!   that lands nearer than its patch's size (a corner, a gap) reads the light where it lands
 //!   instead, followed on ([`NEAR_BOUNCES`]); a second batch of rays where the first leaves the
-//!   value uncertain ([`GATHER_PRECISION`]). On static geometry, the rays' static crossings are
-//!   traced once per timeline ([`GatherCache`]).
+//!   value uncertain ([`GATHER_PRECISION`]).
+//!
+//! Frames (the multiframe method at the points): at a static point, a ray whose whole path stays
+//! clear of where the moving objects go over the timeline is kept as a linear form of the
+//! solution, and the direct light likewise; the other rays keep their first static crossing and
+//! trace only the moving objects at each frame ([`GatherCache`]).
 //!
 //! A point where a surface touches its face (under a box resting on the floor) gets no light.
 //! A point sits a hair inside its face ([`super::into_inset`]), so that rays from a vertex do
