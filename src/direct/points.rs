@@ -385,8 +385,7 @@ impl Gatherer<'_> {
         // The rest, gathered from the solution along stratified cosine-weighted rays, a batch
         // at a time: more batches while the site's radiance is known to worse than
         // [`GATHER_PRECISION`] by their noise (in a gap, where light arrives by rare paths),
-        // each batch with
-        // its own strata; the batches' means pooled.
+        // each batch with its own strata; the batches' means pooled.
         let (mut gathered, mut spread, mut read, mut count) = ([0.0; 3], [0.0; 3], [0.0; 3], 0.0);
         let mut batches = 0;
         while batches < GATHER_BATCHES {
