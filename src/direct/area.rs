@@ -1362,6 +1362,22 @@ mod tests {
         [[q[0], q[1], q[2]], [q[0], q[2], q[3]]]
     }
 
+    /// The form factor from the origin (facing +Z) to `square` (facing −Z) by [`sample_fans`]
+    /// at the midpoints of a `g × g` grid, each sample's point given to `check`.
+    fn midpoint_form_factor(square: &[DVec3; 4], g: usize, check: &dyn Fn(DVec3)) -> f64 {
+        let mut sum = 0.0;
+        for i in 0..g {
+            for j in 0..g {
+                let (u, v) = ((i as f64 + 0.5) / g as f64, (j as f64 + 0.5) / g as f64);
+                let (y, f) = sample_fans(DVec3::ZERO, DVec3::Z, -DVec3::Z, &fans(square), u, v)
+                    .expect("a sample");
+                check(y);
+                sum += f;
+            }
+        }
+        sum / (g * g) as f64
+    }
+
     /// Howell C-11: a point under the corner of a parallel a × b rectangle at height h.
     fn corner(a: f64, b: f64, h: f64) -> f64 {
         let (a, b) = (a / h, b / h);
@@ -1390,18 +1406,9 @@ mod tests {
             DVec3::new(0.0, 0.5, h),
         ];
         let exact = corner(0.5, 0.5, h);
-        let g = 128;
-        let mut sum = 0.0;
-        for i in 0..g {
-            for j in 0..g {
-                let (u, v) = ((i as f64 + 0.5) / g as f64, (j as f64 + 0.5) / g as f64);
-                let (y, f) = sample_fans(DVec3::ZERO, DVec3::Z, -DVec3::Z, &fans(&square), u, v)
-                    .expect("a sample");
-                assert!((y.z - h).abs() < 1e-12 && (0.0..=0.5).contains(&y.x), "{y}");
-                sum += f;
-            }
-        }
-        let f = sum / (g * g) as f64;
+        let f = midpoint_form_factor(&square, 128, &|y| {
+            assert!((y.z - h).abs() < 1e-12 && (0.0..=0.5).contains(&y.x), "{y}");
+        });
         assert!((f / exact - 1.0).abs() < 1e-3, "{f} vs {exact}");
     }
 
@@ -1417,17 +1424,7 @@ mod tests {
             DVec3::new(-0.5, 1.0, h),
         ];
         let exact = 2.0 * corner(0.5, 1.0, h);
-        let g = 256;
-        let mut sum = 0.0;
-        for i in 0..g {
-            for j in 0..g {
-                let (u, v) = ((i as f64 + 0.5) / g as f64, (j as f64 + 0.5) / g as f64);
-                let (_, f) = sample_fans(DVec3::ZERO, DVec3::Z, -DVec3::Z, &fans(&square), u, v)
-                    .expect("a sample");
-                sum += f;
-            }
-        }
-        let f = sum / (g * g) as f64;
+        let f = midpoint_form_factor(&square, 256, &|_| {});
         assert!((f / exact - 1.0).abs() < 1e-3, "{f} vs {exact}");
     }
 
