@@ -365,7 +365,7 @@ struct BenchVerticesArgs {
     #[arg(long, default_value_t = 1)]
     frames: usize,
     /// Paths of the reference per vertex, in each of its two halves.
-    #[arg(long, default_value_t = 2048)]
+    #[arg(long, default_value_t = 8192)]
     paths: usize,
 }
 
