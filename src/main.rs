@@ -367,6 +367,9 @@ struct BenchVerticesArgs {
     /// Paths of the reference per vertex, in each of its two halves.
     #[arg(long, default_value_t = 8192)]
     paths: usize,
+    /// How the bakes' patches are made: auto, source or a length.
+    #[arg(long, default_value = "auto")]
+    patch_size: radiosity::params::PatchSize,
 }
 
 /// The options of `radiosity samples`.
@@ -714,6 +717,7 @@ impl BenchVerticesArgs {
         };
         let options = LoadOptions {
             fps: self.fps,
+            patch_size: self.patch_size.length(),
             ..LoadOptions::default()
         };
         let scenes = (names.iter())
@@ -727,6 +731,7 @@ impl BenchVerticesArgs {
             seed: self.seed,
             frames: self.frames,
             paths: self.paths,
+            auto: self.patch_size == radiosity::params::PatchSize::Auto,
         };
         let points = vertex_points(&scenes, bench, |p| {
             let show = |x: Option<f64>| {

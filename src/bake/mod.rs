@@ -59,6 +59,8 @@ struct Pieces {
     direct: DirectLight,
     area: AreaLights,
     groups: Groups,
+    /// Where the pieces lie, for the outputs' points ([`Bake::piece_map`]).
+    map: crate::direct::points::PieceMap,
 }
 
 /// How much of the move from the patches solved whole to their pieces' mean the error bar of a
@@ -489,6 +491,7 @@ impl Bake {
         let mut tallies = Tallies::default();
         tallies.update(&self.list, &tracer.surfaces(), scene.patches.len());
         let areas = scene.patches.iter().map(|p| p.area).collect();
+        let map = crate::direct::points::PieceMap::new(&scene, &of);
         let groups = Groups::new(of, areas, self.scene.patches.len());
         let count = scene.patches.len();
         self.pieces = Some(Pieces {
@@ -498,6 +501,7 @@ impl Bake {
             direct,
             area,
             groups,
+            map,
         });
         Ok(count)
     }
@@ -688,6 +692,13 @@ impl Bake {
     #[must_use]
     pub fn shown(&self) -> &Scene {
         self.shown.as_ref().unwrap_or(&self.scene)
+    }
+
+    /// Where the pieces the frames are solved on lie on the traced triangles, once
+    /// [`Bake::split`]: with a frame's [`FrameSolution::pieces`], what the outputs' points read.
+    #[must_use]
+    pub fn piece_map(&self) -> Option<&crate::direct::points::PieceMap> {
+        self.pieces.as_ref().map(|p| &p.map)
     }
 
     /// The pieces the frames are solved on ([`Bake::split`]), if split.

@@ -103,6 +103,7 @@ impl Bake {
     pub fn from_bytes(bytes: &[u8]) -> Result<Self, postcard::Error> {
         let read: Read = postcard::from_bytes(bytes)?;
         let pieces = read.pieces.map(|p| Pieces {
+            map: crate::direct::points::PieceMap::new(&p.scene, p.groups.of()),
             tracer: SceneTracer::new(&p.scene),
             scene: p.scene,
             tallies: p.tallies,

@@ -25,7 +25,7 @@ pub const VERTEX_SCENES: [&str; 4] = [
 /// What `bench-vertices` measures and how.
 #[derive(Clone, Copy, Debug)]
 pub struct VertexBench {
-    /// Lines of every bake (patches `auto`, solved on pieces, as `bake` makes them).
+    /// Lines of every bake (solved on pieces, as `bake` makes them).
     pub lines: u64,
     /// Seed of the lines.
     pub seed: u64,
@@ -33,6 +33,9 @@ pub struct VertexBench {
     pub frames: usize,
     /// Paths of the reference per vertex, in each of its two independent halves.
     pub paths: usize,
+    /// Whether the patches are cut and merged where the light needs them (`auto`), or kept as
+    /// the scene was loaded.
+    pub auto: bool,
 }
 
 /// One scene's bake measured at its vertices.
@@ -108,7 +111,7 @@ pub fn vertex_points(
 ) -> Result<Vec<VertexPoint>, TraceError> {
     let mut out = Vec::new();
     for (name, scene) in scenes {
-        let run = timed_bake(scene, bench.lines, bench.seed, (true, true))?;
+        let run = timed_bake(scene, bench.lines, bench.seed, (bench.auto, true))?;
         let bake = &run.bake;
         let power = bake.light_power();
         let sky = crate::solve::SolveParams::default().sky;

@@ -182,6 +182,41 @@ pub struct Solved<'a> {
     pub radiance: &'a [[f64; 3]],
     /// Its standard error (`None`: no line crossed the patch).
     pub stderr: &'a [Option<[f64; 3]>],
+    /// The radiance of the pieces the frame was solved on, if it was
+    /// ([`crate::bake::Bake::split`]), and where they are: a gather ray reads the piece it
+    /// lands on rather than its patch's mean.
+    pub pieces: Option<(&'a [[f32; 3]], &'a PieceMap)>,
+}
+
+/// Where the pieces of a split bake lie on its traced triangles ([`crate::bake::Bake::split`]).
+#[derive(Clone, Debug, Default)]
+pub struct PieceMap {
+    /// The piece of each traced face (`2 × triangle + back`, global triangles), `u32::MAX`
+    /// where the triangle has no such face.
+    pub face: Vec<u32>,
+    /// The patch each piece is part of.
+    pub patch: Vec<u32>,
+    /// Each piece's size (the square root of its area), in normalised units.
+    pub size: Vec<f64>,
+}
+
+impl PieceMap {
+    /// The map of `pieces`, a scene whose patches are pieces, piece `k` of patch `of[k]`.
+    #[must_use]
+    pub fn new(pieces: &Scene, of: &[u32]) -> Self {
+        let meshes = std::iter::once(&pieces.statics).chain(pieces.objects.iter().map(|o| &o.mesh));
+        let face = (meshes.flat_map(|m| &m.faces))
+            .flat_map(|f| [f.front, f.back.unwrap_or(u32::MAX)])
+            .collect();
+        let radius = pieces.normalisation.radius;
+        Self {
+            face,
+            patch: of.to_vec(),
+            size: (pieces.patches.iter())
+                .map(|p| p.area.sqrt() / radius)
+                .collect(),
+        }
+    }
 }
 
 /// The radiance at one output point and its standard error.
@@ -278,7 +313,7 @@ pub fn radiance_at(
         cache,
         moving_lights: swept.lights_move,
         swept,
-        lighting_key: lighting_key(lighting),
+        lighting_key: lighting_key(lighting) ^ u64::from(solved.pieces.is_some()),
         places: &places,
         emitters: &emitters,
         seen: &seen,
@@ -317,6 +352,8 @@ struct Gatherer<'a> {
     seen: &'a [[f64; 3]],
     /// Per patch, its size (normalised units).
     sizes: &'a [f64],
+    /// The frame's solution: a gather ray reads its pieces if it has them, its patches
+    /// otherwise (a ray's "unit", [`Read::Patch`]).
     solved: Solved<'a>,
     lighting: Lighting<'a>,
     gather: Gather,
@@ -518,7 +555,7 @@ impl Gatherer<'_> {
                 forms.push(linear.clear.then_some(linear));
             }
             if let Read::Patch(q) = linear.read
-                && let Some(Some(s)) = self.solved.stderr.get(q as usize)
+                && let Some(Some(s)) = self.solved.stderr.get(self.patch_of(q) as usize)
             {
                 (0..3).for_each(|c| read[c] += pi * linear.weight[c] * s[c]);
             }
@@ -593,9 +630,19 @@ impl Gatherer<'_> {
     ) -> Linear {
         let material = (self.scene.patches.get(p))
             .and_then(|patch| self.lighting.materials.get(patch.material as usize));
-        let near = depth < NEAR_BOUNCES && t < NEAR_HIT * self.sizes[p];
+        let (unit, size) = match self.solved.pieces {
+            Some((_, map)) => {
+                let k = map.face.get(face).copied().unwrap_or(u32::MAX);
+                match map.size.get(k as usize) {
+                    Some(&size) => (k, size),
+                    None => (p as u32, self.sizes[p]),
+                }
+            }
+            None => (p as u32, self.sizes[p]),
+        };
+        let near = depth < NEAR_BOUNCES && t < NEAR_HIT * size;
         let Some(material) = material.filter(|_| near) else {
-            return Linear::read(Read::Patch(p as u32));
+            return Linear::read(Read::Patch(unit));
         };
         let pi = std::f64::consts::PI;
         let place = &self.places[face];
@@ -646,14 +693,29 @@ impl Gatherer<'_> {
         }
     }
 
+    /// The patch of a unit the gather reads ([`Read::Patch`]): itself, or a piece's patch.
+    fn patch_of(&self, unit: u32) -> u32 {
+        match self.solved.pieces {
+            Some((_, map)) => map.patch.get(unit as usize).copied().unwrap_or(u32::MAX),
+            None => unit,
+        }
+    }
+
     /// The value of `linear` with this frame's solution.
     fn value(&self, linear: &Linear) -> [f64; 3] {
         let read = match linear.read {
             Read::Patch(q) => {
-                let l = (self.solved.radiance.get(q as usize))
-                    .copied()
-                    .unwrap_or_default();
-                std::array::from_fn(|c| (l[c] - self.seen[q as usize][c]).max(0.0))
+                let l = match self.solved.pieces {
+                    Some((radiance, _)) => (radiance.get(q as usize))
+                        .map(|l| l.map(f64::from))
+                        .unwrap_or_default(),
+                    None => (self.solved.radiance.get(q as usize))
+                        .copied()
+                        .unwrap_or_default(),
+                };
+                let seen = self.seen.get(self.patch_of(q) as usize).copied();
+                let seen = seen.unwrap_or_default();
+                std::array::from_fn(|c| (l[c] - seen[c]).max(0.0))
             }
             Read::Sky => self.lighting.sky,
             Read::Nothing => [0.0; 3],
@@ -689,7 +751,8 @@ fn met_distance(met: &Met) -> f64 {
 /// What a gather ray's value reads of a frame's solution.
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum Read {
-    /// A patch's radiance, less its sampled emission.
+    /// A patch's radiance (or a piece's, when the solution has them: [`Solved::pieces`]),
+    /// less its sampled emission.
     Patch(u32),
     /// The sky's radiance.
     Sky,

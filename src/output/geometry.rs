@@ -209,9 +209,13 @@ pub fn light_vertices(
     gather: Gather,
 ) {
     let points = vertex_points(bake, meshes);
+    let pieces = (bake.piece_map())
+        .filter(|map| map.patch.len() == solution.pieces.len())
+        .map(|map| (&solution.pieces[..], map));
     let solved = Solved {
         radiance: &solution.radiance,
         stderr: &solution.stderr,
+        pieces,
     };
     let values = bake.radiance_at(frame, &points, (solved, lighting), gather);
     let mut values = values.into_iter();

@@ -150,6 +150,7 @@ mod tests {
         let frame = |radiance: Vec<[f64; 3]>| {
             let n = radiance.len();
             std::sync::Arc::new(FrameSolution {
+                pieces: Vec::new(),
                 radiance,
                 stderr: vec![None; n],
                 samples: vec![0; n],

@@ -100,6 +100,11 @@ pub struct FrameSolution {
     /// is then only its emission). A split bake's ([`crate::bake::Bake::split`]) also takes in
     /// the error of the pieces' shape ([`crate::bake::SHAPE_ERROR`]).
     pub stderr: Vec<Option<[f64; 3]>>,
+    /// A split bake's pieces' radiance ([`crate::bake::Bake::split`]; empty otherwise), which
+    /// the outputs' points read where a gather ray lands. Not written out: a solution read
+    /// back from disk has none, and its points read the patches.
+    #[serde(skip)]
+    pub pieces: Vec<[f32; 3]>,
     /// Crossings of each patch by the lines, where a surface touches it included (0:
     /// unsampled), in global lines (a gap's denser lines count a fraction each).
     pub samples: Vec<u64>,
@@ -124,6 +129,7 @@ impl FrameSolution {
             + self.radiance.len() * size_of::<[f64; 3]>()
             + self.stderr.len() * size_of::<Option<[f64; 3]>>()
             + self.samples.len() * size_of::<u64>()
+            + self.pieces.len() * size_of::<[f32; 3]>()
     }
 
     /// `Ok` if every channel converged; otherwise why frame `frame`, solved with
@@ -506,6 +512,10 @@ fn solve_with(
         }
         seen > 0 || (hidden > 0 && open == 0.0)
     };
+    let pieces = match groups {
+        Some(_) => (light.values.iter()).map(|l| l.map(|x| x as f32)).collect(),
+        None => Vec::new(),
+    };
     let (radiance, sampled, crossings, unknown, answered_by) = match groups {
         None => {
             let unknown: Vec<[bool; 3]> = (0..patches)
@@ -553,6 +563,7 @@ fn solve_with(
     FrameSolution {
         radiance,
         stderr,
+        pieces,
         samples: crossings,
         iterations: light.iterations,
         residual: light.residual.iter().copied().fold(0.0, f64::max),
