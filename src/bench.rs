@@ -888,6 +888,7 @@ mod tests {
     fn solution(radiance: Vec<[f64; 3]>, stderr: Vec<Option<[f64; 3]>>) -> FrameSolution {
         FrameSolution {
             pieces: Vec::new(),
+            pieces_stderr: Vec::new(),
             samples: stderr.iter().map(|e| u64::from(e.is_some())).collect(),
             radiance,
             stderr,

@@ -284,8 +284,8 @@ struct BenchAccuracyArgs {
         default_value = "30000,100000,300000,1000000"
     )]
     budgets: Vec<u64>,
-    /// How patches are made: auto (the default), source, or a length.
-    #[arg(long, default_value = "auto")]
+    /// How patches are made: source (the default), auto, or a length.
+    #[arg(long, default_value = "source")]
     patch_size: radiosity::params::PatchSize,
     /// Paths of the path-traced reference per measured frame, over all of a bake's patches
     /// (at least 64 per patch), for the scenes without a closed form.
@@ -367,8 +367,8 @@ struct BenchVerticesArgs {
     /// Paths of the reference per vertex, in each of its two halves.
     #[arg(long, default_value_t = 8192)]
     paths: usize,
-    /// How the bakes' patches are made: auto, source or a length.
-    #[arg(long, default_value = "auto")]
+    /// How the bakes' patches are made: source (the default), auto or a length.
+    #[arg(long, default_value = "source")]
     patch_size: radiosity::params::PatchSize,
 }
 

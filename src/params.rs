@@ -113,14 +113,16 @@ pub struct BakeRequest {
     #[arg(long)]
     #[serde(default, deserialize_with = "whole")]
     pub seed: Option<u64>,
-    /// How patches are made: auto (cut after tracing where the light needs them, merged where
-    /// it does not; the default), source (one per side of each source triangle) or a length
-    /// (every edge at most that long, scene units).
+    /// How patches are made: source (one per side of each source triangle, solved on finer
+    /// pieces; the default), auto (cut after tracing where the light needs them, merged where
+    /// it does not; the default with a patch budget) or a length (every edge at most that
+    /// long, scene units).
     #[arg(long, value_name = "auto|source|LENGTH")]
     #[serde(default, deserialize_with = "parsed")]
     pub patch_size: Option<PatchSize>,
-    /// With patch size auto: most patches (the cuts neighbours need included; merges bring a
-    /// scene of more triangles down to it where they can); one per 200 lines by default.
+    /// With patch size auto (implied when no patch size is given): most patches (the cuts
+    /// neighbours need included; merges bring a scene of more triangles down to it where they
+    /// can); one per 200 lines by default.
     #[arg(long)]
     #[serde(default, deserialize_with = "whole")]
     pub patch_budget: Option<u64>,
@@ -203,7 +205,11 @@ impl BakeRequest {
             (Some(lines), None) => lines,
             (None, preset) => preset.unwrap_or_default().lines(),
         };
-        let patch_size = self.patch_size.unwrap_or_default();
+        // A patch budget alone asks for `auto`, the one way of making patches it applies to.
+        let patch_size = (self.patch_size).unwrap_or(match self.patch_budget {
+            Some(_) => PatchSize::Auto,
+            None => PatchSize::default(),
+        });
         let patch_budget = match (patch_size, self.patch_budget) {
             (_, Some(0)) => return Err(ParamError::NoPatches),
             (PatchSize::Auto, budget) => budget.map(|b| usize::try_from(b).unwrap_or(usize::MAX)),
@@ -274,12 +280,14 @@ where
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub enum PatchSize {
     /// Patches cut after tracing where the light needs them and merged where it does not,
-    /// from the lines ([`crate::adaptive`]), starting from the source's triangles. The default: on every
-    /// sample scene it is closer to the path-traced reference than the source's triangles
-    /// (README, "Adaptive patches").
-    #[default]
+    /// from the lines ([`crate::adaptive`]), starting from the source's triangles; the default
+    /// when a patch budget is given.
     Auto,
-    /// One patch per side of each of the source's triangles.
+    /// One patch per side of each of the source's triangles (solved on finer pieces,
+    /// [`crate::bake::Bake::split`], and the outputs evaluated at their points). The default:
+    /// as close to the path tracer as `auto` at the sample scenes' vertices, at a third of its
+    /// time or less (README, "Presets").
+    #[default]
     Source,
     /// Triangles subdivided until every edge is at most this long (scene units, > 0).
     Length(f64),

@@ -798,6 +798,7 @@ fn a_large_patch_no_line_crossed_gets_a_warning() {
     let frame = |samples: Vec<u64>| {
         std::sync::Arc::new(FrameSolution {
             pieces: Vec::new(),
+            pieces_stderr: Vec::new(),
             radiance: vec![[0.0; 3]; patches],
             stderr: vec![None; patches],
             samples,

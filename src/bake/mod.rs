@@ -842,6 +842,9 @@ impl Bake {
                 // The patches solved whole as well (the answer alone): how far the pieces moved
                 // it says how far the pieces themselves may still be from the light's shape.
                 let whole = self.whole_answer(solve, start);
+                solution.pieces_stderr = (solution.stderr.iter())
+                    .map(|e| e.unwrap_or_default().map(|x| x as f32))
+                    .collect();
                 for ((e, l), w) in (solution.stderr.iter_mut())
                     .zip(&solution.radiance)
                     .zip(&whole.radiance)

@@ -836,7 +836,7 @@ mod tests {
             |p| p.settings.load.max_patches += 1,
             |p| p.settings.load.max_work += 1,
             |p| p.settings.load.max_reflectance = 0.99,
-            |p| p.settings.patch_size = PatchSize::Source,
+            |p| p.settings.patch_size = PatchSize::Auto,
             |p| p.settings.patch_budget = Some(500),
             |p| p.settings.lines.lines += 1,
             |p| p.settings.lines.seed = 2,

@@ -183,10 +183,15 @@ pub struct Solved<'a> {
     /// Its standard error (`None`: no line crossed the patch).
     pub stderr: &'a [Option<[f64; 3]>],
     /// The radiance of the pieces the frame was solved on, if it was
-    /// ([`crate::bake::Bake::split`]), and where they are: a gather ray reads the piece it
-    /// lands on rather than its patch's mean.
-    pub pieces: Option<(&'a [[f32; 3]], &'a PieceMap)>,
+    /// ([`crate::bake::Bake::split`]), each patch's error bar from the lines alone
+    /// ([`crate::solve::FrameSolution::pieces_stderr`]), and where the pieces are: a gather ray
+    /// reads the piece it lands on rather than its patch's mean.
+    pub pieces: Option<PiecesRead<'a>>,
 }
+
+/// What [`Solved::pieces`] holds: the pieces' radiance, each patch's error bar from the lines
+/// alone, and where the pieces lie.
+pub type PiecesRead<'a> = (&'a [[f32; 3]], &'a [[f32; 3]], &'a PieceMap);
 
 /// Where the pieces of a split bake lie on its traced triangles ([`crate::bake::Bake::split`]).
 #[derive(Clone, Debug, Default)]
@@ -555,7 +560,7 @@ impl Gatherer<'_> {
                 forms.push(linear.clear.then_some(linear));
             }
             if let Read::Patch(q) = linear.read
-                && let Some(Some(s)) = self.solved.stderr.get(self.patch_of(q) as usize)
+                && let Some(s) = self.read_error(q)
             {
                 (0..3).for_each(|c| read[c] += pi * linear.weight[c] * s[c]);
             }
@@ -631,7 +636,7 @@ impl Gatherer<'_> {
         let material = (self.scene.patches.get(p))
             .and_then(|patch| self.lighting.materials.get(patch.material as usize));
         let (unit, size) = match self.solved.pieces {
-            Some((_, map)) => {
+            Some((_, _, map)) => {
                 let k = map.face.get(face).copied().unwrap_or(u32::MAX);
                 match map.size.get(k as usize) {
                     Some(&size) => (k, size),
@@ -696,8 +701,20 @@ impl Gatherer<'_> {
     /// The patch of a unit the gather reads ([`Read::Patch`]): itself, or a piece's patch.
     fn patch_of(&self, unit: u32) -> u32 {
         match self.solved.pieces {
-            Some((_, map)) => map.patch.get(unit as usize).copied().unwrap_or(u32::MAX),
+            Some((_, _, map)) => map.patch.get(unit as usize).copied().unwrap_or(u32::MAX),
             None => unit,
+        }
+    }
+
+    /// The error bar of what a gather ray reads of `unit` ([`Read::Patch`]), shared by the
+    /// rays that read the same patch: its patch's; when the unit is a piece, its patch's from
+    /// the lines alone (a piece's own noise, independent between pieces, is in the spread of
+    /// the rays' values).
+    fn read_error(&self, unit: u32) -> Option<[f64; 3]> {
+        let p = self.patch_of(unit) as usize;
+        match self.solved.pieces {
+            Some((_, errors, _)) => errors.get(p).map(|e| e.map(f64::from)),
+            None => self.solved.stderr.get(p).copied().flatten(),
         }
     }
 
@@ -706,7 +723,7 @@ impl Gatherer<'_> {
         let read = match linear.read {
             Read::Patch(q) => {
                 let l = match self.solved.pieces {
-                    Some((radiance, _)) => (radiance.get(q as usize))
+                    Some((radiance, _, _)) => (radiance.get(q as usize))
                         .map(|l| l.map(f64::from))
                         .unwrap_or_default(),
                     None => (self.solved.radiance.get(q as usize))

@@ -210,8 +210,11 @@ pub fn light_vertices(
 ) {
     let points = vertex_points(bake, meshes);
     let pieces = (bake.piece_map())
-        .filter(|map| map.patch.len() == solution.pieces.len())
-        .map(|map| (&solution.pieces[..], map));
+        .filter(|map| {
+            map.patch.len() == solution.pieces.len()
+                && solution.pieces_stderr.len() == solution.radiance.len()
+        })
+        .map(|map| (&solution.pieces[..], &solution.pieces_stderr[..], map));
     let solved = Solved {
         radiance: &solution.radiance,
         stderr: &solution.stderr,

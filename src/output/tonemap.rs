@@ -151,6 +151,7 @@ mod tests {
             let n = radiance.len();
             std::sync::Arc::new(FrameSolution {
                 pieces: Vec::new(),
+                pieces_stderr: Vec::new(),
                 radiance,
                 stderr: vec![None; n],
                 samples: vec![0; n],

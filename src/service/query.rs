@@ -319,8 +319,12 @@ mod tests {
         let limits = Limits::default();
         let create = |query: &str| read::<BakeRequest>(query).unwrap().validate(&limits);
         let settings = create("fps=12&preset=draft&sky=1,0.5,0&start=0&end=1").unwrap();
-        // Patches are cut where the light needs them unless asked otherwise.
-        assert_eq!(settings.adaptive(0).map(|a| a.budget), Some(500));
+        // Patches are the source's triangles unless asked otherwise; a patch budget alone asks
+        // for them to be cut where the light needs them.
+        assert_eq!(settings.patch_size, crate::params::PatchSize::Source);
+        assert!(settings.adaptive(0).is_none());
+        let budgeted = create("preset=draft&patch_budget=700").unwrap();
+        assert_eq!(budgeted.adaptive(0).map(|a| a.budget), Some(700));
         let load = &settings.load;
         assert_eq!(
             (load.fps, load.start, load.end),
@@ -346,7 +350,10 @@ mod tests {
         // A budget below the scene's own patches: merges bring it down to it.
         assert_eq!(settings.adaptive(9000).map(|a| a.budget), Some(5000));
         assert_eq!(
-            create("").unwrap().adaptive(9000).map(|a| a.budget),
+            create("patch_size=auto")
+                .unwrap()
+                .adaptive(9000)
+                .map(|a| a.budget),
             Some(9000)
         );
         let settings = create("patch_size=0.5").unwrap();

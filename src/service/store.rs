@@ -223,6 +223,7 @@ fn decode_frame(frame: usize, patches: usize, bytes: &[u8]) -> std::io::Result<F
     let (radiance_at, stderr_at, samples_at) = (17, 17 + 24 * patches, 17 + 48 * patches);
     Ok(FrameSolution {
         pieces: Vec::new(),
+        pieces_stderr: Vec::new(),
         iterations: usize::try_from(u64::from_le_bytes(word(0))).unwrap_or(usize::MAX),
         residual: f64_at(8),
         converged: body[16] == 1,
@@ -633,6 +634,7 @@ fn read_first_layout(bytes: &[u8], frames: usize) -> Option<Vec<FrameSolution>> 
         }
         out.push(FrameSolution {
             pieces: Vec::new(),
+            pieces_stderr: Vec::new(),
             radiance,
             stderr,
             samples,
@@ -651,6 +653,7 @@ mod tests {
     fn solution(patches: usize, k: f64) -> FrameSolution {
         FrameSolution {
             pieces: Vec::new(),
+            pieces_stderr: Vec::new(),
             radiance: (0..patches).map(|p| [k, p as f64, 0.5]).collect(),
             stderr: (0..patches)
                 .map(|p| (p % 3 != 0).then_some([0.1 * k, 0.0, 1e-300]))

@@ -105,6 +105,10 @@ pub struct FrameSolution {
     /// back from disk has none, and its points read the patches.
     #[serde(skip)]
     pub pieces: Vec<[f32; 3]>,
+    /// With [`FrameSolution::pieces`], each patch's error bar from the lines alone (without
+    /// the pieces' shape term, which a reading of the pieces does not have).
+    #[serde(skip)]
+    pub pieces_stderr: Vec<[f32; 3]>,
     /// Crossings of each patch by the lines, where a surface touches it included (0:
     /// unsampled), in global lines (a gap's denser lines count a fraction each).
     pub samples: Vec<u64>,
@@ -129,7 +133,7 @@ impl FrameSolution {
             + self.radiance.len() * size_of::<[f64; 3]>()
             + self.stderr.len() * size_of::<Option<[f64; 3]>>()
             + self.samples.len() * size_of::<u64>()
-            + self.pieces.len() * size_of::<[f32; 3]>()
+            + (self.pieces.len() + self.pieces_stderr.len()) * size_of::<[f32; 3]>()
     }
 
     /// `Ok` if every channel converged; otherwise why frame `frame`, solved with
@@ -564,6 +568,7 @@ fn solve_with(
         radiance,
         stderr,
         pieces,
+        pieces_stderr: Vec::new(),
         samples: crossings,
         iterations: light.iterations,
         residual: light.residual.iter().copied().fold(0.0, f64::max),
