@@ -683,6 +683,11 @@ impl Emitter {
     pub(super) fn bounds(&self) -> (DVec3, DVec3) {
         bounds(self.hull.iter().copied())
     }
+
+    /// Its triangles' corners.
+    pub(super) fn triangles(&self) -> &[[DVec3; 3]] {
+        &self.triangles
+    }
 }
 
 impl Face {

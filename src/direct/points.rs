@@ -287,6 +287,7 @@ pub fn radiance_at(
     let statics_count = scene.statics.triangles.len();
     cache.keep_for(statics_count);
     let swept = cache.swept(scene);
+    let now = Swept::at(scene, frame, swept.lights_move);
     let (places, _) = places(scene, &view);
     let emitters: Vec<_> = (area
         .posed_materials(scene, tracer, &posed.triangles)
@@ -318,6 +319,7 @@ pub fn radiance_at(
         cache,
         moving_lights: swept.lights_move,
         swept,
+        now,
         lighting_key: lighting_key(lighting) ^ u64::from(solved.pieces.is_some()),
         places: &places,
         emitters: &emitters,
@@ -346,6 +348,9 @@ struct Gatherer<'a> {
     cache: &'a GatherCache,
     /// Where the moving geometry can be at any frame.
     swept: std::sync::Arc<Swept>,
+    /// Where the moving geometry is at this frame: a static site's direct light none of whose
+    /// shadow rays can meet it is the same as at any other frame where none can.
+    now: Swept,
     /// Whether a punctual light moves: no linear form is kept.
     moving_lights: bool,
     /// The lighting the linear forms are traced with (materials, lights' power, sky).
@@ -406,24 +411,7 @@ impl Gatherer<'_> {
         }
         let seed = site_seed(self.gather.seed, site);
         let pi = std::f64::consts::PI;
-        // The direct light, kept for a static site none of whose shadow rays can meet the
-        // moving geometry (with the lighting it was traced with).
-        let keeps = (site.triangle as usize) < self.statics_count && !self.moving_lights;
-        let kept = keeps
-            .then(|| self.cache.direct(site, self.lighting_key))
-            .flatten();
-        let (mut e, mut variance) = match kept {
-            Some(direct) => direct,
-            None => {
-                let direct = self.direct(site, (x, place), seed, hits);
-                let clear = self.swept.lights_clear(&self.sight, x)
-                    && (self.emitters.iter()).all(|(emitter, _)| self.swept.hull_clear(x, emitter));
-                if keeps && clear {
-                    self.cache.keep_direct(site, self.lighting_key, direct);
-                }
-                direct
-            }
-        };
+        let (mut e, mut variance) = self.direct(site, (x, place), seed, hits);
         // The rest, gathered from the solution along stratified cosine-weighted rays, a batch
         // at a time: more batches while the site's radiance is known to worse than
         // [`GATHER_PRECISION`] by their noise (in a gap, where light arrives by rare paths),
@@ -470,29 +458,45 @@ impl Gatherer<'_> {
     }
 
     /// The irradiance at `site`'s point `x` (on `place`) straight from the punctual lights and
-    /// the sampled emitters, and its variance.
+    /// the sampled emitters, and its variance. An emitter's light at a static site none of
+    /// whose shadow rays to it can meet the moving geometry at this frame is its light with
+    /// the static geometry alone: kept from the first such frame (with the lighting it was
+    /// traced with), read at the others, so that only the emitters a moving object may shadow
+    /// are sampled again.
     fn direct(
         &self,
         site: &Site,
         (x, place): (DVec3, &Place),
         seed: u64,
         hits: &mut Vec<Hit>,
-    ) -> ([f64; 3], [f64; 3]) {
+    ) -> DirectLight {
         let pi = std::f64::consts::PI;
         let (n, own) = (place.normal, (place.triangle, place.back));
         let mut e = self.sight.punctual(x, place, hits);
         let mut variance = [0.0; 3];
+        let keeps = (site.triangle as usize) < self.statics_count && !self.moving_lights;
         // The sampled emitters, by solid angle.
         let scale = site.weight.sqrt();
         for (k, (emitter, emission)) in self.emitters.iter().enumerate() {
-            let g = point_grid(x, emitter, self.gather.density);
-            let g = ((g as f64 * scale).round() as usize).max(4);
-            let (f, v) = point_form_factor(
-                self.sight.view,
-                (x, n, own.0, own.1),
-                emitter,
-                (mix(seed ^ k as u64), g),
-            );
+            let clear = keeps && self.now.hull_clear(x, emitter);
+            let kept = clear
+                .then(|| self.cache.direct((site, k), self.lighting_key))
+                .flatten();
+            let (f, v) = kept.unwrap_or_else(|| {
+                let g = point_grid(x, emitter, self.gather.density);
+                let g = ((g as f64 * scale).round() as usize).max(4);
+                let sampled = point_form_factor(
+                    self.sight.view,
+                    (x, n, own.0, own.1),
+                    emitter,
+                    (mix(seed ^ k as u64), g),
+                );
+                if clear {
+                    self.cache
+                        .keep_direct((site, k), self.lighting_key, sampled);
+                }
+                sampled
+            });
             for c in 0..3 {
                 e[c] += pi * emission[c] * f;
                 variance[c] += (pi * emission[c]).powi(2) * v;
@@ -741,6 +745,44 @@ impl Gatherer<'_> {
     }
 }
 
+/// Whether the tetrahedron `p` meets the box `(lo, hi)`, by separating axes: the box's own
+/// (the bounds), the tetrahedron's faces' normals and the cross products of its edges with the
+/// box's axes. Conservative for a degenerate tetrahedron (axes of no length are skipped).
+fn tetrahedron_meets_box(p: [DVec3; 4], (lo, hi): (DVec3, DVec3)) -> bool {
+    let (plo, phi) = p.iter().fold(
+        (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
+        |(l, h), &q| (l.min(q), h.max(q)),
+    );
+    if (0..3).any(|k| phi[k] < lo[k] || plo[k] > hi[k]) {
+        return false;
+    }
+    let (centre, half) = ((lo + hi) * 0.5, (hi - lo) * 0.5);
+    let separates = |axis: DVec3| {
+        if axis.length_squared() < 1e-300 {
+            return false;
+        }
+        let (mut min, mut max) = (f64::INFINITY, f64::NEG_INFINITY);
+        for q in p {
+            let d = (q - centre).dot(axis);
+            (min, max) = (min.min(d), max.max(d));
+        }
+        let r = half.dot(axis.abs());
+        min > r || max < -r
+    };
+    const FACES: [[usize; 3]; 4] = [[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]];
+    const EDGES: [[usize; 2]; 6] = [[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]];
+    let faces = FACES.map(|[a, b, c]| (p[b] - p[a]).cross(p[c] - p[a]));
+    if faces.into_iter().any(separates) {
+        return false;
+    }
+    !(EDGES.iter()).any(|&[a, b]| {
+        let e = p[b] - p[a];
+        [DVec3::X, DVec3::Y, DVec3::Z]
+            .into_iter()
+            .any(|axis| separates(e.cross(axis)))
+    })
+}
+
 /// A hash of what the linear forms depend on beside the solution: every material's
 /// reflectance and emission, every light's power, the sky.
 fn lighting_key(lighting: Lighting<'_>) -> u64 {
@@ -824,6 +866,23 @@ struct Swept {
 }
 
 impl Swept {
+    /// Where the moving objects are at `frame` alone (`lights_move` as the timeline's).
+    fn at(scene: &Scene, frame: usize, lights_move: bool) -> Self {
+        let pad = DVec3::splat(f64::from(16.0 * crate::trace::coincident::COINCIDENT));
+        let boxes = (scene.objects.iter())
+            .map(|object| {
+                let (lo, hi) = (object.positions_at(frame).iter())
+                    .map(|p| p.as_dvec3())
+                    .fold(
+                        (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
+                        |(lo, hi), p| (lo.min(p), hi.max(p)),
+                    );
+                (lo - pad, hi + pad)
+            })
+            .collect();
+        Self { boxes, lights_move }
+    }
+
     fn of(scene: &Scene) -> Self {
         let pad = DVec3::splat(f64::from(16.0 * crate::trace::coincident::COINCIDENT));
         let boxes = (scene.objects.iter())
@@ -880,12 +939,17 @@ impl Swept {
             })
     }
 
-    /// Whether the box around `y` and `emitter` (which holds every ray between them) misses
-    /// every box.
+    /// Whether every ray from `y` to `emitter` misses every box: the box around them both
+    /// does, or each of the tetrahedra from `y` to the emitter's triangles (which hold those
+    /// rays) does.
     fn hull_clear(&self, y: DVec3, emitter: &super::area::Emitter) -> bool {
         let (lo, hi) = emitter.bounds();
         let (lo, hi) = (lo.min(y), hi.max(y));
-        (self.boxes.iter()).all(|&(a, b)| (0..3).any(|k| hi[k] < a[k] || lo[k] > b[k]))
+        (self.boxes.iter()).all(|&(a, b)| {
+            (0..3).any(|k| hi[k] < a[k] || lo[k] > b[k])
+                || (emitter.triangles().iter())
+                    .all(|t| !tetrahedron_meets_box([y, t[0], t[1], t[2]], (a, b)))
+        })
     }
 }
 
@@ -962,9 +1026,9 @@ struct Kept {
     /// The lighting the forms were traced with ([`lighting_key`]), and the gather rays' linear
     /// forms by site and batch (`None` for a ray that may meet the moving geometry).
     forms: (u64, KeptForms),
-    /// The direct light at static sites that nothing moving can shadow, with the lighting it
-    /// was traced with.
-    direct: (u64, std::collections::HashMap<SiteKey, DirectLight>),
+    /// The form factor (and its variance) from static sites to each sampled emitter (by site
+    /// and emitter) that nothing moving shadowed, with the lighting it was traced with.
+    direct: (u64, std::collections::HashMap<SiteKey, (f64, f64)>),
     /// The moving geometry's reach over the timeline.
     swept: Option<std::sync::Arc<Swept>>,
     /// The bytes they take, about.
@@ -1072,18 +1136,20 @@ impl GatherCache {
         swept
     }
 
-    /// The direct light at `site`, if kept for the lighting `key`.
-    fn direct(&self, site: &Site, key: u64) -> Option<DirectLight> {
+    /// The form factor from `site` to the sampled emitter `emitter` and its variance, if kept
+    /// for the lighting `key`.
+    fn direct(&self, (site, emitter): (&Site, usize), key: u64) -> Option<(f64, f64)> {
         let kept = self.inner.read().ok()?;
         (kept.direct.0 == key)
-            .then(|| kept.direct.1.get(&site_key(site, 0)).copied())
+            .then(|| kept.direct.1.get(&site_key(site, emitter)).copied())
             .flatten()
     }
 
-    /// Keeps `direct`, the direct light at `site` with the lighting `key` (forgetting that of
-    /// another lighting), within [`GATHER_CACHE_BYTES`].
-    fn keep_direct(&self, site: &Site, key: u64, direct: DirectLight) {
-        let bytes = 64 + size_of::<DirectLight>();
+    /// Keeps `direct`, the form factor from `site` to the sampled emitter `emitter` and its
+    /// variance with the lighting `key` (forgetting those of another lighting), within
+    /// [`GATHER_CACHE_BYTES`].
+    fn keep_direct(&self, (site, emitter): (&Site, usize), key: u64, direct: (f64, f64)) {
+        let bytes = 64 + size_of::<(f64, f64)>();
         let Ok(mut kept) = self.inner.write() else {
             return;
         };
@@ -1093,7 +1159,11 @@ impl GatherCache {
             kept.direct = (key, std::collections::HashMap::new());
         }
         if kept.bytes + bytes <= GATHER_CACHE_BYTES
-            && kept.direct.1.insert(site_key(site, 0), direct).is_none()
+            && kept
+                .direct
+                .1
+                .insert(site_key(site, emitter), direct)
+                .is_none()
         {
             kept.bytes += bytes;
         }
@@ -1136,5 +1206,42 @@ impl GatherCache {
     #[must_use]
     pub fn bytes(&self) -> usize {
         self.inner.read().map_or(0, |k| k.bytes)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_tetrahedron_meets_the_boxes_its_rays_cross_and_not_those_beside_it_in_its_bounds() {
+        // From a point on the floor to a ceiling triangle over x ∈ [2, 3]: the rays rise
+        // to the right, so a door standing at x = 0.5 left of the apex meets none of them,
+        // though it is within the tetrahedron's bounds.
+        let p = [
+            DVec3::new(1.0, 0.0, 0.0),
+            DVec3::new(2.0, 2.0, -0.5),
+            DVec3::new(3.0, 2.0, -0.5),
+            DVec3::new(2.5, 2.0, 0.5),
+        ];
+        let beside = (DVec3::new(0.4, 1.5, -0.5), DVec3::new(0.6, 2.0, 0.5));
+        let (lo, hi) = (DVec3::new(0.0, 0.0, -1.0), DVec3::new(3.0, 2.0, 1.0));
+        assert!((0..3).all(|k| beside.0[k] >= lo[k] - 1.0 && beside.1[k] <= hi[k]));
+        assert!(!tetrahedron_meets_box(p, beside));
+        // Above the tetrahedron's lower face, left of its apex: outside, by a face's plane.
+        assert!(!tetrahedron_meets_box(
+            p,
+            (DVec3::new(1.2, 1.2, -0.1), DVec3::new(1.4, 1.4, 0.1))
+        ));
+        // Across the rays, or holding the apex: met.
+        let across = (DVec3::new(1.6, 0.9, -0.1), DVec3::new(1.8, 1.1, 0.1));
+        assert!(tetrahedron_meets_box(p, across));
+        let apex = (DVec3::new(0.9, -0.1, -0.1), DVec3::new(1.1, 0.1, 0.1));
+        assert!(tetrahedron_meets_box(p, apex));
+        // Beyond its bounds: not met.
+        assert!(!tetrahedron_meets_box(
+            p,
+            (DVec3::new(4.0, 0.0, 0.0), DVec3::new(5.0, 1.0, 1.0))
+        ));
     }
 }
