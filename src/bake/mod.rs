@@ -834,14 +834,16 @@ impl Bake {
     ) -> FrameSolution {
         match &self.pieces {
             Some(pieces) => {
-                let tally = (pieces.tallies).frame(&self.list, &pieces.tracer.surfaces(), frame);
+                let surfaces = (&pieces.tracer.surfaces(), &self.tracer.surfaces());
+                let (tally, whole_tally) =
+                    (pieces.tallies).frame_with(&self.tallies, &self.list, surfaces, frame);
                 let state = (&pieces.scene, &pieces.tracer, &pieces.direct, &pieces.area);
                 let solve = (frame, materials, power, params);
                 let mut solution =
                     Self::solve_state_from(&tally, state, Some(&pieces.groups), solve, start, true);
                 // The patches solved whole as well (the answer alone): how far the pieces moved
                 // it says how far the pieces themselves may still be from the light's shape.
-                let whole = self.whole_answer(solve, start);
+                let whole = self.whole_answer_of(&whole_tally, solve, start);
                 solution.pieces_stderr = (solution.stderr.iter())
                     .map(|e| e.unwrap_or_default().map(|x| x as f32))
                     .collect();
@@ -905,9 +907,18 @@ impl Bake {
         solve: (usize, &[Material], &[[f64; 3]], &SolveParams),
         start: Option<(usize, &FrameSolution)>,
     ) -> FrameSolution {
-        let tally = self.frame_tally(solve.0);
+        self.whole_answer_of(&self.frame_tally(solve.0), solve, start)
+    }
+
+    /// [`Bake::whole_answer`] from `tally`, the patches' tallies at the frame.
+    fn whole_answer_of(
+        &self,
+        tally: &FrameTally,
+        solve: (usize, &[Material], &[[f64; 3]], &SolveParams),
+        start: Option<(usize, &FrameSolution)>,
+    ) -> FrameSolution {
         let state = (&self.scene, &self.tracer, &self.direct, &self.area);
-        Self::solve_state_from(&tally, state, None, solve, start, false)
+        Self::solve_state_from(tally, state, None, solve, start, false)
     }
 
     /// Solves `tally`, the tallies of `state`'s patches (the bake's, or its pieces' with their

@@ -310,13 +310,25 @@ impl Tallies {
     /// What the moving objects change at `frame`: minus the static segments of the lines they
     /// touch, plus those lines' frame segments.
     fn changes(&self, list: &IntersectionList, surfaces: &Surfaces<'_>, frame: usize) -> Entries {
+        let [changes] = self.changes_of(list, [surfaces], frame);
+        changes
+    }
+
+    /// [`Tallies::changes`] for each of `surfaces` (the same triangles, each with its own
+    /// patches), each line's crossings at the frame gathered once for all of them.
+    fn changes_of<const N: usize>(
+        &self,
+        list: &IntersectionList,
+        surfaces: [&Surfaces<'_>; N],
+        frame: usize,
+    ) -> [Entries; N] {
         let touched = &self.touched
             [self.touched_offsets[frame] as usize..self.touched_offsets[frame + 1] as usize];
         // In chunks on every core; sums of integers, so the same whatever the split.
-        let chunks: Vec<Entries> = touched
+        let chunks: Vec<[Entries; N]> = touched
             .par_chunks(4096)
             .map(|chunk| {
-                let mut raw = Vec::new();
+                let mut raw: [Vec<(u64, i64)>; N] = std::array::from_fn(|_| Vec::new());
                 let mut merged = Vec::new();
                 for &l in chunk {
                     let l = l as usize;
@@ -324,17 +336,26 @@ impl Tallies {
                     if w == 0 {
                         continue;
                     }
-                    let surfaces = surfaces.along(list.direction(l));
-                    walk(list.static_hits(l), &surfaces, |a, b| {
-                        raw.push((key(a, b, g), -w))
-                    });
                     list.frame_hits(l, frame, &mut merged);
-                    walk(&merged, &surfaces, |a, b| raw.push((key(a, b, g), w)));
+                    for (raw, surfaces) in raw.iter_mut().zip(surfaces) {
+                        let surfaces = surfaces.along(list.direction(l));
+                        walk(list.static_hits(l), &surfaces, |a, b| {
+                            raw.push((key(a, b, g), -w))
+                        });
+                        walk(&merged, &surfaces, |a, b| raw.push((key(a, b, g), w)));
+                    }
                 }
-                aggregate(raw)
+                raw.map(aggregate)
             })
             .collect();
-        merge_all(chunks)
+        let mut lists: [Vec<Entries>; N] =
+            std::array::from_fn(|_| Vec::with_capacity(chunks.len()));
+        for chunk in chunks {
+            for (list, entries) in lists.iter_mut().zip(chunk) {
+                list.push(entries);
+            }
+        }
+        lists.map(merge_all)
     }
 
     /// Frames whose tallies equal an earlier frame's: `representative[f]` is the first frame
@@ -369,11 +390,33 @@ impl Tallies {
         surfaces: &Surfaces<'_>,
         frame: usize,
     ) -> FrameTally {
-        let changes = self.changes(list, surfaces, frame);
+        Self::with(&self.statics, &self.changes(list, surfaces, frame))
+    }
+
+    /// [`Tallies::frame`] of these tallies and of `other`'s, tallied from the same list over
+    /// the same triangles with other patches (`surfaces` and `other_surfaces`: a split bake's
+    /// pieces and its patches), each line's crossings at the frame gathered once for both.
+    #[must_use]
+    pub fn frame_with(
+        &self,
+        other: &Self,
+        list: &IntersectionList,
+        (surfaces, other_surfaces): (&Surfaces<'_>, &Surfaces<'_>),
+        frame: usize,
+    ) -> (FrameTally, FrameTally) {
+        let [own, others] = self.changes_of(list, [surfaces, other_surfaces], frame);
+        (
+            Self::with(&self.statics, &own),
+            Self::with(&other.statics, &others),
+        )
+    }
+
+    /// `statics` with `changes`.
+    fn with(statics: &FrameTally, changes: &[(u64, i64)]) -> FrameTally {
         if changes.is_empty() {
-            return self.statics.clone();
+            return statics.clone();
         }
-        self.statics.with_changes(&changes)
+        statics.with_changes(changes)
     }
 }
 
