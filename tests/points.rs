@@ -447,3 +447,39 @@ fn a_frame_s_vertices_do_not_depend_on_the_frames_evaluated_before_it() {
     // And the block did move: frame 0 differs.
     assert!(differing(&lit(&second, 0), &alone) > 0);
 }
+
+#[test]
+fn a_solution_read_back_without_its_pieces_lights_the_vertices_as_before() {
+    // The service stores a frame's patches, not its pieces: a frame read back from disk is
+    // solved again for them, so its baked vertices are those it had before.
+    let sample = (radiosity::samples::all().into_iter())
+        .find(|s| s.file_name == "panel_room.gltf")
+        .unwrap();
+    let scene = load(sample.gltf.as_bytes(), &LoadOptions::default()).unwrap();
+    let lines = LineParams {
+        lines: 100_000,
+        seed: 3,
+    };
+    let mut bake = Bake::trace(scene, &lines).unwrap();
+    bake.split(&SolveParams::default(), &Default::default())
+        .unwrap();
+    let solution = bake.solve_frame(0, &bake.scene.materials, &SolveParams::default());
+    assert!(!solution.pieces.is_empty());
+    let read_back = FrameSolution {
+        pieces: Vec::new(),
+        pieces_stderr: Vec::new(),
+        ..solution.clone()
+    };
+    let power = bake.light_power();
+    let lighting = Lighting {
+        materials: &bake.scene.materials,
+        power: &power,
+        sky: [0.0; 3],
+    };
+    let radiance = |s: &FrameSolution| -> Vec<[f64; 3]> {
+        (radiosity::output::lit_geometry(&bake, 0, s, lighting).iter())
+            .flat_map(|m| m.radiance.clone())
+            .collect()
+    };
+    assert_eq!(radiance(&read_back), radiance(&solution));
+}

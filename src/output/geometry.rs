@@ -209,12 +209,25 @@ pub fn light_vertices(
     gather: Gather,
 ) {
     let points = vertex_points(bake, meshes);
+    let has_pieces = |s: &FrameSolution, map: &crate::direct::points::PieceMap| {
+        map.patch.len() == s.pieces.len() && s.pieces_stderr.len() == s.radiance.len()
+    };
+    // A split bake's solution without its pieces (read back from disk: they are not stored) is
+    // solved again for them, with the lighting it was solved with; its patches keep their
+    // answer.
+    let again = (bake.piece_map())
+        .filter(|map| !has_pieces(solution, map))
+        .map(|_| {
+            let params = crate::solve::SolveParams {
+                sky: lighting.sky,
+                ..crate::solve::SolveParams::default()
+            };
+            bake.solve_frame_lit(frame, lighting.materials, lighting.power, &params)
+        });
+    let read = again.as_ref().unwrap_or(solution);
     let pieces = (bake.piece_map())
-        .filter(|map| {
-            map.patch.len() == solution.pieces.len()
-                && solution.pieces_stderr.len() == solution.radiance.len()
-        })
-        .map(|map| (&solution.pieces[..], &solution.pieces_stderr[..], map));
+        .filter(|map| has_pieces(read, map))
+        .map(|map| (&read.pieces[..], &read.pieces_stderr[..], map));
     let solved = Solved {
         radiance: &solution.radiance,
         stderr: &solution.stderr,
