@@ -255,6 +255,16 @@ fn sample_vertices(name: &str) -> Vec<Vertex> {
 
 /// [`sample_vertices`] with patches of `patch_size` (`None`: the source's triangles).
 fn sample_vertices_cut(name: &str, patch_size: Option<f64>) -> Vec<Vertex> {
+    let lines = LineParams {
+        lines: 200_000,
+        seed: 1,
+    };
+    vertices(&split_sample(name, patch_size, &lines)).1
+}
+
+/// The sample scene `name` cut into patches of `patch_size` (`None`: the source's triangles),
+/// traced with `lines` and split into pieces as the bake command splits it.
+fn split_sample(name: &str, patch_size: Option<f64>, lines: &LineParams) -> Bake {
     let sample = (radiosity::samples::all().into_iter())
         .find(|s| s.file_name == name)
         .unwrap();
@@ -263,14 +273,10 @@ fn sample_vertices_cut(name: &str, patch_size: Option<f64>) -> Vec<Vertex> {
         ..LoadOptions::default()
     };
     let scene = load(sample.gltf.as_bytes(), &options).unwrap();
-    let lines = LineParams {
-        lines: 200_000,
-        seed: 1,
-    };
-    let mut bake = Bake::trace(scene, &lines).unwrap();
+    let mut bake = Bake::trace(scene, lines).unwrap();
     bake.split(&SolveParams::default(), &Default::default())
         .unwrap();
-    vertices(&bake).1
+    bake
 }
 
 /// The path tracer at the panel room's vertices (`cargo run --release --example
@@ -452,17 +458,11 @@ fn a_frame_s_vertices_do_not_depend_on_the_frames_evaluated_before_it() {
 fn a_solution_read_back_without_its_pieces_lights_the_vertices_as_before() {
     // The service stores a frame's patches, not its pieces: a frame read back from disk is
     // solved again for them, so its baked vertices are those it had before.
-    let sample = (radiosity::samples::all().into_iter())
-        .find(|s| s.file_name == "panel_room.gltf")
-        .unwrap();
-    let scene = load(sample.gltf.as_bytes(), &LoadOptions::default()).unwrap();
     let lines = LineParams {
         lines: 100_000,
         seed: 3,
     };
-    let mut bake = Bake::trace(scene, &lines).unwrap();
-    bake.split(&SolveParams::default(), &Default::default())
-        .unwrap();
+    let bake = split_sample("panel_room.gltf", None, &lines);
     let solution = bake.solve_frame(0, &bake.scene.materials, &SolveParams::default());
     assert!(!solution.pieces.is_empty());
     let read_back = FrameSolution {
