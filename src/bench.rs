@@ -889,6 +889,8 @@ mod tests {
         FrameSolution {
             pieces: Vec::new(),
             pieces_stderr: Vec::new(),
+            shape: Vec::new(),
+            spread: Vec::new(),
             samples: stderr.iter().map(|e| u64::from(e.is_some())).collect(),
             radiance,
             stderr,

@@ -494,7 +494,8 @@ fn the_share_of_a_floor_patch_the_box_leaves_open_is_known_within_its_error_bar(
     for &(p, _) in &floor {
         which[p as usize] = true;
     }
-    let shares = radiosity::direct::visible_shares(scene, bake.tracer(), 0, &which);
+    let shares =
+        radiosity::direct::visible_shares(scene, bake.tracer(), 0, &which, &Default::default());
     // Against the share of each floor triangle outside the box's outline: exact where the
     // outline does not cross it, within the estimate's own error bar where it does.
     let mut z = Vec::new();
@@ -799,6 +800,8 @@ fn a_large_patch_no_line_crossed_gets_a_warning() {
         std::sync::Arc::new(FrameSolution {
             pieces: Vec::new(),
             pieces_stderr: Vec::new(),
+            shape: Vec::new(),
+            spread: Vec::new(),
             radiance: vec![[0.0; 3]; patches],
             stderr: vec![None; patches],
             samples,

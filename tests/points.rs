@@ -468,6 +468,8 @@ fn a_solution_read_back_without_its_pieces_lights_the_vertices_as_before() {
     let read_back = FrameSolution {
         pieces: Vec::new(),
         pieces_stderr: Vec::new(),
+        shape: Vec::new(),
+        spread: Vec::new(),
         ..solution.clone()
     };
     let power = bake.light_power();

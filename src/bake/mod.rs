@@ -17,7 +17,9 @@ use crate::direct::DirectLight;
 use crate::direct::area::{AreaLights, Sampling};
 use crate::scene::{Light, Material, Scene};
 use crate::solve::tally::{FrameTally, Tallies};
-use crate::solve::{Direct, FrameSolution, Groups, SolveParams, solve_answer, solve_grouped};
+use crate::solve::{
+    Direct, FrameSolution, Groups, SolveParams, Spread, solve_answer, solve_grouped,
+};
 use crate::timeline::{IntersectionList, LineParams};
 use crate::trace::SceneTracer;
 
@@ -47,6 +49,8 @@ pub struct Bake {
     shown: Option<Scene>,
     /// What the light at the outputs' points keeps across frames ([`Bake::radiance_at`]).
     gathered: crate::direct::points::GatherCache,
+    /// The patches' visible shares kept across frames.
+    shares: crate::direct::KeptShares,
 }
 
 /// What [`Bake::split`] solves: every face of the patches, cut finer where the lines cross it
@@ -61,6 +65,8 @@ struct Pieces {
     groups: Groups,
     /// Where the pieces lie, for the outputs' points ([`Bake::piece_map`]).
     map: crate::direct::points::PieceMap,
+    /// The pieces' visible shares kept across frames.
+    shares: crate::direct::KeptShares,
 }
 
 /// How much of the move from the patches solved whole to their pieces' mean the error bar of a
@@ -170,6 +176,7 @@ impl Bake {
             pieces: None,
             shown: None,
             gathered: Default::default(),
+            shares: Default::default(),
         })
     }
 
@@ -502,6 +509,7 @@ impl Bake {
             area,
             groups,
             map,
+            shares: Default::default(),
         });
         Ok(count)
     }
@@ -835,25 +843,74 @@ impl Bake {
         match &self.pieces {
             Some(pieces) => {
                 let surfaces = (&pieces.tracer.surfaces(), &self.tracer.surfaces());
-                let (tally, whole_tally) =
-                    (pieces.tallies).frame_with(&self.tallies, &self.list, surfaces, frame);
-                let state = (&pieces.scene, &pieces.tracer, &pieces.direct, &pieces.area);
+                let state = (
+                    &pieces.scene,
+                    &pieces.tracer,
+                    &pieces.direct,
+                    &pieces.area,
+                    &pieces.shares,
+                );
                 let solve = (frame, materials, power, params);
-                let mut solution =
-                    Self::solve_state_from(&tally, state, Some(&pieces.groups), solve, start, true);
-                // The patches solved whole as well (the answer alone): how far the pieces moved
-                // it says how far the pieces themselves may still be from the light's shape.
-                let whole = self.whole_answer_of(&whole_tally, solve, start);
+                // The shape term of the frame the patches were last solved whole at (a run's
+                // first), carried along the run: a second whole solve at every frame cost
+                // as much as the pieces' own.
+                let carried =
+                    start
+                        .map(|(_, s)| (&s.shape, &s.spread))
+                        .filter(|(shape, spread)| {
+                            let patches = self.scene.patches.len();
+                            shape.len() == patches && spread.len() == patches
+                        });
+                let mut solution = match carried {
+                    Some((shape, spread)) => {
+                        let tally = (pieces.tallies).frame(&self.list, surfaces.0, frame);
+                        let mut solution = Self::solve_state_from(
+                            &tally,
+                            state,
+                            Some(&pieces.groups),
+                            solve,
+                            start,
+                            Some(Spread::Carried(spread)),
+                        );
+                        solution.shape.clone_from(shape);
+                        solution
+                    }
+                    None => {
+                        let (tally, whole_tally) =
+                            (pieces.tallies).frame_with(&self.tallies, &self.list, surfaces, frame);
+                        let mut solution = Self::solve_state_from(
+                            &tally,
+                            state,
+                            Some(&pieces.groups),
+                            solve,
+                            start,
+                            Some(Spread::Replicas),
+                        );
+                        // The patches solved whole as well (the answer alone): how far the
+                        // pieces moved it says how far the pieces themselves may still be from
+                        // the light's shape.
+                        let whole = self.whole_answer_of(&whole_tally, solve, start);
+                        solution.shape = (solution.radiance.iter())
+                            .zip(&whole.radiance)
+                            .map(|(l, w)| [l.map(|x| x as f32), w.map(|x| x as f32)])
+                            .collect();
+                        solution
+                    }
+                };
                 solution.pieces_stderr = (solution.stderr.iter())
                     .map(|e| e.unwrap_or_default().map(|x| x as f32))
                     .collect();
-                for ((e, l), w) in (solution.stderr.iter_mut())
+                for ((e, l), [l0, w0]) in (solution.stderr.iter_mut())
                     .zip(&solution.radiance)
-                    .zip(&whole.radiance)
+                    .zip(&solution.shape)
                 {
                     if let Some(e) = e {
                         for c in 0..3 {
-                            e[c] = e[c].hypot(SHAPE_ERROR * (l[c] - w[c]));
+                            // The move at the frame it was measured, scaled by how the
+                            // patch's light has changed since.
+                            let (l0, w0) = (f64::from(l0[c]), f64::from(w0[c]));
+                            let scale = if l0 > 0.0 { l[c] / l0 } else { 1.0 };
+                            e[c] = e[c].hypot(SHAPE_ERROR * (l0 - w0) * scale);
                         }
                     }
                 }
@@ -895,9 +952,19 @@ impl Bake {
         params: &SolveParams,
         start: Option<(usize, &FrameSolution)>,
     ) -> FrameSolution {
-        let state = (&self.scene, &self.tracer, &self.direct, &self.area);
+        let state = (
+            &self.scene,
+            &self.tracer,
+            &self.direct,
+            &self.area,
+            &self.shares,
+        );
         let solve = (frame, materials, power, params);
-        Self::solve_state_from(tally, state, None, solve, start, true)
+        // A run's later frames carry what the replicas made of the first bounce's spread.
+        let spread = (start.map(|(_, s)| &s.spread[..]))
+            .filter(|spread| spread.len() == self.scene.patches.len())
+            .map_or(Spread::Replicas, Spread::Carried);
+        Self::solve_state_from(tally, state, None, solve, start, Some(spread))
     }
 
     /// The answer alone (no replicas) for the bake's patches solved whole at a frame (`solve`:
@@ -917,8 +984,14 @@ impl Bake {
         solve: (usize, &[Material], &[[f64; 3]], &SolveParams),
         start: Option<(usize, &FrameSolution)>,
     ) -> FrameSolution {
-        let state = (&self.scene, &self.tracer, &self.direct, &self.area);
-        Self::solve_state_from(tally, state, None, solve, start, false)
+        let state = (
+            &self.scene,
+            &self.tracer,
+            &self.direct,
+            &self.area,
+            &self.shares,
+        );
+        Self::solve_state_from(tally, state, None, solve, start, None)
     }
 
     /// Solves `tally`, the tallies of `state`'s patches (the bake's, or its pieces' with their
@@ -926,11 +999,17 @@ impl Bake {
     /// starting from `start` (the answer for the bake's patches at a nearby frame).
     fn solve_state_from(
         tally: &FrameTally,
-        (scene, tracer, direct, area): (&Scene, &SceneTracer, &DirectLight, &AreaLights),
+        (scene, tracer, direct, area, shares): (
+            &Scene,
+            &SceneTracer,
+            &DirectLight,
+            &AreaLights,
+            &crate::direct::KeptShares,
+        ),
         groups: Option<&Groups>,
         (frame, materials, power, params): (usize, &[Material], &[[f64; 3]], &SolveParams),
         start: Option<(usize, &FrameSolution)>,
-        replicas: bool,
+        spread: Option<Spread<'_>>,
     ) -> FrameSolution {
         let patch_materials: Vec<u32> = scene.patches.iter().map(|p| p.material).collect();
         let light = |frame| direct_light(direct, area, frame, materials, power);
@@ -943,7 +1022,7 @@ impl Bake {
         // The share is estimated too: its variance adds (E / v)² · var(v) / v² to the
         // quotient's (to first order).
         let shares = (!irradiance.is_empty() && touched.contains(&true))
-            .then(|| crate::direct::visible_shares(scene, tracer, frame, &touched));
+            .then(|| crate::direct::visible_shares(scene, tracer, frame, &touched, shares));
         let visible: Option<Vec<f64>> = (shares.as_ref()).map(|s| s.iter().map(|s| s.0).collect());
         let mut scales = vec![1.0; irradiance.len()];
         for (i, &(v, share_variance)) in shares.iter().flatten().enumerate() {
@@ -967,7 +1046,12 @@ impl Bake {
         // The start's radiance (each piece its patch's), with this frame's direct light in
         // place of its own (both of the visible part, by this frame's shares).
         let start = start.map(|(from, solution)| {
+            // A split solution's own pieces where it has them (a patch's mean would start
+            // every piece at its patch's light, the shape the solve has to find again).
             let mut radiance: Vec<[f64; 3]> = match groups {
+                Some(g) if solution.pieces.len() == g.of().len() => {
+                    (solution.pieces.iter()).map(|l| l.map(f64::from)).collect()
+                }
                 Some(g) => (g.of().iter())
                     .map(|&p| solution.radiance[p as usize])
                     .collect(),
@@ -987,18 +1071,17 @@ impl Bake {
             radiance
         });
         let start = start.as_deref();
-        if replicas {
-            solve_grouped(
+        match spread {
+            Some(spread) => solve_grouped(
                 tally,
                 &patch_materials,
                 materials,
                 params,
                 lit,
                 start,
-                groups,
-            )
-        } else {
-            solve_answer(tally, &patch_materials, materials, params, lit, start)
+                (groups, spread),
+            ),
+            None => solve_answer(tally, &patch_materials, materials, params, lit, start),
         }
     }
 
@@ -1040,7 +1123,9 @@ impl Bake {
     }
 
     /// Solves one run of [`Bake::solve_runs`] with `materials` and the lights at `power`:
-    /// each frame with its solution.
+    /// each frame with its solution. Each frame starts from the one before it, and the run's
+    /// later frames carry the error bars' terms its first frame solved
+    /// ([`FrameSolution::shape`], [`FrameSolution::spread`]), which the answers then drop.
     #[must_use]
     pub fn solve_run(
         &self,
@@ -1049,13 +1134,16 @@ impl Bake {
         power: &[[f64; 3]],
         params: &SolveParams,
     ) -> Vec<(usize, Arc<FrameSolution>)> {
-        let mut previous: Option<(usize, Arc<FrameSolution>)> = None;
-        run.iter()
-            .map(|&f| {
-                let start = previous.as_ref().map(|(p, s)| (*p, s.as_ref()));
-                let solution = Arc::new(self.solve_frame_from(f, materials, power, params, start));
-                previous = Some((f, solution.clone()));
-                (f, solution)
+        let mut solved: Vec<(usize, FrameSolution)> = Vec::with_capacity(run.len());
+        for &f in run {
+            let start = solved.last().map(|(p, s)| (*p, s));
+            let solution = self.solve_frame_from(f, materials, power, params, start);
+            solved.push((f, solution));
+        }
+        (solved.into_iter())
+            .map(|(f, mut s)| {
+                (s.shape, s.spread) = (Vec::new(), Vec::new());
+                (f, Arc::new(s))
             })
             .collect()
     }
@@ -1167,7 +1255,7 @@ fn direct_light(
 
 /// Distinct frames per run of [`Bake::solve_runs`]: a run's first frame starts cold, the
 /// others from the frame before; runs are solved in parallel.
-pub const RUN: usize = 4;
+pub const RUN: usize = 8;
 
 /// Overlaps below this share of a node's crossings are chance coincidences (lines through the
 /// seam where two surfaces meet), not overlapping faces.

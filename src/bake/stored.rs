@@ -110,6 +110,7 @@ impl Bake {
             direct: p.direct,
             area: p.area,
             groups: p.groups,
+            shares: Default::default(),
         });
         Ok(Self {
             tracer: SceneTracer::new(&read.scene),
@@ -124,6 +125,7 @@ impl Bake {
             pieces,
             shown: read.shown,
             gathered: Default::default(),
+            shares: Default::default(),
         })
     }
 }

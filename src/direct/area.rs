@@ -1003,6 +1003,39 @@ pub(super) fn form_factor(
     if !face.may_see(emitter) {
         return (0.0, 0.0);
     }
+    let count = g * g;
+    if let Rays::Record(bits) = &mut rays {
+        bits.clear();
+        bits.resize(count.div_ceil(64), 0);
+    }
+    let (mut eligible, mut seen, mut squares) = (0usize, 0usize, 0.0);
+    let mut values = vec![0.0; count];
+    each_ray(face, emitter, (seed, g), |k, x, y, f| {
+        let visible = match &mut rays {
+            Rays::Known(bits) if bits[k / 64] >> (k % 64) & 1 == 0 => false,
+            _ => !at.blocked(x, y, face.own, face.back),
+        };
+        squares += f * f;
+        (eligible, seen) = (eligible + 1, seen + usize::from(visible));
+        if visible {
+            values[k] = f;
+            if let Rays::Record(bits) = &mut rays {
+                bits[k / 64] |= 1 << (k % 64);
+            }
+        }
+    });
+    stratified_estimate(&values, (eligible, seen), squares)
+}
+
+/// Calls `ray(k, x, y, f)` for each of the `g × g` stratified shadow rays of [`form_factor`]
+/// from `face` to `emitter` that can carry light: from point `x_k` of the face to `y` on the
+/// emitter, of value `f` > 0 if unblocked.
+fn each_ray(
+    face: &Face,
+    emitter: &Emitter,
+    (seed, g): (u64, usize),
+    mut ray: impl FnMut(usize, DVec3, DVec3, f64),
+) {
     let (n, e) = (face.n, emitter.normal);
     let origin = emitter.hull[0];
     let count = g * g;
@@ -1012,14 +1045,8 @@ pub(super) fn form_factor(
     for k in (1..count).rev() {
         strata.swap(k, rng.random_range(0..=k));
     }
-    if let Rays::Record(bits) = &mut rays {
-        bits.clear();
-        bits.resize(count.div_ceil(64), 0);
-    }
     let receiver = super::inset(&face.corners);
-    let (mut eligible, mut seen, mut squares) = (0usize, 0usize, 0.0);
-    let mut values = vec![0.0; count];
-    for (k, value) in values.iter_mut().enumerate() {
+    for k in 0..count {
         let jitter: [f64; 4] = [rng.random(), rng.random(), rng.random(), rng.random()];
         let cell = |s: usize, a: f64, b: f64| {
             (
@@ -1043,20 +1070,8 @@ pub(super) fn form_factor(
         if f <= 0.0 {
             continue;
         }
-        let visible = match &mut rays {
-            Rays::Known(bits) if bits[k / 64] >> (k % 64) & 1 == 0 => false,
-            _ => !at.blocked(x, y, face.own, face.back),
-        };
-        squares += f * f;
-        (eligible, seen) = (eligible + 1, seen + usize::from(visible));
-        if visible {
-            *value = f;
-            if let Rays::Record(bits) = &mut rays {
-                bits[k / 64] |= 1 << (k % 64);
-            }
-        }
+        ray(k, x, y, f);
     }
-    stratified_estimate(&values, (eligible, seen), squares)
 }
 
 /// Whether a point `height` above an emitter's plane (along its normal, normalised units) is

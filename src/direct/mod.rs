@@ -443,12 +443,17 @@ const VISIBLE_LEVEL: u32 = 3;
 /// part's, as the lines' tallies do ([`crate::solve::tally::HIDDEN`]). Each share comes with
 /// the variance of its estimate (by collapsed strata, as the direct light's: only strata an
 /// outline crosses add to it), 0 for the unmarked patches.
+///
+/// `kept` holds the shares of static faces that no moving object came near at the frames
+/// they were measured at (their shares are then the static geometry's, the same at every
+/// such frame): each is measured once per timeline, where every frame measured them all.
 #[must_use]
 pub fn visible_shares(
     scene: &Scene,
     tracer: &SceneTracer,
     frame: usize,
     which: &[bool],
+    kept: &KeptShares,
 ) -> Vec<(f64, f64)> {
     let patches = scene.patches.len();
     if !which.iter().any(|&w| w) {
@@ -456,13 +461,30 @@ pub fn visible_shares(
     }
     let posed = Posed::at(scene, tracer, frame);
     let at = posed.frame(scene, tracer, Occluders::All);
+    let statics = scene.statics.triangles.len();
+    // Where the moving objects are at the frame, grown by more than a coverage test reaches
+    // ([`Frame::covered`]: 8·COINCIDENT from its point).
+    let pad = DVec3::splat(f64::from(16.0 * COINCIDENT));
+    let mut boxes = Vec::with_capacity(scene.objects.len());
+    let mut start = statics;
+    for object in &scene.objects {
+        let end = start + object.mesh.triangles.len();
+        let (lo, hi) = (at.triangles[start..end].iter())
+            .flat_map(|(c, _)| c.map(Vec3::as_dvec3))
+            .fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(lo, hi), p| {
+                (lo.min(p), hi.max(p))
+            });
+        boxes.push((lo - pad, hi + pad));
+        start = end;
+    }
+    let known = kept.read(statics);
     // Per face of a marked patch: (patch, area, share of its points covered by nothing and
-    // the variance of that share).
-    let faces: Vec<(u32, f64, (f64, f64))> = (at.triangles.par_iter().enumerate())
+    // the variance of that share), and whether it is to be kept.
+    let faces: Vec<(u32, f64, Share, Option<FaceKey>)> = (at.triangles.par_iter().enumerate())
         .flat_map_iter(|(t, (corners, faces))| {
             let corners = corners.map(Vec3::as_dvec3);
             let (normal, area) = normal_and_area(corners);
-            let at = &at;
+            let (at, boxes, known) = (&at, &boxes, &known);
             [(Some(faces.front), false), (faces.back, true)]
                 .into_iter()
                 .filter_map(move |(patch, back)| {
@@ -470,20 +492,37 @@ pub fn visible_shares(
                     if !which[p as usize] || area <= 0.0 {
                         return None;
                     }
+                    let key = (t as u32, back);
+                    let (lo, hi) = (corners.iter())
+                        .fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(lo, hi), &c| {
+                            (lo.min(c), hi.max(c))
+                        });
+                    let alone = t < statics
+                        && !(boxes.iter()).any(|&(l, h)| lo.cmple(h).all() && hi.cmpge(l).all());
+                    if alone && let Some(&share) = known.get(&key) {
+                        return Some((p, area, share, None));
+                    }
                     let n = if back { -normal } else { normal };
                     let mut rng =
                         Xoshiro256PlusPlus::seed_from_u64(mix(2 * t as u64 + u64::from(back)));
                     let mut points = Vec::new();
                     sample_points(inset(&corners), VISIBLE_LEVEL, &mut rng, &mut points);
                     let open: Vec<f64> = (points.iter())
-                        .map(|&x| f64::from(u8::from(!at.covered(x, n, (t as u32, back)))))
+                        .map(|&x| f64::from(u8::from(!at.covered(x, n, key))))
                         .collect();
-                    Some((p, area, collapsed_variance(&open)))
+                    Some((p, area, collapsed_variance(&open), alone.then_some(key)))
                 })
         })
         .collect();
+    drop(known);
+    kept.keep(
+        statics,
+        faces
+            .iter()
+            .filter_map(|&(_, _, share, key)| Some((key?, share))),
+    );
     let mut sums = vec![[0.0; 3]; patches];
-    for (p, area, (share, variance)) in faces {
+    for (p, area, (share, variance), _) in faces {
         let s = &mut sums[p as usize];
         s[0] += area * share;
         s[1] += area * area * variance;
@@ -498,6 +537,66 @@ pub fn visible_shares(
             }
         })
         .collect()
+}
+
+/// The visible shares ([`visible_shares`]) of static faces measured where nothing moving came
+/// near them, by (triangle, back face): the same at every frame where nothing moving comes
+/// near. Emptied when the static triangles they were measured on change (by their number:
+/// a cut only adds triangles).
+#[derive(Debug, Default)]
+pub struct KeptShares {
+    inner: std::sync::RwLock<(usize, std::sync::Arc<SharesByFace>)>,
+}
+
+/// A face: (triangle, back face).
+type FaceKey = (u32, bool);
+
+/// A visible share and the variance of its estimate.
+type Share = (f64, f64);
+
+/// Visible shares by face.
+type SharesByFace = HashMap<FaceKey, Share>;
+
+impl KeptShares {
+    /// The shares kept for a scene of `statics` static triangles (none if they were kept
+    /// for another).
+    fn read(&self, statics: usize) -> std::sync::Arc<SharesByFace> {
+        let kept = self
+            .inner
+            .read()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        if kept.0 == statics {
+            kept.1.clone()
+        } else {
+            std::sync::Arc::default()
+        }
+    }
+
+    /// Keeps `shares` of a scene of `statics` static triangles.
+    fn keep(&self, statics: usize, shares: impl Iterator<Item = (FaceKey, Share)>) {
+        let mut shares = shares.peekable();
+        if shares.peek().is_none() {
+            return;
+        }
+        let mut kept = self
+            .inner
+            .write()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        if kept.0 != statics {
+            *kept = (statics, std::sync::Arc::default());
+        }
+        std::sync::Arc::make_mut(&mut kept.1).extend(shares);
+    }
+
+    /// Bytes held, about.
+    #[must_use]
+    pub fn bytes(&self) -> usize {
+        let kept = self
+            .inner
+            .read()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        kept.1.capacity() * (size_of::<FaceKey>() + size_of::<Share>() + 1)
+    }
 }
 
 /// The points a patch is sampled at: one uniformly random point in each of the 4^level

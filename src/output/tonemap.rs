@@ -152,6 +152,8 @@ mod tests {
             std::sync::Arc::new(FrameSolution {
                 pieces: Vec::new(),
                 pieces_stderr: Vec::new(),
+                shape: Vec::new(),
+                spread: Vec::new(),
                 radiance,
                 stderr: vec![None; n],
                 samples: vec![0; n],

@@ -224,6 +224,8 @@ fn decode_frame(frame: usize, patches: usize, bytes: &[u8]) -> std::io::Result<F
     Ok(FrameSolution {
         pieces: Vec::new(),
         pieces_stderr: Vec::new(),
+        shape: Vec::new(),
+        spread: Vec::new(),
         iterations: usize::try_from(u64::from_le_bytes(word(0))).unwrap_or(usize::MAX),
         residual: f64_at(8),
         converged: body[16] == 1,
@@ -635,6 +637,8 @@ fn read_first_layout(bytes: &[u8], frames: usize) -> Option<Vec<FrameSolution>> 
         out.push(FrameSolution {
             pieces: Vec::new(),
             pieces_stderr: Vec::new(),
+            shape: Vec::new(),
+            spread: Vec::new(),
             radiance,
             stderr,
             samples,
@@ -654,6 +658,8 @@ mod tests {
         FrameSolution {
             pieces: Vec::new(),
             pieces_stderr: Vec::new(),
+            shape: Vec::new(),
+            spread: Vec::new(),
             radiance: (0..patches).map(|p| [k, p as f64, 0.5]).collect(),
             stderr: (0..patches)
                 .map(|p| (p % 3 != 0).then_some([0.1 * k, 0.0, 1e-300]))

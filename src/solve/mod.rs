@@ -109,6 +109,19 @@ pub struct FrameSolution {
     /// the pieces' shape term, which a reading of the pieces does not have).
     #[serde(skip)]
     pub pieces_stderr: Vec<[f32; 3]>,
+    /// With [`FrameSolution::pieces`], per patch its pieces' mean and its answer solved whole
+    /// at the frame where both were last solved (this one, or the first of its run's): the
+    /// shape term of its error bar ([`crate::bake::SHAPE_ERROR`]), which the run's later
+    /// frames carry.
+    #[serde(skip)]
+    pub shape: Vec<[[f32; 3]; 2]>,
+    /// Per patch and channel, how its error from the lines ([`replica_errors`]) stood to the
+    /// first bounce's spread and to its radiance at the frame the replicas were last solved
+    /// (this one, or the first of its run's): `[e / first, 0]`, or `[0, e / radiance]` where
+    /// the first bounce had no spread; `None` where the replicas gave no error. A run's later
+    /// frames carry it ([`solve_carried`]).
+    #[serde(skip)]
+    pub spread: Vec<[Option<[f32; 2]>; 3]>,
     /// Crossings of each patch by the lines, where a surface touches it included (0:
     /// unsampled), in global lines (a gap's denser lines count a fraction each).
     pub samples: Vec<u64>,
@@ -250,7 +263,7 @@ pub fn solve_lit_from(
         params,
         direct,
         start,
-        None,
+        (None, Spread::Replicas),
     )
 }
 
@@ -394,7 +407,7 @@ impl Groups {
 
 /// [`solve_lit_from`] answering for `groups` of the tally's patches, if given: the pieces are
 /// solved, each group answered by the mean of its pieces ([`Groups`]), its error bar from the
-/// replicas' means. The solve then stops when the pieces can move by `noise / √(pieces)` of
+/// replicas' means (or as `spread` says). The solve then stops when the pieces can move by `noise / √(pieces)` of
 /// their own standard error, so that their group's answer moves by no more than `noise` of its
 /// (narrower) one.
 #[must_use]
@@ -405,10 +418,25 @@ pub fn solve_grouped(
     params: &SolveParams,
     direct: Option<Direct<'_>>,
     start: Option<&[[f64; 3]]>,
-    groups: Option<&Groups>,
+    (groups, spread): (Option<&Groups>, Spread<'_>),
 ) -> FrameSolution {
     let setup = (tally, patch_material, materials, params);
-    solve_with(setup, direct, start, groups, true)
+    solve_with(setup, direct, start, groups, spread)
+}
+
+/// How a solve measures each answer's error from the lines.
+#[derive(Clone, Copy, Debug)]
+pub enum Spread<'a> {
+    /// The first bounce's spread alone (a lower bound).
+    FirstBounce,
+    /// The replicas' spread ([`replica_errors`]).
+    Replicas,
+    /// The first bounce's spread at this frame times what the replicas made of it at a nearby
+    /// frame ([`FrameSolution::spread`] of a run's first frame): the later bounces widen the
+    /// first one's spread by what the scene's transport does, which a moving object changes
+    /// little from frame to frame, while the first bounce's spread is this frame's own. At a
+    /// sixteenth of the replicas' cost.
+    Carried(&'a [[Option<[f32; 2]>; 3]]),
 }
 
 /// [`solve_lit_from`] without the replicas: the answer, with the first bounce's spread alone
@@ -423,7 +451,7 @@ pub fn solve_answer(
     start: Option<&[[f64; 3]]>,
 ) -> FrameSolution {
     let setup = (tally, patch_material, materials, params);
-    solve_with(setup, direct, start, None, false)
+    solve_with(setup, direct, start, None, Spread::FirstBounce)
 }
 
 /// [`solve_grouped`], with the replicas' error bars or not.
@@ -432,7 +460,7 @@ fn solve_with(
     direct: Option<Direct<'_>>,
     start: Option<&[[f64; 3]]>,
     groups: Option<&Groups>,
-    replicas: bool,
+    spread: Spread<'_>,
 ) -> FrameSolution {
     let patches = patch_material.len();
     let rho: Vec<[f64; 3]> = patch_material
@@ -475,7 +503,7 @@ fn solve_with(
     let first = system.first_bounce(&light.values, &seen, params.sky, groups);
     let answered = groups.map_or(patches, Groups::len);
     // Replicas of a solve that is no answer would measure nothing: skip them.
-    let error = if converged && replicas {
+    let error = if converged && matches!(spread, Spread::Replicas) {
         let replicas = Replicas {
             rho: &rho,
             emission: &emission,
@@ -549,6 +577,40 @@ fn solve_with(
             (radiance, sampled, crossings, unknown, answered_by)
         }
     };
+    // What the replicas made of the first bounce's spread, measured or carried.
+    let (error, spread) = match spread {
+        Spread::Carried(carried) if converged && carried.len() == answered => {
+            let error = (0..answered)
+                .map(|i| {
+                    std::array::from_fn(|c| {
+                        carried[i][c].map(|[by_first, by_radiance]| {
+                            first[i][c] * f64::from(by_first)
+                                + radiance[i][c].abs() * f64::from(by_radiance)
+                        })
+                    })
+                })
+                .collect();
+            (error, carried.to_vec())
+        }
+        _ => {
+            let spread = (0..answered)
+                .map(|i| {
+                    std::array::from_fn(|c| {
+                        error[i][c].map(|e| {
+                            if first[i][c] > 0.0 {
+                                [(e / first[i][c]) as f32, 0.0]
+                            } else if radiance[i][c] != 0.0 {
+                                [0.0, (e / radiance[i][c].abs()) as f32]
+                            } else {
+                                [0.0; 2]
+                            }
+                        })
+                    })
+                })
+                .collect();
+            (error, spread)
+        }
+    };
     let stderr = (0..answered)
         .map(|i| {
             answered_by[i].then(|| {
@@ -569,6 +631,8 @@ fn solve_with(
         stderr,
         pieces,
         pieces_stderr: Vec::new(),
+        shape: Vec::new(),
+        spread,
         samples: crossings,
         iterations: light.iterations,
         residual: light.residual.iter().copied().fold(0.0, f64::max),

@@ -217,9 +217,11 @@ pub struct Tallies {
     /// Segment counts of every line's static crossings: the tallies of a frame without its
     /// moving objects.
     statics: FrameTally,
-    /// Lines crossing a moving object at frame f: `touched[touched_offsets[f]..touched_offsets[f + 1]]`.
+    /// Lines crossing a moving object at frame f: `touched[touched_offsets[f]..touched_offsets[f + 1]]`,
+    /// each with where the frame's crossings start among the line's moving ones
+    /// ([`IntersectionList::moving_hits`]).
     touched_offsets: Vec<u32>,
-    touched: Vec<u32>,
+    touched: Vec<(u32, u32)>,
     /// Per frame, a 128-bit fingerprint of its changes: frames with equal changes have equal
     /// solutions.
     fingerprints: Vec<u128>,
@@ -281,23 +283,24 @@ impl Tallies {
         self.statics.unit = u64::from(list.dense().1);
         self.lines = new.end;
         // Which lines each frame's moving objects touch, over all lines that count.
-        let mut pairs: Vec<(u32, u32)> = (0..list.lines())
+        let mut pairs: Vec<(u32, u32, u32)> = (0..list.lines())
             .filter(|&l| self.weights[l] > 0)
             .flat_map(|l| {
-                let mut frames: Vec<u32> = list.moving_hits(l).iter().map(|h| h.frame).collect();
-                frames.dedup();
-                frames.into_iter().map(move |f| (f, l as u32))
+                let moving = list.moving_hits(l);
+                (0..moving.len())
+                    .filter(move |&k| k == 0 || moving[k - 1].frame != moving[k].frame)
+                    .map(move |k| (moving[k].frame, l as u32, k as u32))
             })
             .collect();
         pairs.sort_unstable();
         self.touched_offsets = vec![0; list.frames() + 1];
-        for &(f, _) in &pairs {
+        for &(f, _, _) in &pairs {
             self.touched_offsets[f as usize + 1] += 1;
         }
         for f in 0..list.frames() {
             self.touched_offsets[f + 1] += self.touched_offsets[f];
         }
-        self.touched = pairs.into_iter().map(|(_, l)| l).collect();
+        self.touched = pairs.into_iter().map(|(_, l, k)| (l, k)).collect();
         self.fingerprints = moving_fingerprints(list);
     }
 
@@ -330,13 +333,13 @@ impl Tallies {
             .map(|chunk| {
                 let mut raw: [Vec<(u64, i64)>; N] = std::array::from_fn(|_| Vec::new());
                 let mut merged = Vec::new();
-                for &l in chunk {
+                for &(l, start) in chunk {
                     let l = l as usize;
                     let (g, w) = (self.groups[l], i64::from(self.weights[l]));
                     if w == 0 {
                         continue;
                     }
-                    list.frame_hits(l, frame, &mut merged);
+                    list.frame_hits_from(l, frame, start as usize, &mut merged);
                     for (raw, surfaces) in raw.iter_mut().zip(surfaces) {
                         let surfaces = surfaces.along(list.direction(l));
                         walk(list.static_hits(l), &surfaces, |a, b| {
@@ -376,7 +379,8 @@ impl Tallies {
     #[must_use]
     pub fn bytes(&self) -> usize {
         self.statics.bytes()
-            + (self.touched.len() + self.touched_offsets.len()) * size_of::<u32>()
+            + self.touched.len() * size_of::<(u32, u32)>()
+            + self.touched_offsets.len() * size_of::<u32>()
             + self.fingerprints.len() * size_of::<u128>()
             + self.groups.len()
             + self.weights.len()

@@ -736,13 +736,19 @@ impl IntersectionList {
     /// The crossings of `line` at `frame`, sorted along the line, into `out` (cleared first):
     /// the static crossings merged with the moving ones tagged `frame`.
     pub fn frame_hits(&self, line: usize, frame: usize, out: &mut Vec<Hit>) {
+        let start = (self.moving_hits(line)).partition_point(|h| h.frame < frame as u32);
+        self.frame_hits_from(line, frame, start, out);
+    }
+
+    /// [`IntersectionList::frame_hits`] where the line's moving crossings at `frame` are known
+    /// to start at `start` (an index into [`IntersectionList::moving_hits`]; the crossings of
+    /// the frame follow it), without searching for them.
+    pub fn frame_hits_from(&self, line: usize, frame: usize, start: usize, out: &mut Vec<Hit>) {
         out.clear();
         let statics = self.static_hits(line);
-        let moving = self.moving_hits(line);
+        let moving = &self.moving_hits(line)[start..];
         let frame = frame as u32;
-        let start = moving.partition_point(|h| h.frame < frame);
-        let end = start + moving[start..].partition_point(|h| h.frame == frame);
-        let moving = &moving[start..end];
+        let moving = &moving[..moving.partition_point(|h| h.frame == frame)];
         let (mut i, mut j) = (0, 0);
         while i < statics.len() && j < moving.len() {
             if Hit::order(&statics[i], &moving[j].hit).is_le() {
