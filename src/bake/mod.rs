@@ -1253,8 +1253,10 @@ fn direct_light(
     }
 }
 
-/// Distinct frames per run of [`Bake::solve_runs`]: a run's first frame starts cold, the
-/// others from the frame before; runs are solved in parallel.
+/// Distinct frames per run of [`Bake::solve_runs`]: a run's first frame starts cold and
+/// solves its error bars' replicas and a split bake's shape term, the others start from the
+/// frame before and carry them ([`crate::solve::Spread::Carried`]); runs are solved in
+/// parallel. The moving Cornell box at 61 frames solved in 5.3 s with runs of 4, 4.8 s with 8.
 pub const RUN: usize = 8;
 
 /// Overlaps below this share of a node's crossings are chance coincidences (lines through the

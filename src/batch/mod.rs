@@ -335,7 +335,11 @@ fn write_outputs(
     let bytes = output::preview::render_bytes(width, height).max(1);
     let at_once = (RENDER_MEMORY / bytes).clamp(1, 4 * rayon::current_num_threads());
     let mut gif_images = Vec::with_capacity(gif.len());
-    for batch in wanted.chunks(at_once) {
+    // The first frame alone (its points on every core), so that what the light at the points
+    // keeps across frames ([`Bake::radiance_at`]) is found once, not by every frame of the
+    // first batch at the same time.
+    let (first, rest) = wanted.split_at(wanted.len().min(1));
+    for batch in std::iter::once(first).chain(rest.chunks(at_once)) {
         let made: Vec<Result<Option<image::RgbImage>, String>> = batch
             .par_iter()
             .map(|&f| {

@@ -269,7 +269,14 @@ impl AreaLights {
         };
         control.advance(1);
 
-        // Each pose of the moving geometry: the pairs it can change, traced again.
+        // Each pose of the moving geometry: the pairs it can change, traced again, the static
+        // pairs that any pose may change from their rays kept once.
+        let kept = if scene.objects.is_empty() || firsts.len() < 2 {
+            KeptPairs::new()
+        } else {
+            let swept = swept_block(scene, &firsts);
+            keep_pairs(&out, &receivers, &emitters, &clusters, &swept, sampling)
+        };
         for &frame in &firsts {
             if control.is_cancelled() {
                 return Err(TraceError::Cancelled);
@@ -277,7 +284,7 @@ impl AreaLights {
             let changed = if scene.objects.is_empty() {
                 Vec::new()
             } else {
-                changed_pairs(&out, scene, tracer, frame, &clusters, sampling)
+                changed_pairs(&out, scene, tracer, frame, (&clusters, &kept), sampling)
             };
             out.states.push(changed);
             control.advance(1);
@@ -819,7 +826,7 @@ fn changed_pairs(
     scene: &Scene,
     tracer: &SceneTracer,
     frame: usize,
-    clusters: &[Cluster],
+    (clusters, kept): (&[Cluster], &KeptPairs),
     sampling: Sampling,
 ) -> Vec<(u32, Pair)> {
     let posed = Posed::at(scene, tracer, frame);
@@ -830,26 +837,7 @@ fn changed_pairs(
     let statics = scene.statics.triangles.len();
     // The moving objects' boxes at this frame: a rigid object's own box carried by its pose
     // (a door stays a thin slab however it turns), a deforming one's box around its triangles.
-    let mut boxes = Vec::with_capacity(scene.objects.len());
-    let mut start = statics;
-    for object in &scene.objects {
-        let end = start + object.mesh.triangles.len();
-        boxes.push(match &object.motion {
-            Motion::Rigid { poses } => {
-                let (lo, hi) = bounds(object.mesh.positions.iter().map(|p| p.as_dvec3()));
-                Block::new(&poses[frame], lo, hi)
-            }
-            Motion::Deforming(_) => {
-                let (lo, hi) = bounds(
-                    triangles[start..end]
-                        .iter()
-                        .flat_map(|(c, _)| c.map(|p| p.as_dvec3())),
-                );
-                Block::new(&DAffine3::IDENTITY, lo, hi)
-            }
-        });
-        start = end;
-    }
+    let boxes = moving_blocks(scene, frame, triangles);
     let mut changed: Vec<(u32, Pair)> = receivers(triangles, statics)
         .par_iter()
         .map_init(Vec::new, |hull, receiver| {
@@ -872,8 +860,13 @@ fn changed_pairs(
                 if !boxes.iter().any(|b| b.meets_hull(hull)) {
                     continue;
                 }
-                let rays = Rays::Known(&lights.visible[base.visible as usize..]);
-                let pair = pair(&moving_only, receiver, c, emitter, sampling, rays);
+                let pair = match kept.get(&(receiver.patch, c as u32)) {
+                    Some(faces) => kept_pair(&moving_only, faces, c),
+                    None => {
+                        let rays = Rays::Known(&lights.visible[base.visible as usize..]);
+                        pair(&moving_only, receiver, c, emitter, sampling, rays)
+                    }
+                };
                 if pair.value != base.value {
                     out.push((receiver.patch, pair));
                 }
@@ -884,6 +877,220 @@ fn changed_pairs(
         .collect();
     changed.sort_unstable_by_key(|&(p, pair)| (p, pair.cluster));
     changed
+}
+
+/// The moving objects' boxes at `frame` (`triangles`: the scene posed there): a rigid
+/// object's own box carried by its pose (a door stays a thin slab however it turns), a
+/// deforming one's box around its triangles.
+fn moving_blocks(
+    scene: &Scene,
+    frame: usize,
+    triangles: &[([glam::Vec3; 3], Faces)],
+) -> Vec<Block> {
+    let mut boxes = Vec::with_capacity(scene.objects.len());
+    let mut start = scene.statics.triangles.len();
+    for object in &scene.objects {
+        let end = start + object.mesh.triangles.len();
+        boxes.push(match &object.motion {
+            Motion::Rigid { poses } => {
+                let (lo, hi) = bounds(object.mesh.positions.iter().map(|p| p.as_dvec3()));
+                Block::new(&poses[frame], lo, hi)
+            }
+            Motion::Deforming(_) => {
+                let (lo, hi) = bounds(
+                    triangles[start..end]
+                        .iter()
+                        .flat_map(|(c, _)| c.map(|p| p.as_dvec3())),
+                );
+                Block::new(&DAffine3::IDENTITY, lo, hi)
+            }
+        });
+        start = end;
+    }
+    boxes
+}
+
+/// The box around every moving object's box ([`moving_blocks`]) at each of `frames`.
+fn swept_block(scene: &Scene, frames: &[usize]) -> Block {
+    let deforms = (scene.objects.iter()).any(|o| matches!(o.motion, Motion::Deforming(_)));
+    let corners: Vec<DVec3> = (frames.iter())
+        .flat_map(|&f| {
+            let triangles = if deforms {
+                scene.triangles_at(f)
+            } else {
+                Vec::new()
+            };
+            moving_blocks(scene, f, &triangles)
+        })
+        .flat_map(|b| {
+            let [a, b2, c] = b.half;
+            (0..8).map(move |k| {
+                let sign = |bit: usize| if k >> bit & 1 == 0 { -1.0 } else { 1.0 };
+                b.centre + a * sign(0) + b2 * sign(1) + c * sign(2)
+            })
+        })
+        .collect();
+    let (lo, hi) = bounds(corners.into_iter());
+    Block::new(&DAffine3::IDENTITY, lo, hi)
+}
+
+/// Bytes of shadow rays [`keep_pairs`] keeps at most: past them, the pairs not kept sample
+/// their rays again at each pose.
+const KEPT_RAYS_BYTES: usize = 256 << 20;
+
+/// One face of a kept pair ([`keep_pairs`]): what its shadow rays are, the static geometry's
+/// verdicts taken.
+struct KeptFace {
+    own: u32,
+    back: bool,
+    /// Its share of the patch's area.
+    weight: f64,
+    /// Whether it can see the emitter at all ([`Face::may_see`]).
+    may_see: bool,
+    /// Its shadow rays, eligible ones (that can carry light if unblocked), and the sum of the
+    /// squares of their values.
+    count: usize,
+    eligible: usize,
+    squares: f64,
+    /// The rays the static geometry lets through: (index, point on the face, point on the
+    /// emitter, value).
+    rays: Vec<(u32, DVec3, DVec3, f64)>,
+}
+
+/// Kept pairs' faces by (patch, cluster).
+type KeptPairs = HashMap<(u32, u32), Vec<KeptFace>>;
+
+/// The static pairs (static patch, static cluster, lit with the static geometry alone) whose
+/// hull meets `swept`, where the moving objects are at some pose, with their shadow rays
+/// sampled once: each pose then traces the moving objects along them ([`kept_pair`]) where it
+/// sampled them again, the same rays, its value the same to the bit. In receiver order, up to
+/// [`KEPT_RAYS_BYTES`].
+fn keep_pairs(
+    lights: &AreaLights,
+    receivers: &[Receiver],
+    emitters: &[Emitter],
+    clusters: &[Cluster],
+    swept: &Block,
+    sampling: Sampling,
+) -> KeptPairs {
+    // The candidates, and the rays each may keep at most.
+    let candidates: Vec<(usize, usize, usize)> = (receivers.par_iter().enumerate())
+        .flat_map_iter(|(r, receiver)| {
+            let mut hull = Vec::new();
+            let mut out = Vec::new();
+            for (c, emitter) in emitters.iter().enumerate() {
+                if clusters[c].moving || lights.static_pair(receiver.patch, c).is_none() {
+                    continue;
+                }
+                hull.clear();
+                let corners = receiver.faces.iter().flat_map(|(f, _)| &f.corners);
+                hull.extend(corners.chain(&emitter.hull));
+                if swept.meets_hull(&hull) {
+                    let rays = (receiver.faces.iter())
+                        .map(|(face, _)| grid(face, emitter, sampling.density).pow(2))
+                        .sum();
+                    out.push((r, c, rays));
+                }
+            }
+            out
+        })
+        .collect();
+    let per_ray = size_of::<(u32, DVec3, DVec3, f64)>();
+    let mut budget = KEPT_RAYS_BYTES / per_ray;
+    let chosen: Vec<(usize, usize)> = (candidates.into_iter())
+        .take_while(|&(_, _, rays)| {
+            let fits = rays <= budget;
+            budget = budget.saturating_sub(rays);
+            fits
+        })
+        .map(|(r, c, _)| (r, c))
+        .collect();
+    chosen
+        .into_par_iter()
+        .map(|(r, c)| {
+            let receiver = &receivers[r];
+            let (emitter, patch) = (&emitters[c], receiver.patch);
+            let Some(base) = lights.static_pair(patch, c) else {
+                return ((patch, c as u32), Vec::new());
+            };
+            let bits = &lights.visible[base.visible as usize..];
+            (
+                (patch, c as u32),
+                keep_faces(receiver, c, emitter, sampling, bits),
+            )
+        })
+        .collect()
+}
+
+/// The faces of the pair (`receiver`, cluster `c`) as [`pair`] samples them with the static
+/// geometry's verdicts `bits`, their rays kept rather than traced.
+fn keep_faces(
+    receiver: &Receiver,
+    c: usize,
+    emitter: &Emitter,
+    sampling: Sampling,
+    bits: &[u64],
+) -> Vec<KeptFace> {
+    let seed = mix(sampling.seed ^ mix((u64::from(receiver.patch) << 32) ^ c as u64));
+    let total: f64 = receiver.faces.iter().map(|(_, a)| a).sum();
+    let mut word = 0;
+    let mut faces = Vec::with_capacity(receiver.faces.len());
+    for (k, (face, area)) in receiver.faces.iter().enumerate() {
+        let seed = if k == 0 { seed } else { mix(seed ^ k as u64) };
+        let g = grid(face, emitter, sampling.density);
+        let bits = &bits[word..];
+        word += (g * g).div_ceil(64);
+        let mut kept = KeptFace {
+            own: face.own,
+            back: face.back,
+            weight: if total > 0.0 { area / total } else { 0.0 },
+            may_see: face.may_see(emitter),
+            count: g * g,
+            eligible: 0,
+            squares: 0.0,
+            rays: Vec::new(),
+        };
+        if kept.may_see {
+            each_ray(face, emitter, (seed, g), |k, x, y, f| {
+                kept.squares += f * f;
+                kept.eligible += 1;
+                if bits[k / 64] >> (k % 64) & 1 == 1 {
+                    kept.rays.push((k as u32, x, y, f));
+                }
+            });
+        }
+        faces.push(kept);
+    }
+    faces
+}
+
+/// The pair of `faces` ([`keep_faces`]) to cluster `c` with `at`'s occluders (the moving
+/// objects): what [`pair`] gives with the static verdicts known.
+fn kept_pair(at: &Frame<'_>, faces: &[KeptFace], c: usize) -> Pair {
+    let (mut value, mut variance) = (0.0, 0.0);
+    for face in faces {
+        let (v, var) = if face.may_see {
+            let mut values = vec![0.0; face.count];
+            let mut seen = 0;
+            for &(k, x, y, f) in &face.rays {
+                if !at.blocked(x, y, face.own, face.back) {
+                    values[k as usize] = f;
+                    seen += 1;
+                }
+            }
+            stratified_estimate(&values, (face.eligible, seen), face.squares)
+        } else {
+            (0.0, 0.0)
+        };
+        value += face.weight * v;
+        variance += face.weight * face.weight * var;
+    }
+    Pair {
+        cluster: c as u32,
+        value: value as f32,
+        variance: variance as f32,
+        visible: u32::MAX,
+    }
 }
 
 /// A box as posed: a parallelepiped, its centre and three half-edges.
