@@ -1253,7 +1253,7 @@ fn each_ray(
         strata.swap(k, rng.random_range(0..=k));
     }
     let receiver = super::inset(&face.corners);
-    for k in 0..count {
+    for (k, &stratum) in strata.iter().enumerate() {
         let jitter: [f64; 4] = [rng.random(), rng.random(), rng.random(), rng.random()];
         let cell = |s: usize, a: f64, b: f64| {
             (
@@ -1270,7 +1270,7 @@ fn each_ray(
         if fans.is_empty() {
             continue;
         }
-        let (u, v) = cell(strata[k], jitter[2], jitter[3]);
+        let (u, v) = cell(stratum, jitter[2], jitter[3]);
         let Some((y, f)) = sample_fans(x, n, e, &fans, u, v) else {
             continue;
         };
