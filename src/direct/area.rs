@@ -1342,36 +1342,123 @@ pub(super) fn point_form_factor(
     emitter: &Emitter,
     (seed, g): (u64, usize),
 ) -> (f64, f64) {
+    let (mut eligible, mut seen, mut squares) = (0usize, 0usize, 0.0);
+    let mut values = vec![0.0; g * g];
+    let sampled = each_point_ray((x, n), emitter, (seed, g), |k, y, f| {
+        squares += f * f;
+        eligible += 1;
+        if !at.blocked(x, y, own, back) {
+            seen += 1;
+            values[k] = f;
+        }
+    });
+    if !sampled {
+        return (0.0, 0.0);
+    }
+    stratified_estimate(&values, (eligible, seen), squares)
+}
+
+/// Calls `ray(k, y, f)` for each of the `g × g` stratified shadow rays of
+/// [`point_form_factor`] from `x` (unit normal `n`) that can carry light: to `y` on the
+/// emitter, of value `f` > 0 if unblocked. False where none can (the point behind the emitter,
+/// or the emitter wholly behind the point's plane).
+fn each_point_ray(
+    (x, n): (DVec3, DVec3),
+    emitter: &Emitter,
+    (seed, g): (u64, usize),
+    mut ray: impl FnMut(usize, DVec3, f64),
+) -> bool {
     let e = emitter.normal;
     if n == DVec3::ZERO || e == DVec3::ZERO || !in_front(e.dot(x - emitter.hull[0])) {
-        return (0.0, 0.0);
+        return false;
     }
     let mut fans = Vec::with_capacity(2 * emitter.triangles.len());
     fans_above(emitter, n, x, &mut fans);
     if fans.is_empty() {
-        return (0.0, 0.0);
+        return false;
     }
     let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed);
-    let count = g * g;
-    let (mut eligible, mut seen, mut squares) = (0usize, 0usize, 0.0);
-    let mut values = vec![0.0; count];
-    for (k, value) in values.iter_mut().enumerate() {
+    for k in 0..g * g {
         let u = ((k / g) as f64 + rng.random::<f64>()) / g as f64;
         let v = ((k % g) as f64 + rng.random::<f64>()) / g as f64;
         let Some((y, f)) = sample_fans(x, n, e, &fans, u, v) else {
             continue;
         };
-        if f <= 0.0 {
-            continue;
-        }
-        squares += f * f;
-        eligible += 1;
-        if !at.blocked(x, y, own, back) {
-            seen += 1;
-            *value = f;
+        if f > 0.0 {
+            ray(k, y, f);
         }
     }
-    stratified_estimate(&values, (eligible, seen), squares)
+    true
+}
+
+/// A point's shadow rays to one emitter ([`point_form_factor`]) with the static geometry's
+/// verdicts: kept where the moving geometry may shadow the point at some frames, so that each
+/// such frame traces the moving objects alone along the rays the static geometry lets through
+/// ([`PointRays::form_factor`]), the same value to the bit as sampling them again.
+#[derive(Debug)]
+pub(super) struct PointRays {
+    /// Rays sampled (`g²`; 0 if none can carry light), eligible ones, the sum of the squares
+    /// of their values.
+    count: usize,
+    eligible: usize,
+    squares: f64,
+    /// The rays the static geometry lets through: (stratum, point on the emitter, value).
+    rays: Vec<(u32, DVec3, f64)>,
+}
+
+impl PointRays {
+    /// The rays of [`point_form_factor`] from `x` on face `back` of `own` (unit normal `n`) to
+    /// `emitter`, traced through `statics` (the static geometry alone).
+    pub(super) fn sample(
+        statics: &Frame<'_>,
+        (x, n, own, back): (DVec3, DVec3, u32, bool),
+        emitter: &Emitter,
+        (seed, g): (u64, usize),
+    ) -> Self {
+        let mut kept = Self {
+            count: 0,
+            eligible: 0,
+            squares: 0.0,
+            rays: Vec::new(),
+        };
+        let sampled = each_point_ray((x, n), emitter, (seed, g), |k, y, f| {
+            kept.squares += f * f;
+            kept.eligible += 1;
+            if !statics.blocked(x, y, own, back) {
+                kept.rays.push((k as u32, y, f));
+            }
+        });
+        if sampled {
+            kept.count = g * g;
+        }
+        kept
+    }
+
+    /// The form factor and its variance from `x` (on face `back` of `own`) with `moving`'s
+    /// occluders (the moving geometry at a frame) along the kept rays.
+    pub(super) fn form_factor(
+        &self,
+        moving: &Frame<'_>,
+        (x, own, back): (DVec3, u32, bool),
+    ) -> (f64, f64) {
+        if self.count == 0 {
+            return (0.0, 0.0);
+        }
+        let mut values = vec![0.0; self.count];
+        let mut seen = 0;
+        for &(k, y, f) in &self.rays {
+            if !moving.blocked(x, y, own, back) {
+                values[k as usize] = f;
+                seen += 1;
+            }
+        }
+        stratified_estimate(&values, (self.eligible, seen), self.squares)
+    }
+
+    /// Bytes held, about.
+    pub(super) fn bytes(&self) -> usize {
+        size_of::<Self>() + self.rays.len() * size_of::<(u32, DVec3, f64)>()
+    }
 }
 
 /// The side of the grid of strata [`point_form_factor`] samples `emitter` from `x` with: as

@@ -42,7 +42,7 @@ use rand::rngs::Xoshiro256PlusPlus;
 use rand::{RngExt, SeedableRng};
 use rayon::prelude::*;
 
-use super::area::{AreaLights, point_form_factor, point_grid};
+use super::area::{AreaLights, PointRays, point_form_factor, point_grid};
 use super::reference::{Met, Place, Sight, cosine_direction_at, places};
 use super::{Occluders, Posed, into_inset};
 use crate::scene::{Material, Scene};
@@ -485,12 +485,19 @@ impl Gatherer<'_> {
             let (f, v) = kept.unwrap_or_else(|| {
                 let g = point_grid(x, emitter, self.gather.density);
                 let g = ((g as f64 * scale).round() as usize).max(4);
-                let sampled = point_form_factor(
-                    self.sight.view,
-                    (x, n, own.0, own.1),
-                    emitter,
-                    (mix(seed ^ k as u64), g),
-                );
+                let (point, sample) = ((x, n, own.0, own.1), (mix(seed ^ k as u64), g));
+                // Something moving may shadow the site: its rays through the static geometry
+                // are kept, and each frame traces the moving objects along them.
+                if keeps
+                    && !clear
+                    && let Some(moving) = &self.moving
+                {
+                    let rays = self.cache.direct_rays((site, k), self.lighting_key, || {
+                        PointRays::sample(self.statics.view, point, emitter, sample)
+                    });
+                    return rays.form_factor(moving.view, (x, own.0, own.1));
+                }
+                let sampled = point_form_factor(self.sight.view, point, emitter, sample);
                 if clear {
                     self.cache
                         .keep_direct((site, k), self.lighting_key, sampled);
@@ -1029,11 +1036,17 @@ struct Kept {
     /// The form factor (and its variance) from static sites to each sampled emitter (by site
     /// and emitter) that nothing moving shadowed, with the lighting it was traced with.
     direct: (u64, std::collections::HashMap<SiteKey, (f64, f64)>),
+    /// The shadow rays from static sites to each sampled emitter (by site and emitter) that
+    /// something moving may shadow at some frame, with the lighting they were sampled with.
+    rays: (u64, KeptRays),
     /// The moving geometry's reach over the timeline.
     swept: Option<std::sync::Arc<Swept>>,
     /// The bytes they take, about.
     bytes: usize,
 }
+
+/// The shadow rays of static sites to the sampled emitters, by site and emitter.
+type KeptRays = std::collections::HashMap<SiteKey, std::sync::Arc<PointRays>>;
 
 /// The linear forms of each site's batches of gather rays.
 type KeptForms = std::collections::HashMap<SiteKey, std::sync::Arc<[Option<Form>]>>;
@@ -1167,6 +1180,39 @@ impl GatherCache {
         {
             kept.bytes += bytes;
         }
+    }
+
+    /// The shadow rays from `site` to the sampled emitter `emitter` with the lighting `key`,
+    /// sampled by `sample` if not kept (and kept, forgetting those of another lighting, within
+    /// [`GATHER_CACHE_BYTES`]).
+    fn direct_rays(
+        &self,
+        (site, emitter): (&Site, usize),
+        key: u64,
+        sample: impl FnOnce() -> PointRays,
+    ) -> std::sync::Arc<PointRays> {
+        let site_key = site_key(site, emitter);
+        if let Some(found) = (self.inner.read().ok())
+            .filter(|k| k.rays.0 == key)
+            .and_then(|k| k.rays.1.get(&site_key).cloned())
+        {
+            return found;
+        }
+        let sampled = std::sync::Arc::new(sample());
+        let bytes = 64 + sampled.bytes();
+        if let Ok(mut kept) = self.inner.write() {
+            if kept.rays.0 != key {
+                let dropped: usize = (kept.rays.1.values()).map(|r| 64 + r.bytes()).sum();
+                kept.bytes -= dropped.min(kept.bytes);
+                kept.rays = (key, std::collections::HashMap::new());
+            }
+            if kept.bytes + bytes <= GATHER_CACHE_BYTES
+                && kept.rays.1.insert(site_key, sampled.clone()).is_none()
+            {
+                kept.bytes += bytes;
+            }
+        }
+        sampled
     }
 
     /// The linear forms of `site`'s `batch`-th rays, if kept for the lighting `key`.

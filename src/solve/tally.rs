@@ -332,7 +332,7 @@ impl Tallies {
             .par_chunks(4096)
             .map(|chunk| {
                 let mut raw: [Vec<(u64, i64)>; N] = std::array::from_fn(|_| Vec::new());
-                let mut merged = Vec::new();
+                let (mut merged, mut line) = (Vec::new(), Vec::new());
                 for &(l, start) in chunk {
                     let l = l as usize;
                     let (g, w) = (self.groups[l], i64::from(self.weights[l]));
@@ -342,10 +342,27 @@ impl Tallies {
                     list.frame_hits_from(l, frame, start as usize, &mut merged);
                     for (raw, surfaces) in raw.iter_mut().zip(surfaces) {
                         let surfaces = surfaces.along(list.direction(l));
+                        line.clear();
                         walk(list.static_hits(l), &surfaces, |a, b| {
-                            raw.push((key(a, b, g), -w))
+                            line.push((key(a, b, g), -w));
                         });
-                        walk(&merged, &surfaces, |a, b| raw.push((key(a, b, g), w)));
+                        walk(&merged, &surfaces, |a, b| line.push((key(a, b, g), w)));
+                        // The line's segments away from the moving crossings are the same in
+                        // both walks: they cancel here, where the line's few entries sort in
+                        // cache, rather than in the frame's sort.
+                        line.sort_unstable_by_key(|e| e.0);
+                        let mut k = 0;
+                        while k < line.len() {
+                            let (key, mut count) = line[k];
+                            k += 1;
+                            while k < line.len() && line[k].0 == key {
+                                count += line[k].1;
+                                k += 1;
+                            }
+                            if count != 0 {
+                                raw.push((key, count));
+                            }
+                        }
                     }
                 }
                 raw.map(aggregate)
