@@ -387,9 +387,9 @@ fn the_sky_lights_open_scenes() {
     }
 }
 
-#[test]
-fn frames_whose_state_repeats_share_their_solution() {
-    // The moving Cornell box with STEP keys: the block jumps at 1 s and 2 s and holds between.
+/// The moving Cornell box with STEP keys at 4 frames a second: the block jumps at 1 s and 2 s
+/// and holds between (9 frames, 3 poses).
+fn stepped_cornell() -> Scene {
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/cornell_moving.gltf");
     let mut json: serde_json::Value =
         serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap();
@@ -405,7 +405,12 @@ fn frames_whose_state_repeats_share_their_solution() {
     )
     .unwrap();
     assert_eq!(scene.frames.count, 9);
-    let bake = Bake::trace(scene, &lines(5_000, 9)).unwrap();
+    scene
+}
+
+#[test]
+fn frames_whose_state_repeats_share_their_solution() {
+    let bake = Bake::trace(stepped_cornell(), &lines(5_000, 9)).unwrap();
     let representatives = bake.representatives();
     // t = 0, 0.25, 0.5, 0.75 share a pose; 1 … 1.75 another; 2 the last.
     assert_eq!(representatives, vec![0, 0, 0, 0, 4, 4, 4, 4, 8]);
@@ -422,6 +427,37 @@ fn frames_whose_state_repeats_share_their_solution() {
         &SolveParams::default(),
     );
     assert_eq!(*all[5], *alone[1].1);
+}
+
+/// A frame where nothing moves costs no direct light, no pieces' light and no solve: the
+/// stepped Cornell box (9 frames, 3 poses), split into pieces, samples its emitter's light at
+/// 3 poses on the patches and on the pieces, and solves 3 frames for the 9 it serves (counted,
+/// not timed).
+#[test]
+fn a_frame_where_nothing_moves_costs_no_light_sampling_and_no_solve() {
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    let mut bake = Bake::trace(stepped_cornell(), &lines(20_000, 9)).unwrap();
+    bake.split(&SolveParams::default(), &Default::default())
+        .unwrap();
+    assert!(bake.pieces().is_some_and(|p| p > bake.scene.patches.len()));
+    assert_eq!(bake.area_lights().poses(), 3);
+    assert_eq!(bake.piece_area_lights().map(|a| a.poses()), Some(3));
+    let solved = AtomicUsize::new(0);
+    let mut served = 0;
+    let control = radiosity::control::Control::default();
+    let params = SolveParams::default();
+    bake.solve_frames(
+        (&bake.scene.materials, &bake.light_power(), &params),
+        (usize::MAX, &control),
+        &|n| {
+            solved.fetch_add(n, Ordering::Relaxed);
+        },
+        |_, _| {
+            served += 1;
+            std::ops::ControlFlow::Continue(())
+        },
+    );
+    assert_eq!((solved.into_inner(), served), (3, 9));
 }
 
 #[test]

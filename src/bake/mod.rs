@@ -782,6 +782,12 @@ impl Bake {
         &self.area
     }
 
+    /// The direct light of the emitting surfaces sampled on the pieces, once [`Bake::split`].
+    #[must_use]
+    pub fn piece_area_lights(&self) -> Option<&AreaLights> {
+        self.pieces.as_ref().map(|p| &p.area)
+    }
+
     /// The irradiance of every patch straight from the punctual lights at `power` and the
     /// sampled emitters with `materials`' emission at `frame`, and its variance (both empty when
     /// there are none).

@@ -404,6 +404,13 @@ impl AreaLights {
         self.frame_state.get(frame).map(|&s| s as usize)
     }
 
+    /// The poses of the moving geometry whose changes to the pairs were sampled: one per
+    /// distinct pose, however many frames hold it.
+    #[must_use]
+    pub fn poses(&self) -> usize {
+        self.states.len()
+    }
+
     /// Form factors of every patch to every sampled material at `frame`, and their variances
     /// (patch-major, [`AreaLights::materials`] order).
     #[must_use]
