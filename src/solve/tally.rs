@@ -283,24 +283,31 @@ impl Tallies {
         self.statics.unit = u64::from(list.dense().1);
         self.lines = new.end;
         // Which lines each frame's moving objects touch, over all lines that count.
-        let mut pairs: Vec<(u32, u32, u32)> = (0..list.lines())
-            .filter(|&l| self.weights[l] > 0)
-            .flat_map(|l| {
-                let moving = list.moving_hits(l);
-                (0..moving.len())
-                    .filter(move |&k| k == 0 || moving[k - 1].frame != moving[k].frame)
-                    .map(move |k| (moving[k].frame, l as u32, k as u32))
-            })
-            .collect();
-        pairs.sort_unstable();
+        // Each line's frames in line order, placed by frame (a counting sort: line order kept).
+        let starts = |l: usize| {
+            let moving = list.moving_hits(l);
+            (0..moving.len())
+                .filter(move |&k| k == 0 || moving[k - 1].frame != moving[k].frame)
+                .map(move |k| (moving[k].frame as usize, k as u32))
+        };
+        let counted = (0..list.lines()).filter(|&l| self.weights[l] > 0);
         self.touched_offsets = vec![0; list.frames() + 1];
-        for &(f, _, _) in &pairs {
-            self.touched_offsets[f as usize + 1] += 1;
+        for l in counted.clone() {
+            for (f, _) in starts(l) {
+                self.touched_offsets[f + 1] += 1;
+            }
         }
         for f in 0..list.frames() {
             self.touched_offsets[f + 1] += self.touched_offsets[f];
         }
-        self.touched = pairs.into_iter().map(|(_, l, k)| (l, k)).collect();
+        let mut next: Vec<u32> = self.touched_offsets[..list.frames()].to_vec();
+        self.touched = vec![(0, 0); self.touched_offsets[list.frames()] as usize];
+        for l in counted {
+            for (f, k) in starts(l) {
+                self.touched[next[f] as usize] = (l as u32, k);
+                next[f] += 1;
+            }
+        }
         self.fingerprints = moving_fingerprints(list);
     }
 
