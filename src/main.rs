@@ -291,8 +291,10 @@ struct BenchAccuracyArgs {
     /// (at least 64 per patch), for the scenes without a closed form.
     #[arg(long, default_value_t = 4_000_000)]
     reference_paths: usize,
-    /// Frames measured against the path tracer, spread over the timeline from frame 0.
-    #[arg(long, default_value_t = 3)]
+    /// Frames measured against the path tracer, spread over the timeline from frame 0 (four:
+    /// at 25 frames, 0, 6, 12 and 18, three of them frames that carry their run's first
+    /// frame's error-bar terms).
+    #[arg(long, default_value_t = 4)]
     reference_frames: usize,
     /// Measure only this scene (a file name in --scenes).
     #[arg(long)]

@@ -904,3 +904,47 @@ fn no_light_reaches_the_inside_of_the_sliding_cornell_block() {
         }
     }
 }
+
+/// The visible shares kept across frames ([`radiosity::direct::KeptShares`]: a static face no
+/// moving object comes near keeps its share from the frame it was first measured at) equal
+/// the shares measured afresh at every frame, on the moving Cornell box, whose block slides
+/// over the floor: to the bit, at every frame, with the floor's shares changing as it slides.
+#[test]
+fn visible_shares_kept_across_frames_equal_those_measured_at_each_frame() {
+    let sample = (radiosity::samples::all().into_iter())
+        .find(|s| s.file_name == "cornell_moving.gltf")
+        .unwrap();
+    let options = LoadOptions {
+        fps: 4.0,
+        ..LoadOptions::default()
+    };
+    let scene = load(sample.gltf.as_bytes(), &options).unwrap();
+    let bake = Bake::trace(
+        scene,
+        &LineParams {
+            lines: 1000,
+            seed: 1,
+        },
+    )
+    .unwrap();
+    let scene = &bake.scene;
+    // Every patch of the floor and of the block.
+    let which: Vec<bool> = (0..scene.patches.len()).map(|_| true).collect();
+    let kept = radiosity::direct::KeptShares::default();
+    let mut changed = 0;
+    let first = radiosity::direct::visible_shares(scene, bake.tracer(), 0, &which, &kept);
+    for frame in 0..scene.frames.count {
+        let fresh = radiosity::direct::visible_shares(
+            scene,
+            bake.tracer(),
+            frame,
+            &which,
+            &Default::default(),
+        );
+        let reused = radiosity::direct::visible_shares(scene, bake.tracer(), frame, &which, &kept);
+        assert_eq!(reused, fresh, "frame {frame}");
+        changed += fresh.iter().zip(&first).filter(|(a, b)| a != b).count();
+    }
+    assert!(kept.bytes() > 0);
+    assert!(changed > 0, "the block's contact never moved");
+}

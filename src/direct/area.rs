@@ -1678,6 +1678,83 @@ mod tests {
         assert!(retraced > 0 && retraced < lights.pairs.len() * scene.frames.count / 2);
     }
 
+    /// A point's shadow rays kept through the static geometry ([`PointRays`]), traced at each
+    /// frame through the moving objects alone, give what sampling and tracing them through the
+    /// posed scene gives ([`point_form_factor`]), to the last bit, at points of the level some
+    /// of which the door shadows at some frames.
+    #[test]
+    fn a_points_kept_rays_equal_its_rays_traced_whole_at_every_frame() {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/scenes/level.gltf");
+        let options = crate::loader::LoadOptions {
+            fps: 1.5,
+            ..Default::default()
+        };
+        let scene = crate::loader::load(&std::fs::read(path).unwrap(), &options).unwrap();
+        let tracer = SceneTracer::new(&scene);
+        let sampling = Sampling::for_lines(1_000_000, scene.patches.len(), 9);
+        let lights = AreaLights::compute(&scene, &tracer, sampling, &Control::default()).unwrap();
+        let mut slot = vec![None; scene.materials.len()];
+        for (k, &m) in lights.materials.iter().enumerate() {
+            slot[m as usize] = Some(k as u16);
+        }
+        let triangles = scene.triangles_at(0);
+        let clusters = clusters(&scene, &tracer, &triangles, &slot);
+        let emitters: Vec<Emitter> = (clusters.iter())
+            .filter(|c| !c.moving)
+            .map(|c| pose(c, &triangles))
+            .collect();
+        assert!(!emitters.is_empty() && !scene.objects.is_empty());
+        let statics = scene.statics.triangles.len();
+        // The centroids of some static triangles' front faces, a hair in front.
+        let points: Vec<(DVec3, DVec3, u32)> = (0..statics)
+            .step_by(5)
+            .filter_map(|t| {
+                let corners = triangles[t].0.map(glam::Vec3::as_dvec3);
+                let (n, area) = normal_and_area(corners);
+                (area > 0.0).then(|| ((corners[0] + corners[1] + corners[2]) / 3.0, n, t as u32))
+            })
+            .collect();
+        let rest = Posed::at(&scene, &tracer, 0);
+        let static_view = rest.frame(&scene, &tracer, Occluders::Static);
+        let kept: Vec<Vec<PointRays>> = (points.iter())
+            .map(|&(x, n, t)| {
+                (emitters.iter().enumerate())
+                    .map(|(k, e)| {
+                        let g = point_grid(x, e, 1.0);
+                        PointRays::sample(&static_view, (x, n, t, false), e, (mix(k as u64), g))
+                    })
+                    .collect()
+            })
+            .collect();
+        let mut values: Vec<Vec<f64>> = Vec::new();
+        for frame in 0..scene.frames.count {
+            let posed = Posed::at(&scene, &tracer, frame);
+            let (all, moving) = (
+                posed.frame(&scene, &tracer, Occluders::All),
+                posed.frame(&scene, &tracer, Occluders::Moving),
+            );
+            let mut frame_values = Vec::new();
+            for (&(x, n, t), kept) in points.iter().zip(&kept) {
+                for (k, (e, rays)) in emitters.iter().zip(kept).enumerate() {
+                    let g = point_grid(x, e, 1.0);
+                    let whole = point_form_factor(&all, (x, n, t, false), e, (mix(k as u64), g));
+                    assert_eq!(
+                        rays.form_factor(&moving, (x, t, false)),
+                        whole,
+                        "frame {frame}"
+                    );
+                    frame_values.push(whole.0);
+                }
+            }
+            values.push(frame_values);
+        }
+        // The door shadows some of the points at some frames.
+        let changed = (0..values[0].len())
+            .filter(|&i| values.iter().any(|v| v[i] != values[0][i]))
+            .count();
+        assert!(changed > 0, "of {}", values[0].len());
+    }
+
     /// A quad as two triangles.
     fn fans(q: &[DVec3; 4]) -> [[DVec3; 3]; 2] {
         [[q[0], q[1], q[2]], [q[0], q[2], q[3]]]
