@@ -911,16 +911,8 @@ fn no_light_reaches_the_inside_of_the_sliding_cornell_block() {
 /// over the floor: to the bit, at every frame, with the floor's shares changing as it slides.
 #[test]
 fn visible_shares_kept_across_frames_equal_those_measured_at_each_frame() {
-    let sample = (radiosity::samples::all().into_iter())
-        .find(|s| s.file_name == "cornell_moving.gltf")
-        .unwrap();
-    let options = LoadOptions {
-        fps: 4.0,
-        ..LoadOptions::default()
-    };
-    let scene = load(sample.gltf.as_bytes(), &options).unwrap();
     let bake = Bake::trace(
-        scene,
+        common::sample_at("cornell_moving.gltf", 4.0),
         &LineParams {
             lines: 1000,
             seed: 1,

@@ -412,14 +412,7 @@ fn a_frame_s_vertices_do_not_depend_on_the_frames_evaluated_before_it() {
     // The static crossings of the gather rays are kept across frames (GatherCache): a frame
     // evaluated after others reads them, one evaluated first traces them; the two agree to the
     // bit, as the service (which evaluates frames in any order) and the bake command need.
-    let sample = (radiosity::samples::all().into_iter())
-        .find(|s| s.file_name == "cornell_moving.gltf")
-        .unwrap();
-    let options = LoadOptions {
-        fps: 4.0,
-        ..LoadOptions::default()
-    };
-    let scene = load(sample.gltf.as_bytes(), &options).unwrap();
+    let scene = common::sample_at("cornell_moving.gltf", 4.0);
     let lines = LineParams {
         lines: 20_000,
         seed: 2,

@@ -53,6 +53,17 @@ pub struct Bake {
     shares: crate::direct::KeptShares,
 }
 
+/// What a set of patches is solved with ([`Bake::solve_frame`]): the scene they are in, its
+/// tracer, their direct light from lamps and from emitters, and their visible shares kept
+/// across frames.
+type State<'a> = (
+    &'a Scene,
+    &'a SceneTracer,
+    &'a DirectLight,
+    &'a AreaLights,
+    &'a crate::direct::KeptShares,
+);
+
 /// What [`Bake::split`] solves: every face of the patches, cut finer where the lines cross it
 /// often enough, each a patch of its own with its own tallies and direct light; the answer for
 /// a patch is the mean of its pieces ([`Groups`]).
@@ -867,42 +878,34 @@ impl Bake {
                             let patches = self.scene.patches.len();
                             shape.len() == patches && spread.len() == patches
                         });
-                let mut solution = match carried {
-                    Some((shape, spread)) => {
+                let (tally, whole_tally, spread) = match carried {
+                    Some((_, spread)) => {
                         let tally = (pieces.tallies).frame(&self.list, surfaces.0, frame);
-                        let mut solution = Self::solve_state_from(
-                            &tally,
-                            state,
-                            Some(&pieces.groups),
-                            solve,
-                            start,
-                            Some(Spread::Carried(spread)),
-                        );
-                        solution.shape.clone_from(shape);
-                        solution
+                        (tally, None, Spread::Carried(spread))
                     }
                     None => {
                         let (tally, whole_tally) =
                             (pieces.tallies).frame_with(&self.tallies, &self.list, surfaces, frame);
-                        let mut solution = Self::solve_state_from(
-                            &tally,
-                            state,
-                            Some(&pieces.groups),
-                            solve,
-                            start,
-                            Some(Spread::Replicas),
-                        );
-                        // The patches solved whole as well (the answer alone): how far the
-                        // pieces moved it says how far the pieces themselves may still be from
-                        // the light's shape.
+                        (tally, Some(whole_tally), Spread::Replicas)
+                    }
+                };
+                let groups = Some(&pieces.groups);
+                let mut solution =
+                    Self::solve_state_from(&tally, state, groups, solve, start, Some(spread));
+                match (whole_tally, carried) {
+                    // The patches solved whole as well (the answer alone): how far the pieces
+                    // moved it says how far the pieces themselves may still be from the light's
+                    // shape.
+                    (Some(whole_tally), _) => {
                         let whole = self.whole_answer_of(&whole_tally, solve, start);
                         solution.shape = (solution.radiance.iter())
                             .zip(&whole.radiance)
                             .map(|(l, w)| [l.map(|x| x as f32), w.map(|x| x as f32)])
                             .collect();
-                        solution
                     }
-                };
+                    (None, Some((shape, _))) => solution.shape.clone_from(shape),
+                    (None, None) => {}
+                }
                 solution.pieces_stderr = (solution.stderr.iter())
                     .map(|e| e.unwrap_or_default().map(|x| x as f32))
                     .collect();
@@ -958,19 +961,25 @@ impl Bake {
         params: &SolveParams,
         start: Option<(usize, &FrameSolution)>,
     ) -> FrameSolution {
-        let state = (
-            &self.scene,
-            &self.tracer,
-            &self.direct,
-            &self.area,
-            &self.shares,
-        );
+        let state = self.state();
         let solve = (frame, materials, power, params);
         // A run's later frames carry what the replicas made of the first bounce's spread.
         let spread = (start.map(|(_, s)| &s.spread[..]))
             .filter(|spread| spread.len() == self.scene.patches.len())
             .map_or(Spread::Replicas, Spread::Carried);
         Self::solve_state_from(tally, state, None, solve, start, Some(spread))
+    }
+
+    /// What the bake's patches are solved with: the scene, its tracer, their direct light and
+    /// visible shares.
+    fn state(&self) -> State<'_> {
+        (
+            &self.scene,
+            &self.tracer,
+            &self.direct,
+            &self.area,
+            &self.shares,
+        )
     }
 
     /// The answer alone (no replicas) for the bake's patches solved whole at a frame (`solve`:
@@ -990,13 +999,7 @@ impl Bake {
         solve: (usize, &[Material], &[[f64; 3]], &SolveParams),
         start: Option<(usize, &FrameSolution)>,
     ) -> FrameSolution {
-        let state = (
-            &self.scene,
-            &self.tracer,
-            &self.direct,
-            &self.area,
-            &self.shares,
-        );
+        let state = self.state();
         Self::solve_state_from(tally, state, None, solve, start, None)
     }
 
@@ -1005,13 +1008,7 @@ impl Bake {
     /// starting from `start` (the answer for the bake's patches at a nearby frame).
     fn solve_state_from(
         tally: &FrameTally,
-        (scene, tracer, direct, area, shares): (
-            &Scene,
-            &SceneTracer,
-            &DirectLight,
-            &AreaLights,
-            &crate::direct::KeptShares,
-        ),
+        (scene, tracer, direct, area, shares): State<'_>,
         groups: Option<&Groups>,
         (frame, materials, power, params): (usize, &[Material], &[[f64; 3]], &SolveParams),
         start: Option<(usize, &FrameSolution)>,

@@ -303,3 +303,15 @@ pub fn quad(h: f32, y: f32, up: bool) -> (Vec<[f32; 3]>, Vec<u32>) {
     };
     (v, i)
 }
+
+/// The bundled sample `file_name` (`radiosity::samples`) loaded at `fps` frames a second.
+pub fn sample_at(file_name: &str, fps: f64) -> radiosity::scene::Scene {
+    let sample = (radiosity::samples::all().into_iter())
+        .find(|s| s.file_name == file_name)
+        .unwrap();
+    let options = radiosity::loader::LoadOptions {
+        fps,
+        ..radiosity::loader::LoadOptions::default()
+    };
+    radiosity::loader::load(sample.gltf.as_bytes(), &options).unwrap()
+}
