@@ -536,16 +536,32 @@ impl Gatherer<'_> {
         });
         // Rays whose form is clear of the moving geometry are kept as their linear form of the
         // solution (with the lighting they were traced with): a later frame reads them.
-        let kept = (crossings.is_some() && !self.moving_lights)
+        let keeps = crossings.is_some() && !self.moving_lights;
+        let kept = keeps
             .then(|| self.cache.forms((site, batch), self.lighting_key))
             .flatten();
+        // The others' forms kept with their paths, each from a frame where no moving object
+        // came near its path: they hold at every frame where none does.
+        let paths = keeps
+            .then(|| self.cache.paths((site, batch), self.lighting_key))
+            .flatten();
+        let mut found: Vec<Option<KeptPath>> = Vec::new();
+        let mut path = Vec::new();
         let mut values = vec![[0.0; 3]; directions.len()];
         let mut read = [0.0; 3];
         let mut forms: Vec<Option<Linear>> = Vec::new();
         for (k, (value, &w)) in values.iter_mut().zip(&directions).enumerate() {
-            let linear = match kept.as_ref().and_then(|kept| kept[k]) {
-                Some(linear) => linear,
-                None => {
+            let kept_path = (paths.as_ref())
+                .and_then(|paths| paths.get(k).cloned().flatten())
+                .filter(|(tests, _)| self.path_clear(tests));
+            let linear = match (kept.as_ref().and_then(|kept| kept[k]), kept_path) {
+                (Some(linear), _) => linear,
+                (None, Some((_, form))) => Linear {
+                    clear: false,
+                    ..form.linear()
+                },
+                (None, None) => {
+                    path.clear();
                     let met = match &crossings {
                         Some(crossings) => self.with_moving(crossings[k], (x, w, place), hits),
                         None => self.sight.first_hit(x, w, place, hits),
@@ -554,14 +570,24 @@ impl Gatherer<'_> {
                         Met::Sky => Linear::read(Read::Sky),
                         Met::Nothing => Linear::read(Read::Nothing),
                         Met::Patch(face, p, t) => {
-                            let on = (mix(seed ^ k as u64), &mut *hits);
+                            let on = (mix(seed ^ k as u64), &mut *hits, &mut path);
                             self.reflected(p, (face, x + w * t), (t, 0), on)
                         }
                     };
                     linear.clear &= self.swept.ray_clear(x, w, met_distance(&met));
-                    // A form that may be kept is read as kept (in `f32`), whether or not it is.
-                    if linear.clear && crossings.is_some() && !self.moving_lights {
+                    path.push(PathTest::Ray(x, w, met_distance(&met)));
+                    // A form that may be kept is read as kept (in `f32`), whether or not it is;
+                    // so is one whose path nothing moving comes near at this frame.
+                    if linear.clear && keeps {
                         Form::of(&linear).linear()
+                    } else if keeps && self.path_clear(&path) {
+                        let form = Form::of(&linear);
+                        found.resize(directions.len(), None);
+                        found[k] = Some((path.as_slice().into(), form));
+                        Linear {
+                            clear: false,
+                            ..form.linear()
+                        }
                     } else {
                         linear
                     }
@@ -577,9 +603,13 @@ impl Gatherer<'_> {
             }
             *value = self.value(&linear).map(|l| pi * l);
         }
-        if crossings.is_some() && kept.is_none() && !self.moving_lights {
+        if keeps && kept.is_none() {
             self.cache
                 .keep_forms((site, batch), self.lighting_key, forms);
+        }
+        if !found.is_empty() {
+            self.cache
+                .keep_paths((site, batch), self.lighting_key, found);
         }
         let (mut mean, mut variance) = ([0.0; 3], [0.0; 3]);
         for c in 0..3 {
@@ -587,6 +617,19 @@ impl Gatherer<'_> {
             (mean[c], variance[c]) = super::collapsed_variance(&channel);
         }
         (mean, variance, read, directions.len() as f64)
+    }
+
+    /// Whether nothing moving comes near a gather ray's `path` at this frame: its segments
+    /// miss the moving objects' boxes, and so do the shadow rays from its bounces to the lights
+    /// ([`Swept::lights_clear`], [`Swept::hull_clear`]).
+    fn path_clear(&self, path: &[PathTest]) -> bool {
+        path.iter().all(|test| match *test {
+            PathTest::Ray(a, w, reach) => self.now.ray_clear(a, w, reach),
+            PathTest::Point(y) => {
+                self.now.lights_clear(&self.sight, y)
+                    && (self.emitters.iter()).all(|(emitter, _)| self.now.hull_clear(y, emitter))
+            }
+        })
     }
 
     /// The gather rays' directions at `site` (normal `n`): a square grid of strata of the
@@ -642,7 +685,7 @@ impl Gatherer<'_> {
         p: usize,
         (face, y): (usize, DVec3),
         (t, depth): (f64, usize),
-        (seed, hits): (u64, &mut Vec<Hit>),
+        (seed, hits, path): (u64, &mut Vec<Hit>, &mut Vec<PathTest>),
     ) -> Linear {
         let material = (self.scene.patches.get(p))
             .and_then(|patch| self.lighting.materials.get(patch.material as usize));
@@ -666,6 +709,7 @@ impl Gatherer<'_> {
         let (n, tri, back) = (place.normal, place.triangle, place.back);
         let mut e = self.sight.punctual(y, place, hits);
         let mut clear = self.swept.lights_clear(&self.sight, y);
+        path.push(PathTest::Point(y));
         let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed);
         for (k, (emitter, emission)) in self.emitters.iter().enumerate() {
             let sample = (mix(seed ^ k as u64), 1);
@@ -688,11 +732,12 @@ impl Gatherer<'_> {
                 Met::Sky => Linear::read(Read::Sky),
                 Met::Nothing => Linear::read(Read::Nothing),
                 Met::Patch(next, q, t) => {
-                    let on = (mix(seed ^ 0x6e65_6172), &mut *hits);
+                    let on = (mix(seed ^ 0x6e65_6172), &mut *hits, &mut *path);
                     self.reflected(q, (next, y + w * t), (t, depth + 1), on)
                 }
             };
             next.clear &= self.swept.ray_clear(y, w, met_distance(&met));
+            path.push(PathTest::Ray(y, w, met_distance(&met)));
             next.scale(1.0 / survive)
         } else {
             Linear::read(Read::Nothing)
@@ -1039,11 +1084,18 @@ struct Kept {
     /// The shadow rays from static sites to each sampled emitter (by site and emitter) that
     /// something moving may shadow at some frame, with the lighting they were sampled with.
     rays: (u64, KeptRays),
+    /// The forms of static sites' gather rays that something moving may meet at some frame, by
+    /// site and batch, each kept with its path from a frame where nothing moving came near it
+    /// (`None` until such a frame), with the lighting they were traced with.
+    paths: (u64, KeptPaths),
     /// The moving geometry's reach over the timeline.
     swept: Option<std::sync::Arc<Swept>>,
     /// The bytes they take, about.
     bytes: usize,
 }
+
+/// The gather rays' forms kept with their paths, by site and batch.
+type KeptPaths = std::collections::HashMap<SiteKey, std::sync::Arc<[Option<KeptPath>]>>;
 
 /// The shadow rays of static sites to the sampled emitters, by site and emitter.
 type KeptRays = std::collections::HashMap<SiteKey, std::sync::Arc<PointRays>>;
@@ -1093,6 +1145,18 @@ impl Form {
         }
     }
 }
+
+/// What a gather ray's path must miss of the moving geometry for its form to be the static
+/// geometry's ([`Gatherer::path_clear`]): a segment (from, direction, length), or a bounce's
+/// point, whose shadow rays to the lights must miss it.
+#[derive(Clone, Copy, Debug)]
+enum PathTest {
+    Ray(DVec3, DVec3, f64),
+    Point(DVec3),
+}
+
+/// A gather ray's path tests and its form, kept from a frame where nothing moving came near.
+type KeptPath = (std::sync::Arc<[PathTest]>, Form);
 
 /// A site, exactly, and a batch of its gather rays.
 type SiteKey = (u32, bool, usize, [u64; 3]);
@@ -1245,6 +1309,58 @@ impl GatherCache {
             && kept.forms.1.insert(site_key(site, batch), forms).is_none()
         {
             kept.bytes += bytes;
+        }
+    }
+
+    /// The forms of `site`'s `batch`-th rays kept with their paths for the lighting `key`.
+    fn paths(
+        &self,
+        (site, batch): (&Site, usize),
+        key: u64,
+    ) -> Option<std::sync::Arc<[Option<KeptPath>]>> {
+        let kept = self.inner.read().ok()?;
+        (kept.paths.0 == key)
+            .then(|| kept.paths.1.get(&site_key(site, batch)).cloned())
+            .flatten()
+    }
+
+    /// Keeps the forms and paths `found` of `site`'s `batch`-th rays with the lighting `key`
+    /// where none is kept yet (forgetting those of another lighting), within
+    /// [`GATHER_CACHE_BYTES`]. Any frame finds the same form for a ray whose path is clear.
+    fn keep_paths(&self, (site, batch): (&Site, usize), key: u64, found: Vec<Option<KeptPath>>) {
+        let size = |paths: &[Option<KeptPath>]| -> usize {
+            64 + (paths.iter().flatten())
+                .map(|(tests, _)| size_of::<KeptPath>() + tests.len() * size_of::<PathTest>())
+                .sum::<usize>()
+                + std::mem::size_of_val(paths)
+        };
+        let Ok(mut kept) = self.inner.write() else {
+            return;
+        };
+        if kept.paths.0 != key {
+            let dropped: usize = (kept.paths.1.values()).map(|p| size(p)).sum();
+            kept.bytes -= dropped.min(kept.bytes);
+            kept.paths = (key, std::collections::HashMap::new());
+        }
+        let site_key = site_key(site, batch);
+        let mut merged: Vec<Option<KeptPath>> = match kept.paths.1.get(&site_key) {
+            Some(old) => old.to_vec(),
+            None => vec![None; found.len()],
+        };
+        let before = size(&merged);
+        let mut added = false;
+        for (slot, new) in merged.iter_mut().zip(found) {
+            if slot.is_none() && new.is_some() {
+                *slot = new;
+                added = true;
+            }
+        }
+        let after = size(&merged);
+        let had = kept.paths.1.contains_key(&site_key);
+        let grow = after - if had { before } else { 0 };
+        if added && kept.bytes + grow <= GATHER_CACHE_BYTES {
+            kept.paths.1.insert(site_key, merged.into());
+            kept.bytes += grow;
         }
     }
 
