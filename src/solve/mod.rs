@@ -115,11 +115,11 @@ pub struct FrameSolution {
     /// frames carry.
     #[serde(skip)]
     pub shape: Vec<[[f32; 3]; 2]>,
-    /// Per patch and channel, how its error from the lines ([`replica_errors`]) stood to the
+    /// Per patch and channel, how its error from the lines (the replicas' spread) stood to the
     /// first bounce's spread and to its radiance at the frame the replicas were last solved
     /// (this one, or the first of its run's): `[e / first, 0]`, or `[0, e / radiance]` where
     /// the first bounce had no spread; `None` where the replicas gave no error. A run's later
-    /// frames carry it ([`solve_carried`]).
+    /// frames carry it ([`Spread::Carried`]).
     #[serde(skip)]
     pub spread: Vec<[Option<[f32; 2]>; 3]>,
     /// Crossings of each patch by the lines, where a surface touches it included (0:
@@ -407,9 +407,9 @@ impl Groups {
 
 /// [`solve_lit_from`] answering for `groups` of the tally's patches, if given: the pieces are
 /// solved, each group answered by the mean of its pieces ([`Groups`]), its error bar from the
-/// replicas' means (or as `spread` says). The solve then stops when the pieces can move by `noise / √(pieces)` of
-/// their own standard error, so that their group's answer moves by no more than `noise` of its
-/// (narrower) one.
+/// replicas' means (or as `spread` says). The solve then stops when the pieces can move by
+/// `noise / √(pieces)` of their own standard error, so that their group's answer moves by no
+/// more than `noise` of its (narrower) one.
 #[must_use]
 pub fn solve_grouped(
     tally: &FrameTally,
@@ -429,7 +429,7 @@ pub fn solve_grouped(
 pub enum Spread<'a> {
     /// The first bounce's spread alone (a lower bound).
     FirstBounce,
-    /// The replicas' spread ([`replica_errors`]).
+    /// The spread of the 16 replicas' solutions (module docs).
     Replicas,
     /// The first bounce's spread at this frame times what the replicas made of it at a nearby
     /// frame ([`FrameSolution::spread`] of a run's first frame): the later bounces widen the
