@@ -284,7 +284,7 @@ impl Bake {
             ),
         };
         self.inherited = lights == Lights::Inherit;
-        Self::move_crossings(&mut self.list, &self.scene, &refinement);
+        Self::move_crossings(&mut self.list, (&self.scene, None), &refinement);
         (self.pieces, self.shown) = (None, None);
         let mut tallies = Tallies::default();
         tallies.update(&self.list, &tracer.surfaces(), scene.patches.len());
@@ -323,12 +323,12 @@ impl Bake {
     /// cut the triangles of `scene` (the scene the crossings are on).
     fn move_crossings(
         list: &mut IntersectionList,
-        scene: &Scene,
+        (scene, bundles): (&Scene, Option<&[crate::lines::Bundle]>),
         refinement: &crate::scene::refine::Refinement,
     ) {
         use crate::scene::refine::{Corners, barycentric};
         let corners = Corners::new(scene);
-        list.relabel(scene, |hit, frame, point| {
+        list.relabel((scene, bundles), |hit, frame, point| {
             let old = hit.surface();
             let bary = if refinement.is_cut(old) {
                 corners
@@ -473,7 +473,9 @@ impl Bake {
             .map(|&q| of_apart[q as usize])
             .collect();
         // The apart scene has the bake's triangles: the crossings move to the pieces.
-        Self::move_crossings(&mut self.list, &self.scene, &refinement);
+        // The lines' bundles, generated once for every round's relabelling.
+        let bundles = self.list.regenerate_bundles(&self.scene);
+        Self::move_crossings(&mut self.list, (&self.scene, Some(&bundles)), &refinement);
         let budget = budget as usize;
         for _ in 0..GAP_ROUNDS {
             if control.is_cancelled() {
@@ -487,9 +489,10 @@ impl Bake {
             of = (refinement.parents().iter())
                 .map(|&q| of[q as usize])
                 .collect();
-            Self::move_crossings(&mut self.list, &scene, &refinement);
+            Self::move_crossings(&mut self.list, (&scene, Some(&bundles)), &refinement);
             scene = next;
         }
+        drop(bundles);
         // The bake's patches on the pieces' triangles from here on: if it is cancelled now,
         // the bake answers as before (the patches' tallies count the same crossings on the
         // same patches), without pieces.

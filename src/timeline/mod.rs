@@ -798,33 +798,46 @@ impl IntersectionList {
         out
     }
 
+    /// Every bundle of the list's lines regenerated, in the list's order, to relabel it several
+    /// times without generating them each time ([`IntersectionList::relabel`]): 12 bytes a
+    /// line.
+    #[must_use]
+    pub fn regenerate_bundles(&self, scene: &Scene) -> Vec<Bundle> {
+        (self.bundle_ranges().par_iter())
+            .map(|&(b, k, _, _)| self.batches[b].batch.bundle(k, &scene.bounds))
+            .collect()
+    }
+
     /// Gives every crossing the traced triangle `surface(hit, frame, point)` (the frame of a
     /// moving crossing, `None` for a static one; the point crossed, in normalised space), then
     /// sorts each line's crossings again: the list of the same lines through a scene whose
     /// triangles were cut ([`crate::scene::refine`]), without tracing them again.
     pub fn relabel(
         &mut self,
-        scene: &Scene,
+        (scene, bundles): (&Scene, Option<&[Bundle]>),
         surface: impl Fn(Hit, Option<usize>, glam::DVec3) -> u32 + Sync,
     ) {
         // Each bundle's crossings, split off the two arrays so bundles are relabelled apart.
         let ranges = self.bundle_ranges();
         let mut tasks = Vec::with_capacity(ranges.len());
         let (mut statics, mut moving) = (&mut self.static_hits[..], &mut self.dynamic_hits[..]);
-        for (b, k, first, n) in ranges {
+        for (index, (b, k, first, n)) in ranges.into_iter().enumerate() {
             let s = (self.static_offsets[first + n] - self.static_offsets[first]) as usize;
             let d = (self.dynamic_offsets[first + n] - self.dynamic_offsets[first]) as usize;
             let (s_here, s_rest) = std::mem::take(&mut statics).split_at_mut(s);
             let (d_here, d_rest) = std::mem::take(&mut moving).split_at_mut(d);
             (statics, moving) = (s_rest, d_rest);
-            tasks.push((b, k, first, n, s_here, d_here));
+            tasks.push((index, (b, k, first, n), s_here, d_here));
         }
         let (batches, static_offsets, dynamic_offsets) =
             (&self.batches, &self.static_offsets, &self.dynamic_offsets);
         tasks
             .into_par_iter()
-            .for_each(|(b, k, first, n, s_hits, d_hits)| {
-                let bundle = batches[b].batch.bundle(k, &scene.bounds);
+            .for_each(|(index, (b, k, first, n), s_hits, d_hits)| {
+                let bundle = match bundles {
+                    Some(bundles) => std::borrow::Cow::Borrowed(&bundles[index]),
+                    None => std::borrow::Cow::Owned(batches[b].batch.bundle(k, &scene.bounds)),
+                };
                 debug_assert_eq!(bundle.origins.len(), n);
                 let point = |line: &Line, t: f32| {
                     line.origin.as_dvec3() + line.direction.as_dvec3() * f64::from(t)
