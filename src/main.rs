@@ -94,7 +94,7 @@ enum Command {
     /// Measure how patches are made against a path-traced reference: per-patch error, the
     /// error at points (what a lightmap shows), bias, error-bar coverage, patches and seconds
     /// of the source's triangles, uniform sizes and auto, on the Cornell box, the panel room,
-    /// the level and the level lit by lamps (README, "Against physics").
+    /// the level and the level lit by lamps (docs/engine.md, "Against physics").
     BenchPatches(BenchPatchesArgs),
     /// Measure the light the baked glTF shows at its vertices against a path tracer evaluated
     /// at the same points, beside the per-vertex averaging of patches outputs carried before:

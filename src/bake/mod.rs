@@ -354,7 +354,7 @@ impl Bake {
     /// error; solved on pieces, each patch's mean gathers what its pieces see. The noise of
     /// a patch's mean is about that of the patch solved whole (it is made of the same
     /// crossings): measured with `bench-patches`, the per-patch error against the path
-    /// tracer falls two to seven times on the sample scenes (README, "Pieces").
+    /// tracer falls two to seven times on the sample scenes (docs/engine.md, "Pieces").
     ///
     /// First the lines through the gaps are made denser, once ([`gaps::regions`],
     /// [`Bake::densify`]): light trapped in a gap falls off over about the gap's height, and

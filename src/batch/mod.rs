@@ -1,7 +1,7 @@
 //! Batch baking: what a build pipeline runs overnight (`radiosity bake`).
 //!
 //! Each scene bakes into `OUT/<scene name>/`:
-//! - `radiance.bin`: every frame's radiance per patch (layout in the README and beside
+//! - `radiance.bin`: every frame's radiance per patch (layout in docs/outputs.md and beside
 //!   `write_radiance`);
 //! - `patches.json`: the patch table ([`crate::output::patch_table`]), each patch's source and
 //!   material;
