@@ -80,6 +80,19 @@ struct Pieces {
     shares: crate::direct::KeptShares,
 }
 
+impl Pieces {
+    /// What the pieces are solved with ([`Bake::state`]'s for the pieces).
+    fn state(&self) -> State<'_> {
+        (
+            &self.scene,
+            &self.tracer,
+            &self.direct,
+            &self.area,
+            &self.shares,
+        )
+    }
+}
+
 /// How much of the move from the patches solved whole to their pieces' mean the error bar of a
 /// split bake takes as the pieces' own error from the light's shape ([`Bake::split`]).
 pub const SHAPE_ERROR: f64 = 0.5;
@@ -863,13 +876,7 @@ impl Bake {
         match &self.pieces {
             Some(pieces) => {
                 let surfaces = (&pieces.tracer.surfaces(), &self.tracer.surfaces());
-                let state = (
-                    &pieces.scene,
-                    &pieces.tracer,
-                    &pieces.direct,
-                    &pieces.area,
-                    &pieces.shares,
-                );
+                let state = pieces.state();
                 let solve = (frame, materials, power, params);
                 // The shape term of the frame the patches were last solved whole at (a run's
                 // first), carried along the run: a second whole solve at every frame cost

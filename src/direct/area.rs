@@ -1077,15 +1077,13 @@ fn kept_pair(at: &Frame<'_>, faces: &[KeptFace], c: usize) -> Pair {
     let (mut value, mut variance) = (0.0, 0.0);
     for face in faces {
         let (v, var) = if face.may_see {
-            let mut values = vec![0.0; face.count];
-            let mut seen = 0;
-            for &(k, x, y, f) in &face.rays {
-                if !at.blocked(x, y, face.own, face.back) {
-                    values[k as usize] = f;
-                    seen += 1;
-                }
-            }
-            stratified_estimate(&values, (face.eligible, seen), face.squares)
+            let rays = face.rays.iter().copied();
+            kept_estimate(
+                at,
+                (face.own, face.back),
+                (face.count, face.eligible, face.squares),
+                rays,
+            )
         } else {
             (0.0, 0.0)
         };
@@ -1398,6 +1396,26 @@ fn each_point_ray(
     true
 }
 
+/// The stratified estimate of `count` shadow rays from face `back` of `own` of which
+/// `eligible` could carry light (their values' squares summing to `squares`), `rays` those the
+/// static geometry lets through (stratum, from, to, value), traced through `at`'s occluders.
+fn kept_estimate(
+    at: &Frame<'_>,
+    (own, back): (u32, bool),
+    (count, eligible, squares): (usize, usize, f64),
+    rays: impl Iterator<Item = (u32, DVec3, DVec3, f64)>,
+) -> (f64, f64) {
+    let mut values = vec![0.0; count];
+    let mut seen = 0;
+    for (k, x, y, f) in rays {
+        if !at.blocked(x, y, own, back) {
+            values[k as usize] = f;
+            seen += 1;
+        }
+    }
+    stratified_estimate(&values, (eligible, seen), squares)
+}
+
 /// A point's shadow rays to one emitter ([`point_form_factor`]) with the static geometry's
 /// verdicts: kept where the moving geometry may shadow the point at some frames, so that each
 /// such frame traces the moving objects alone along the rays the static geometry lets through
@@ -1451,15 +1469,13 @@ impl PointRays {
         if self.count == 0 {
             return (0.0, 0.0);
         }
-        let mut values = vec![0.0; self.count];
-        let mut seen = 0;
-        for &(k, y, f) in &self.rays {
-            if !moving.blocked(x, y, own, back) {
-                values[k as usize] = f;
-                seen += 1;
-            }
-        }
-        stratified_estimate(&values, (self.eligible, seen), self.squares)
+        let rays = self.rays.iter().map(|&(k, y, f)| (k, x, y, f));
+        kept_estimate(
+            moving,
+            (own, back),
+            (self.count, self.eligible, self.squares),
+            rays,
+        )
     }
 
     /// Bytes held, about.

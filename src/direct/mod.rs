@@ -464,19 +464,7 @@ pub fn visible_shares(
     let statics = scene.statics.triangles.len();
     // Where the moving objects are at the frame, grown by more than a coverage test reaches
     // ([`Frame::covered`]: 8·COINCIDENT from its point).
-    let pad = DVec3::splat(f64::from(16.0 * COINCIDENT));
-    let mut boxes = Vec::with_capacity(scene.objects.len());
-    let mut start = statics;
-    for object in &scene.objects {
-        let end = start + object.mesh.triangles.len();
-        let (lo, hi) = (at.triangles[start..end].iter())
-            .flat_map(|(c, _)| c.map(Vec3::as_dvec3))
-            .fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(lo, hi), p| {
-                (lo.min(p), hi.max(p))
-            });
-        boxes.push((lo - pad, hi + pad));
-        start = end;
-    }
+    let now = points::Swept::at(scene, frame, false);
     let known = kept.read(statics);
     // Per face of a marked patch: (patch, area, share of its points covered by nothing and
     // the variance of that share), and whether it is to be kept.
@@ -484,7 +472,7 @@ pub fn visible_shares(
         .flat_map_iter(|(t, (corners, faces))| {
             let corners = corners.map(Vec3::as_dvec3);
             let (normal, area) = normal_and_area(corners);
-            let (at, boxes, known) = (&at, &boxes, &known);
+            let (at, now, known) = (&at, &now, &known);
             [(Some(faces.front), false), (faces.back, true)]
                 .into_iter()
                 .filter_map(move |(patch, back)| {
@@ -497,8 +485,7 @@ pub fn visible_shares(
                         .fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(lo, hi), &c| {
                             (lo.min(c), hi.max(c))
                         });
-                    let alone = t < statics
-                        && !(boxes.iter()).any(|&(l, h)| lo.cmple(h).all() && hi.cmpge(l).all());
+                    let alone = t < statics && !now.meets_box(lo, hi);
                     if alone && let Some(&share) = known.get(&key) {
                         return Some((p, area, share, None));
                     }

@@ -910,7 +910,7 @@ impl Linear {
 /// Where the moving geometry can be at any frame, and whether any light moves: a ray that meets
 /// none of these boxes meets the same surfaces at every frame.
 #[derive(Debug, Default)]
-struct Swept {
+pub(super) struct Swept {
     /// Each moving object's bounding box over every frame (normalised space), grown by a hair.
     boxes: Vec<(DVec3, DVec3)>,
     /// Whether a punctual light moves (its light then changes at points nothing moves near).
@@ -918,37 +918,22 @@ struct Swept {
 }
 
 impl Swept {
+    /// Whether the box `(lo, hi)` meets a moving object's box.
+    pub(super) fn meets_box(&self, lo: DVec3, hi: DVec3) -> bool {
+        (self.boxes.iter()).any(|&(a, b)| lo.cmple(b).all() && hi.cmpge(a).all())
+    }
+
     /// Where the moving objects are at `frame` alone (`lights_move` as the timeline's).
-    fn at(scene: &Scene, frame: usize, lights_move: bool) -> Self {
-        let pad = DVec3::splat(f64::from(16.0 * crate::trace::coincident::COINCIDENT));
+    pub(super) fn at(scene: &Scene, frame: usize, lights_move: bool) -> Self {
         let boxes = (scene.objects.iter())
-            .map(|object| {
-                let (lo, hi) = (object.positions_at(frame).iter())
-                    .map(|p| p.as_dvec3())
-                    .fold(
-                        (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
-                        |(lo, hi), p| (lo.min(p), hi.max(p)),
-                    );
-                (lo - pad, hi + pad)
-            })
+            .map(|object| Self::reach(object, frame..frame + 1))
             .collect();
         Self { boxes, lights_move }
     }
 
     fn of(scene: &Scene) -> Self {
-        let pad = DVec3::splat(f64::from(16.0 * crate::trace::coincident::COINCIDENT));
         let boxes = (scene.objects.iter())
-            .map(|object| {
-                let (mut lo, mut hi) =
-                    (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
-                for f in 0..scene.frames.count {
-                    for p in object.positions_at(f) {
-                        lo = lo.min(p.as_dvec3());
-                        hi = hi.max(p.as_dvec3());
-                    }
-                }
-                (lo - pad, hi + pad)
-            })
+            .map(|object| Self::reach(object, 0..scene.frames.count))
             .collect();
         let lights_move = scene.lights.iter().any(|light| {
             (1..scene.frames.count).any(|f| {
@@ -956,6 +941,22 @@ impl Swept {
             })
         });
         Self { boxes, lights_move }
+    }
+
+    /// The box around `object` at `frames`, grown by a hair.
+    fn reach(
+        object: &crate::scene::MovingObject,
+        frames: std::ops::Range<usize>,
+    ) -> (DVec3, DVec3) {
+        let pad = DVec3::splat(f64::from(16.0 * crate::trace::coincident::COINCIDENT));
+        let (mut lo, mut hi) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
+        for f in frames {
+            for p in object.positions_at(f) {
+                lo = lo.min(p.as_dvec3());
+                hi = hi.max(p.as_dvec3());
+            }
+        }
+        (lo - pad, hi + pad)
     }
 
     /// Whether the ray from `a` along unit `w`, as far as `reach`, misses every box.
