@@ -29,12 +29,13 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::PIECE_CROSSINGS;
+use crate::lines::Bundle;
 use crate::output::tonemap::luminance;
-use crate::scene::refine::Corners;
+use crate::scene::refine::{Corners, Refinement};
 use crate::scene::{Bounds, Scene};
 use crate::solve::tally::{FixedLight, HIDDEN, MAX_PATCHES, walk_from};
 use crate::timeline::IntersectionList;
-use crate::trace::SceneTracer;
+use crate::trace::SurfaceTable;
 
 /// Standard errors a piece's near and far light must differ by before any of it counts: noise
 /// alone passes 3σ in about one piece in 370 (a side whose segments all meet one neighbour
@@ -116,20 +117,117 @@ impl Piece {
 /// their line's weight ([`IntersectionList::line_weights`]).
 pub fn misplaced(
     scene: &Scene,
-    tracer: &SceneTracer,
+    table: &SurfaceTable,
     list: &IntersectionList,
     gathered: &(dyn Fn(u32) -> f64 + Sync),
     sky: f64,
 ) -> Vec<Piece> {
-    let (width, normal) = geometry(scene, tracer);
+    Walked::new((scene, table), (list, None), gathered, sky).pieces(scene)
+}
+
+/// The segments leaving every piece of a scene, walked from the lines at frame 0: what
+/// [`misplaced`] scores. A round of [`super::Bake::split`] cuts a few triangles; the pieces
+/// of the others leave by the same segments to the same patches (a piece's score reads the
+/// luminance of the patch a segment meets, not of its piece), so [`Walked::after`] walks
+/// only the lines that cross a cut triangle, for its halves.
+pub struct Walked {
+    sides: Vec<Sides>,
+    /// The luminance of one unit of the sides' sums ([`FixedLight::unit`]).
+    unit: f64,
+}
+
+impl Walked {
+    /// Every piece of `scene` (its triangles in `table`) walked along the lines of `list`
+    /// (their bundles, if already generated, in line order), `gathered` and `sky` as for
+    /// [`misplaced`].
+    pub fn new(
+        (scene, table): (&Scene, &SurfaceTable),
+        (list, bundles): (&IntersectionList, Option<&[Bundle]>),
+        gathered: &(dyn Fn(u32) -> f64 + Sync),
+        sky: f64,
+    ) -> Self {
+        let (sides, unit) = walk_sides((scene, table), (list, bundles), (gathered, sky), None);
+        Self { sides, unit }
+    }
+
+    /// The pieces of `scene` (the scene these were walked on, cut by `refinement`, its
+    /// triangles in `table`): the sides of the pieces of triangles not cut are carried over,
+    /// the halves of the cut ones walked along the lines that cross them. The same as
+    /// [`Walked::new`] on the cut scene, at the cost of the lines the cuts touch.
+    pub fn after(
+        &self,
+        (scene, table): (&Scene, &SurfaceTable),
+        (list, bundles): (&IntersectionList, Option<&[Bundle]>),
+        (gathered, sky): (&(dyn Fn(u32) -> f64 + Sync), f64),
+        refinement: &Refinement,
+    ) -> Self {
+        // The pieces on a cut triangle's halves (a merged patch with one among its
+        // triangles), walked again; the others carried over.
+        let faces = table.faces();
+        let mut cut = vec![true; faces.len()];
+        for (_, new) in refinement.kept() {
+            cut[new as usize] = false;
+        }
+        let mut fresh = vec![false; scene.patches.len()];
+        for (f, _) in faces.iter().zip(&cut).filter(|(_, cut)| **cut) {
+            [Some(f.front), f.back]
+                .into_iter()
+                .flatten()
+                .for_each(|p| fresh[p as usize] = true);
+        }
+        let (mut sides, unit) = walk_sides(
+            (scene, table),
+            (list, bundles),
+            (gathered, sky),
+            Some(&fresh),
+        );
+        // The same patches' luminances: the same unit.
+        debug_assert_eq!(unit, self.unit);
+        let parents = refinement.parents();
+        for (p, fresh) in fresh.iter().enumerate() {
+            if !fresh {
+                sides[p] = self.sides[parents[p] as usize];
+            }
+        }
+        Self { sides, unit }
+    }
+
+    /// What the walked segments say of each piece of `scene` (the scene they were walked on).
+    pub fn pieces(&self, scene: &Scene) -> Vec<Piece> {
+        (scene.patches.iter())
+            .zip(&self.sides)
+            .map(|(p, s)| {
+                let rho = luminance(scene.materials[p.material as usize].reflectance);
+                s.piece(p.area, rho, self.unit)
+            })
+            .collect()
+    }
+}
+
+/// The sides of every piece of `scene` ([`Walked::new`]); with `fresh`, only of the pieces it
+/// marks, from the lines crossing one of them at frame 0 (the others' are left empty).
+fn walk_sides(
+    (scene, table): (&Scene, &SurfaceTable),
+    (list, bundles): (&IntersectionList, Option<&[Bundle]>),
+    (gathered, sky): (&(dyn Fn(u32) -> f64 + Sync), f64),
+    fresh: Option<&[bool]>,
+) -> (Vec<Sides>, f64) {
+    let (width, normal) = geometry(scene, table);
     // Sums in fixed point: the cuts are the same on any machine.
     let pieces = scene.patches.len();
     let light = FixedLight::new(gathered, pieces, sky);
-    let (unit, value) = (light.unit, |to| light.value(to));
-    let surfaces = tracer.surfaces();
+    let value = |to| light.value(to);
+    let surfaces = table.surfaces();
     let weights = list.line_weights();
+    let counts = |piece: u32| fresh.is_none_or(|f| f[piece as usize]);
+    // The triangles with a face to walk.
+    let crossed: Option<Vec<bool>> = fresh.map(|_| {
+        (table.faces().iter())
+            .map(|f| counts(f.front) || f.back.is_some_and(counts))
+            .collect()
+    });
     let sides = list
-        .bundles(scene)
+        .bundles_kept(scene, bundles)
         .fold(
             || (vec![Sides::default(); pieces], Vec::new()),
             |(mut acc, mut hits), (first, bundle)| {
@@ -140,7 +238,15 @@ pub fn misplaced(
                         continue;
                     }
                     list.frame_hits(first + i, 0, &mut hits);
+                    if let Some(crossed) = &crossed
+                        && !hits.iter().any(|h| crossed[h.surface() as usize])
+                    {
+                        continue;
+                    }
                     walk_from(&hits, &surfaces, |from, to, at, length| {
+                        if !counts(from) {
+                            return;
+                        }
                         let side = usize::from(length >= width[at.surface() as usize]);
                         let g = value(to);
                         let s = &mut acc[from as usize];
@@ -170,74 +276,76 @@ pub fn misplaced(
                 a
             },
         );
-    (scene.patches.iter())
-        .zip(&sides)
-        .map(|(p, s)| {
-            // The segments as so many of equal weight (Kish's effective sample size): a piece
-            // beside a gap is crossed by many of its dense lines, each weighing a fraction.
-            let effective = |k: usize| {
-                let w = s.weight[k] as f64;
-                if w > 0.0 {
-                    w * w / s.weight2[k] as f64
-                } else {
-                    0.0
-                }
-            };
-            let segments = (effective(0) + effective(1)).round() as u64;
-            let seen = s.count[0] + s.count[1] - s.hidden;
-            let near_count = s.facing;
-            let near = if seen > 0 {
-                near_count as f64 / seen as f64
+    (sides, light.unit)
+}
+
+impl Sides {
+    /// What these segments say of a piece of `area` and luminous reflectance `rho`.
+    fn piece(&self, area: f64, rho: f64, unit: f64) -> Piece {
+        let s = self;
+        // The segments as so many of equal weight (Kish's effective sample size): a piece
+        // beside a gap is crossed by many of its dense lines, each weighing a fraction.
+        let effective = |k: usize| {
+            let w = s.weight[k] as f64;
+            if w > 0.0 {
+                w * w / s.weight2[k] as f64
             } else {
                 0.0
-            };
-            let near_length = if near_count > 0 {
-                s.near_length as f64 / LENGTH_UNIT / near_count as f64
-            } else {
-                0.0
-            };
-            let rho = luminance(scene.materials[p.material as usize].reflectance);
-            // Both sides known from a piece's worth of segments, or no score.
-            if (0..2).any(|k| effective(k) < PIECE_CROSSINGS) || rho <= 0.0 {
-                return Piece {
-                    score: 0.0,
-                    segments,
-                    near,
-                    near_length,
-                };
             }
-            let (mean, variance): (Vec<f64>, Vec<f64>) = (0..2)
-                .map(|k| {
-                    let (n, w) = (s.count[k] as f64, s.weight[k] as f64);
-                    let mean = s.sum[k] as f64 * unit / w;
-                    let square = s.square[k] as f64 * unit * unit / w;
-                    // The variance of the weighted mean: the sample variance (unbiased for
-                    // equal weights) times Σw² / (Σw)².
-                    let spread = (square - mean * mean).max(0.0) * n / (n - 1.0);
-                    (mean, spread * s.weight2[k] as f64 / (w * w))
-                })
-                .unzip();
-            let difference =
-                (mean[0] - mean[1]).abs() - SIGNIFICANCE * (variance[0] + variance[1]).sqrt();
-            let share = s.weight[0] as f64 / (s.weight[0] + s.weight[1]) as f64;
-            Piece {
-                score: p.area * rho * share * (1.0 - share) * difference.max(0.0),
+        };
+        let segments = (effective(0) + effective(1)).round() as u64;
+        let seen = s.count[0] + s.count[1] - s.hidden;
+        let near_count = s.facing;
+        let near = if seen > 0 {
+            near_count as f64 / seen as f64
+        } else {
+            0.0
+        };
+        let near_length = if near_count > 0 {
+            s.near_length as f64 / LENGTH_UNIT / near_count as f64
+        } else {
+            0.0
+        };
+        // Both sides known from a piece's worth of segments, or no score.
+        if (0..2).any(|k| effective(k) < PIECE_CROSSINGS) || rho <= 0.0 {
+            return Piece {
+                score: 0.0,
                 segments,
                 near,
                 near_length,
-            }
-        })
-        .collect()
+            };
+        }
+        let (mean, variance): (Vec<f64>, Vec<f64>) = (0..2)
+            .map(|k| {
+                let (n, w) = (s.count[k] as f64, s.weight[k] as f64);
+                let mean = s.sum[k] as f64 * unit / w;
+                let square = s.square[k] as f64 * unit * unit / w;
+                // The variance of the weighted mean: the sample variance (unbiased for
+                // equal weights) times Σw² / (Σw)².
+                let spread = (square - mean * mean).max(0.0) * n / (n - 1.0);
+                (mean, spread * s.weight2[k] as f64 / (w * w))
+            })
+            .unzip();
+        let difference =
+            (mean[0] - mean[1]).abs() - SIGNIFICANCE * (variance[0] + variance[1]).sqrt();
+        let share = s.weight[0] as f64 / (s.weight[0] + s.weight[1]) as f64;
+        Piece {
+            score: area * rho * share * (1.0 - share) * difference.max(0.0),
+            segments,
+            near,
+            near_length,
+        }
+    }
 }
 
 /// Each triangle's width (its longest edge) and each patch's normal (its front face's, or
 /// the opposite for a back face; a merged patch's last face's), at frame 0 in normalised
 /// space.
-fn geometry(scene: &Scene, tracer: &SceneTracer) -> (Vec<f32>, Vec<DVec3>) {
+fn geometry(scene: &Scene, table: &SurfaceTable) -> (Vec<f32>, Vec<DVec3>) {
     let corners = Corners::new(scene);
-    let faces = tracer.surfaces().faces;
+    let faces = table.faces();
     let mut normals = vec![DVec3::ZERO; scene.patches.len()];
-    let width = (0..tracer.triangles() as u32)
+    let width = (0..table.triangles() as u32)
         .map(|g| {
             let c = corners
                 .posed(g, Some(0))
@@ -351,5 +459,61 @@ pub fn regions(scene: &Scene, pieces: &[Piece], lines: usize) -> (Vec<Bounds>, u
     match factor {
         Some(f) if !regions.is_empty() => (regions, f),
         _ => (Vec::new(), 1),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::bake::Bake;
+    use crate::scene::refine;
+    use crate::timeline::LineParams;
+
+    /// A round of the split walks the lines only for the pieces the last round cut and
+    /// carries the others' sides over ([`Walked::after`]): every piece's score, segments and
+    /// near share are those of a whole walk of the cut scene. On the moving Cornell box (a
+    /// rigid block resting on the floor: contacts, moving crossings at frame 0) and the panel
+    /// room (a gap under the panel), every third triangle cut with the cuts its neighbours
+    /// need.
+    #[test]
+    fn a_rounds_walk_of_the_cut_pieces_scores_as_a_whole_walk_does() {
+        for (name, lines) in [("cornell_moving", 60_000), ("panel_room", 60_000)] {
+            let path = format!("{}/scenes/{name}.gltf", env!("CARGO_MANIFEST_DIR"));
+            let options = crate::loader::LoadOptions {
+                fps: 2.0,
+                ..Default::default()
+            };
+            let scene = crate::loader::load(&std::fs::read(path).unwrap(), &options).unwrap();
+            let mut bake = Bake::trace(scene, &LineParams { lines, seed: 5 }).unwrap();
+            let scene = bake.scene.clone();
+            // What each patch gathers: any fixed luminance per patch, the sky's its own.
+            let light = |p: u32| f64::from(p % 7) * 0.3;
+            let table = SurfaceTable::new(&scene);
+            let walked = Walked::new((&scene, &table), (&bake.list, None), &light, 0.5);
+            let order: Vec<(u32, u32)> = (0..table.triangles() as u32)
+                .step_by(3)
+                .map(|t| (t, 1))
+                .collect();
+            let cuts = refine::within_budget(&scene, &order, usize::MAX);
+            let (next, refinement) = refine::cut(&scene, &cuts);
+            Bake::move_crossings(&mut bake.list, (&scene, None), &refinement);
+            let parents = refinement.parents();
+            let gathered = |k: u32| light(parents[k as usize]);
+            let table = SurfaceTable::new(&next);
+            let lines = (&bake.list, None);
+            let carried = walked.after((&next, &table), lines, (&gathered, 0.5), &refinement);
+            let whole = Walked::new((&next, &table), lines, &gathered, 0.5);
+            let (carried, whole) = (carried.pieces(&next), whole.pieces(&next));
+            let kept = refinement.kept().count();
+            let scored = whole.iter().filter(|p| p.score > 0.0).count();
+            eprintln!(
+                "{name}: {} pieces, {kept} triangles kept whole, {scored} pieces scored",
+                next.patches.len()
+            );
+            assert!(kept > 0 && kept < table.triangles() && scored > 0);
+            for (k, (c, w)) in carried.iter().zip(&whole).enumerate() {
+                assert_eq!(c, w, "{name}: piece {k} (of {})", parents[k]);
+            }
+        }
     }
 }

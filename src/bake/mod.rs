@@ -21,7 +21,7 @@ use crate::solve::{
     Direct, FrameSolution, Groups, SolveParams, Spread, solve_answer, solve_grouped,
 };
 use crate::timeline::{IntersectionList, LineParams};
-use crate::trace::SceneTracer;
+use crate::trace::{SceneTracer, SurfaceTable};
 
 /// A traced scene, ready to solve any frame with any materials.
 pub struct Bake {
@@ -397,7 +397,8 @@ impl Bake {
         // Denser lines through the gaps, once: the patches that face something closer than
         // they are wide ([`gaps::regions`]). On cancellation the lines are left as they were.
         if self.list.dense().0.is_empty() {
-            let scores = gaps::misplaced(&self.scene, &self.tracer, &self.list, &|_| 0.0, 0.0);
+            let table = self.tracer.table();
+            let scores = gaps::misplaced(&self.scene, table, &self.list, &|_| 0.0, 0.0);
             let lines = self.list.lines();
             let (regions, factor) = gaps::regions(&self.scene, &scores, lines);
             if !regions.is_empty() {
@@ -490,12 +491,19 @@ impl Bake {
         let bundles = self.list.regenerate_bundles(&self.scene);
         Self::move_crossings(&mut self.list, (&self.scene, Some(&bundles)), &refinement);
         let budget = budget as usize;
+        // Each round walks the lines only for the pieces the last one cut.
+        let mut last: Option<(gaps::Walked, refine::Refinement)> = None;
         for _ in 0..GAP_ROUNDS {
             if control.is_cancelled() {
                 break;
             }
+            let table = SurfaceTable::new(&scene);
+            let light = (&whole.radiance[..], solve.sky);
+            let before = last.as_ref().map(|(w, r)| (w, r));
+            let walked = self.piece_scores((&scene, &table, &of), light, &bundles, before);
+            let scores = walked.pieces(&scene);
             let Some((next, refinement)) =
-                self.cut_gaps(&scene, &of, (&whole.radiance, solve.sky), budget)
+                self.cut_gaps((&scene, &scores), &whole.radiance, budget)
             else {
                 break;
             };
@@ -504,6 +512,7 @@ impl Bake {
                 .collect();
             Self::move_crossings(&mut self.list, (&scene, Some(&bundles)), &refinement);
             scene = next;
+            last = Some((walked, refinement));
         }
         drop(bundles);
         // The bake's patches on the pieces' triangles from here on: if it is cancelled now,
@@ -541,20 +550,30 @@ impl Bake {
         Ok(count)
     }
 
-    /// What the lines say of each piece of `scene` (piece `k` of patch `of[k]`) at frame 0
-    /// ([`gaps::misplaced`]), `radiance` being the patches' answer under `sky`: what each
-    /// piece faces.
+    /// What the lines say of each piece of `scene` (piece `k` of patch `of[k]`, its triangles
+    /// in `table`) at frame 0 ([`gaps::Walked`]), `radiance` being the patches' answer under
+    /// `sky`: what each piece faces. With `before`, the walk of the scene `scene` was cut from
+    /// by `refinement` (the previous round's): only the cut triangles' pieces are walked again.
     fn piece_scores(
         &self,
-        scene: &Scene,
-        of: &[u32],
+        (scene, table, of): (&Scene, &SurfaceTable, &[u32]),
         (radiance, sky): (&[[f64; 3]], [f64; 3]),
-    ) -> Vec<gaps::Piece> {
+        bundles: &[crate::lines::Bundle],
+        before: Option<(&gaps::Walked, &crate::scene::refine::Refinement)>,
+    ) -> gaps::Walked {
         use crate::output::tonemap::luminance;
-        let tracer = SceneTracer::new(scene);
         let brightness: Vec<f64> = radiance.iter().map(|&l| luminance(l)).collect();
         let gathered = |j: u32| brightness[of[j as usize] as usize];
-        gaps::misplaced(scene, &tracer, &self.list, &gathered, luminance(sky))
+        let lines = (&self.list, Some(bundles));
+        match before {
+            Some((walked, refinement)) => walked.after(
+                (scene, table),
+                lines,
+                (&gathered, luminance(sky)),
+                refinement,
+            ),
+            None => gaps::Walked::new((scene, table), lines, &gathered, luminance(sky)),
+        }
     }
 
     /// One round of [`Bake::split`]'s further cuts ([`gaps`]): the pieces of `scene` (piece `k`
@@ -566,14 +585,12 @@ impl Bake {
     /// included). `None` when nothing is cut.
     fn cut_gaps(
         &self,
-        scene: &Scene,
-        of: &[u32],
-        (radiance, sky): (&[[f64; 3]], [f64; 3]),
+        (scene, scores): (&Scene, &[gaps::Piece]),
+        radiance: &[[f64; 3]],
         budget: usize,
     ) -> Option<(Scene, crate::scene::refine::Refinement)> {
         use crate::output::tonemap::luminance;
         use crate::scene::refine;
-        let scores = self.piece_scores(scene, of, (radiance, sky));
         let reflected: f64 = (self.scene.patches.iter())
             .zip(radiance)
             .map(|(p, &l)| {
@@ -1306,8 +1323,10 @@ fn overlap_warnings(scene: &Scene, tracer: &SceneTracer, list: &IntersectionList
                 moving
                     .iter()
                     .for_each(|h| crossings[nodes[h.hit.surface() as usize] as usize] += 1);
+                let mut start = 0;
                 for frame in moving.chunk_by(|a, b| a.frame == b.frame) {
-                    list.frame_hits(l, frame[0].frame as usize, &mut merged);
+                    list.frame_hits_from(l, frame[0].frame as usize, start, &mut merged);
+                    start += frame.len();
                     crate::trace::coincident::overlaps(&merged, &surfaces, |a, b| {
                         // Static pairs were counted above.
                         if spaces[a as usize] != 0 || spaces[b as usize] != 0 {

@@ -36,6 +36,8 @@ enum Node {
 pub struct Refinement {
     /// The cut trees; node `g` is the root of the old triangle with global index `g`.
     nodes: Vec<Node>,
+    /// The old triangles (the roots of `nodes`).
+    roots: usize,
     /// The old patch each new patch was cut from (or is).
     parents: Vec<u32>,
 }
@@ -45,6 +47,14 @@ impl Refinement {
     #[must_use]
     pub fn parents(&self) -> &[u32] {
         &self.parents
+    }
+
+    /// Each old triangle not cut, with its new global index.
+    pub fn kept(&self) -> impl Iterator<Item = (u32, u32)> + '_ {
+        (self.nodes[..self.roots].iter().enumerate()).filter_map(|(old, node)| match node {
+            Node::Leaf(new) => Some((old as u32, *new)),
+            Node::Cut { .. } => None,
+        })
     }
 
     /// Whether old triangle `old` was cut.
@@ -601,7 +611,14 @@ pub fn cut(scene: &Scene, cuts: &[u32]) -> (Scene, Refinement) {
         }
     }
     refined.patches = patches;
-    (refined, Refinement { nodes, parents })
+    (
+        refined,
+        Refinement {
+            nodes,
+            roots,
+            parents,
+        },
+    )
 }
 
 /// The corners of a scene's traced triangles by global index (the static triangles, then each
@@ -755,6 +772,7 @@ mod tests {
         // Leaves keep their leaf ids: locate names the cutter's triangles.
         let refinement = Refinement {
             nodes: cutter.nodes.clone(),
+            roots: mesh.triangles.len(),
             parents: Vec::new(),
         };
         let mut state = 12345u64;

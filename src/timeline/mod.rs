@@ -748,7 +748,13 @@ impl IntersectionList {
         let statics = self.static_hits(line);
         let moving = &self.moving_hits(line)[start..];
         let frame = frame as u32;
-        let moving = &moving[..moving.partition_point(|h| h.frame == frame)];
+        // A frame's crossings of one line are few: a scan, where a binary search over the
+        // later frames' missed the cache at every step.
+        let end = moving
+            .iter()
+            .position(|h| h.frame != frame)
+            .unwrap_or(moving.len());
+        let moving = &moving[..end];
         let (mut i, mut j) = (0, 0);
         while i < statics.len() && j < moving.len() {
             if Hit::order(&statics[i], &moving[j].hit).is_le() {
@@ -783,6 +789,23 @@ impl IntersectionList {
         self.bundle_ranges()
             .into_par_iter()
             .map(move |(b, k, first, _)| (first, self.batches[b].batch.bundle(k, &scene.bounds)))
+    }
+
+    /// [`IntersectionList::bundles`], borrowed from `kept` if given (the bundles
+    /// [`IntersectionList::regenerate_bundles`] made, in line order).
+    pub fn bundles_kept<'a>(
+        &'a self,
+        scene: &'a Scene,
+        kept: Option<&'a [Bundle]>,
+    ) -> impl ParallelIterator<Item = (usize, std::borrow::Cow<'a, Bundle>)> + 'a {
+        let ranges = self.bundle_ranges();
+        debug_assert!(kept.is_none_or(|k| k.len() == ranges.len()));
+        (ranges.into_par_iter().enumerate()).map(move |(index, (b, k, first, _))| {
+            (
+                first,
+                bundle_kept(&self.batches, (scene, kept), index, (b, k)),
+            )
+        })
     }
 
     /// (batch, bundle, first line, lines) of every bundle, in line order.
@@ -834,10 +857,7 @@ impl IntersectionList {
         tasks
             .into_par_iter()
             .for_each(|(index, (b, k, first, n), s_hits, d_hits)| {
-                let bundle = match bundles {
-                    Some(bundles) => std::borrow::Cow::Borrowed(&bundles[index]),
-                    None => std::borrow::Cow::Owned(batches[b].batch.bundle(k, &scene.bounds)),
-                };
+                let bundle = bundle_kept(batches, (scene, bundles), index, (b, k));
                 debug_assert_eq!(bundle.origins.len(), n);
                 let point = |line: &Line, t: f32| {
                     line.origin.as_dvec3() + line.direction.as_dvec3() * f64::from(t)
@@ -879,6 +899,20 @@ impl IntersectionList {
                 + self.dynamic_hits.len() * size_of::<FrameHit>()
                 + self.weights.len(),
         }
+    }
+}
+
+/// Bundle `k` of batch `b` of `batches`, the `index`-th in line order: borrowed from `kept` if
+/// given, generated in `scene`'s bounds otherwise.
+fn bundle_kept<'a>(
+    batches: &[BatchLines],
+    (scene, kept): (&Scene, Option<&'a [Bundle]>),
+    index: usize,
+    (b, k): (usize, u32),
+) -> std::borrow::Cow<'a, Bundle> {
+    match kept {
+        Some(kept) => std::borrow::Cow::Borrowed(&kept[index]),
+        None => std::borrow::Cow::Owned(batches[b].batch.bundle(k, &scene.bounds)),
     }
 }
 

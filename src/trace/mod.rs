@@ -402,9 +402,18 @@ pub struct SceneTracer {
     rigid: Vec<Option<RigidTracer>>,
     /// First global triangle index of each moving object.
     first_ids: Vec<u32>,
-    /// The faces (patches) of every traced triangle, by global index.
+    /// What the tallies and shadow rays know of every traced triangle.
+    table: SurfaceTable,
+}
+
+/// What the tallies and shadow rays need to know of a scene's traced triangles, by global
+/// index (the static triangles, then each moving object's), without the BVHs: what a walk of
+/// the lines' crossings reads ([`Surfaces`]).
+#[derive(Clone, Debug)]
+pub struct SurfaceTable {
+    /// The faces (patches) of every traced triangle.
     faces: Vec<Faces>,
-    /// The node every traced triangle comes from, by global index.
+    /// The node every traced triangle comes from.
     nodes: Vec<u32>,
     /// The space of every traced triangle's normal (see [`Surfaces::spaces`]).
     spaces: Vec<u32>,
@@ -412,6 +421,82 @@ pub struct SceneTracer {
     normals: Vec<Vec3>,
     /// Every traced triangle's corners in its space, hashed (see [`Surfaces::corners`]).
     corners: Vec<[u32; 3]>,
+}
+
+impl SurfaceTable {
+    /// The table of `scene`'s triangles: a rigid object's in its own space, a deforming one's
+    /// at frame 0.
+    #[must_use]
+    pub fn new(scene: &Scene) -> Self {
+        let normal = |positions: &[Vec3], t: &[u32; 3]| {
+            let [a, b, c] = t.map(|i| positions[i as usize].as_dvec3());
+            (b - a).cross(c - a).normalize_or_zero().as_vec3()
+        };
+        let corner_keys = |positions: &[Vec3], t: &[u32; 3]| {
+            t.map(|i| {
+                let [x, y, z] = positions[i as usize].to_array().map(f32::to_bits);
+                let h = coincident::mix(
+                    u64::from(x) ^ coincident::mix(u64::from(y) ^ coincident::mix(u64::from(z))),
+                );
+                (h >> 32) as u32
+            })
+        };
+        let meshes = std::iter::once((&scene.statics, 0))
+            .chain((scene.objects.iter().enumerate()).map(|(k, o)| (&o.mesh, 1 + k as u32)));
+        let (mut faces, mut spaces, mut normals, mut corners) =
+            (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        for (mesh, space) in meshes {
+            faces.extend_from_slice(&mesh.faces);
+            spaces.extend(std::iter::repeat_n(space, mesh.faces.len()));
+            normals.extend(mesh.triangles.iter().map(|t| normal(&mesh.positions, t)));
+            corners.extend(
+                mesh.triangles
+                    .iter()
+                    .map(|t| corner_keys(&mesh.positions, t)),
+            );
+        }
+        let nodes = faces
+            .iter()
+            .map(|f| scene.patches[f.front as usize].source.node)
+            .collect();
+        Self {
+            faces,
+            nodes,
+            spaces,
+            normals,
+            corners,
+        }
+    }
+
+    /// The faces of every traced triangle, indexed by [`Hit::surface`].
+    #[must_use]
+    pub fn faces(&self) -> &[Faces] {
+        &self.faces
+    }
+
+    /// The faces, spaces and normals of every traced triangle, for the tallies and shadow rays.
+    #[must_use]
+    pub fn surfaces(&self) -> Surfaces<'_> {
+        Surfaces {
+            faces: &self.faces,
+            spaces: &self.spaces,
+            normals: &self.normals,
+            corners: &self.corners,
+            direction: None,
+        }
+    }
+
+    /// The source node of every traced triangle, by global index.
+    #[must_use]
+    pub fn nodes(&self) -> &[u32] {
+        &self.nodes
+    }
+
+    /// Number of traced triangles (static and moving).
+    #[must_use]
+    pub fn triangles(&self) -> usize {
+        self.faces.len()
+    }
 }
 
 impl SceneTracer {
@@ -446,46 +531,11 @@ impl SceneTracer {
     pub fn with_effort(scene: &Scene, effort: BuildEffort) -> Self {
         let statics = &scene.statics;
         let corners = |positions: &[Vec3], t: &[u32; 3]| t.map(|i| positions[i as usize]);
-        let normal = |positions: &[Vec3], t: &[u32; 3]| {
-            let [a, b, c] = t.map(|i| positions[i as usize].as_dvec3());
-            (b - a).cross(c - a).normalize_or_zero().as_vec3()
-        };
-        let corner_keys = |positions: &[Vec3], t: &[u32; 3]| {
-            t.map(|i| {
-                let [x, y, z] = positions[i as usize].to_array().map(f32::to_bits);
-                let h = coincident::mix(
-                    u64::from(x) ^ coincident::mix(u64::from(y) ^ coincident::mix(u64::from(z))),
-                );
-                (h >> 32) as u32
-            })
-        };
-        let mut faces = statics.faces.clone();
-        let mut spaces = vec![0; faces.len()];
-        let mut normals: Vec<Vec3> = statics
-            .triangles
-            .iter()
-            .map(|t| normal(&statics.positions, t))
-            .collect();
-        let mut keys: Vec<[u32; 3]> = statics
-            .triangles
-            .iter()
-            .map(|t| corner_keys(&statics.positions, t))
-            .collect();
         let mut first_ids = Vec::with_capacity(scene.objects.len());
         let mut rigid = Vec::with_capacity(scene.objects.len());
-        for (k, object) in scene.objects.iter().enumerate() {
-            let first = faces.len() as u32;
+        let mut first = statics.faces.len() as u32;
+        for object in &scene.objects {
             first_ids.push(first);
-            faces.extend_from_slice(&object.mesh.faces);
-            spaces.extend(std::iter::repeat_n(1 + k as u32, object.mesh.faces.len()));
-            // A rigid object's own space; a deforming one's frame-0 pose.
-            let mesh = &object.mesh;
-            normals.extend(mesh.triangles.iter().map(|t| normal(&mesh.positions, t)));
-            keys.extend(
-                mesh.triangles
-                    .iter()
-                    .map(|t| corner_keys(&mesh.positions, t)),
-            );
             rigid.push(match &object.motion {
                 Motion::Rigid { poses } => TraceMesh::with_effort(
                     object
@@ -506,16 +556,9 @@ impl SceneTracer {
                 }),
                 Motion::Deforming(_) => None,
             });
+            first += object.mesh.faces.len() as u32;
         }
-        let nodes = faces
-            .iter()
-            .map(|f| scene.patches[f.front as usize].source.node)
-            .collect();
         Self {
-            nodes,
-            spaces,
-            normals,
-            corners: keys,
             statics: TraceMesh::with_effort(
                 statics
                     .triangles
@@ -526,38 +569,38 @@ impl SceneTracer {
             ),
             rigid,
             first_ids,
-            faces,
+            table: SurfaceTable::new(scene),
         }
     }
 
     /// The faces of every traced triangle, indexed by [`Hit::surface`].
     #[must_use]
     pub fn faces(&self) -> &[Faces] {
-        &self.faces
+        self.table.faces()
     }
 
     /// The faces, spaces and normals of every traced triangle, for the tallies and shadow rays.
     #[must_use]
     pub fn surfaces(&self) -> Surfaces<'_> {
-        Surfaces {
-            faces: &self.faces,
-            spaces: &self.spaces,
-            normals: &self.normals,
-            corners: &self.corners,
-            direction: None,
-        }
+        self.table.surfaces()
+    }
+
+    /// What the tallies know of every traced triangle.
+    #[must_use]
+    pub fn table(&self) -> &SurfaceTable {
+        &self.table
     }
 
     /// The source node of every traced triangle, by global index.
     #[must_use]
     pub fn nodes(&self) -> &[u32] {
-        &self.nodes
+        self.table.nodes()
     }
 
     /// Number of traced triangles (static and moving).
     #[must_use]
     pub fn triangles(&self) -> usize {
-        self.faces.len()
+        self.table.triangles()
     }
 
     /// Appends the crossings of `line` with the static geometry, `0 < t < t_max`
