@@ -1251,7 +1251,7 @@ fn each_ray(
     let (n, e) = (face.n, emitter.normal);
     let origin = emitter.hull[0];
     let count = g * g;
-    let mut fans: Vec<[DVec3; 3]> = Vec::with_capacity(2 * emitter.triangles.len());
+    let mut fans = Fans::default();
     let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed);
     let mut strata: Vec<usize> = (0..count).collect();
     for k in (1..count).rev() {
@@ -1271,12 +1271,13 @@ fn each_ray(
         if !in_front(e.dot(x - origin)) {
             continue;
         }
-        fans_above(emitter, n, x, &mut fans);
-        if fans.is_empty() {
+        fans_above(emitter, n, x, &mut fans.triangles);
+        if fans.triangles.is_empty() {
             continue;
         }
+        fans.measure(x);
         let (u, v) = cell(stratum, jitter[2], jitter[3]);
-        let Some((y, f)) = sample_fans(x, n, e, &fans, u, v) else {
+        let Some((y, f)) = fans.sample(x, (n, e), u, v) else {
             continue;
         };
         if f <= 0.0 {
@@ -1377,16 +1378,18 @@ fn each_point_ray(
     if n == DVec3::ZERO || e == DVec3::ZERO || !in_front(e.dot(x - emitter.hull[0])) {
         return false;
     }
-    let mut fans = Vec::with_capacity(2 * emitter.triangles.len());
-    fans_above(emitter, n, x, &mut fans);
-    if fans.is_empty() {
+    let mut fans = Fans::default();
+    fans_above(emitter, n, x, &mut fans.triangles);
+    if fans.triangles.is_empty() {
         return false;
     }
+    // The fans' solid angles once for all the point's rays.
+    fans.measure(x);
     let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed);
     for k in 0..g * g {
         let u = ((k / g) as f64 + rng.random::<f64>()) / g as f64;
         let v = ((k % g) as f64 + rng.random::<f64>()) / g as f64;
-        let Some((y, f)) = sample_fans(x, n, e, &fans, u, v) else {
+        let Some((y, f)) = fans.sample(x, (n, e), u, v) else {
             continue;
         };
         if f > 0.0 {
@@ -1503,11 +1506,8 @@ pub(super) fn point_grid(x: DVec3, emitter: &Emitter, density: f64) -> usize {
 /// sampling.
 const TINY_SOLID_ANGLE: f64 = 1e-9;
 
-/// A point `y` of the triangles `fans` (wholly in front of the plane through `x` with normal
-/// `n`, in the emitter's plane of normal `e`) at `(u, v)` in the unit square, and the one-sample
-/// estimate `f` of the form factor from `x` to them if `y` is visible: uniform in their solid
-/// angle (f = Ω cos θ / π), `u` picking the triangle by its solid angle; by area where the
-/// solid angle is tiny (f = A cos θ cos θ' / (π r²)). Both are unbiased.
+/// [`Fans::sample`] of the triangles `fans` from `x`.
+#[cfg(test)]
 fn sample_fans(
     x: DVec3,
     n: DVec3,
@@ -1516,52 +1516,83 @@ fn sample_fans(
     u: f64,
     v: f64,
 ) -> Option<(DVec3, f64)> {
-    // Picks the triangle whose share of `weights` holds u; u rescaled within it.
-    let pick = |weights: &mut dyn Iterator<Item = f64>, total: f64| {
-        let mut below = 0.0;
-        let mut last = (0, 0.0);
-        for (k, w) in weights.enumerate() {
-            if w > 0.0 {
-                last = (k, (u * total - below) / w);
-                if u * total < below + w {
-                    break;
+    let mut seen = Fans::default();
+    seen.triangles.extend_from_slice(fans);
+    seen.measure(x);
+    seen.sample(x, (n, e), u, v)
+}
+
+/// The parts of an emitter's triangles in front of a point's plane ([`fans_above`]), with
+/// their solid angles from the point: measured once, sampled by each of the point's rays.
+#[derive(Default)]
+struct Fans {
+    triangles: Vec<[DVec3; 3]>,
+    angles: Vec<f64>,
+    total: f64,
+}
+
+impl Fans {
+    /// The solid angles of the triangles from `x`.
+    fn measure(&mut self, x: DVec3) {
+        self.angles.clear();
+        (self.angles).extend(self.triangles.iter().map(|t| solid_angle(x, t)));
+        self.total = self.angles.iter().sum();
+    }
+
+    /// A point `y` of the triangles (wholly in front of the plane through `x` with unit normal
+    /// `n`, in the emitter's plane of normal `e`; `x` the point the angles were measured
+    /// from) at `(u, v)` in the unit square, and the one-sample estimate `f` of the form
+    /// factor from `x` to them if `y` is visible: uniform in their solid angle
+    /// (f = Ω cos θ / π), `u` picking the triangle by its solid angle; by area where the
+    /// solid angle is tiny (f = A cos θ cos θ' / (π r²)). Both are unbiased.
+    fn sample(&self, x: DVec3, (n, e): (DVec3, DVec3), u: f64, v: f64) -> Option<(DVec3, f64)> {
+        let fans = &self.triangles;
+        // Picks the triangle whose share of `weights` holds u; u rescaled within it.
+        let pick = |weights: &mut dyn Iterator<Item = f64>, total: f64| {
+            let mut below = 0.0;
+            let mut last = (0, 0.0);
+            for (k, w) in weights.enumerate() {
+                if w > 0.0 {
+                    last = (k, (u * total - below) / w);
+                    if u * total < below + w {
+                        break;
+                    }
                 }
+                below += w;
             }
-            below += w;
+            (last.0, last.1.clamp(0.0, 1.0))
+        };
+        let total = self.total;
+        if total >= TINY_SOLID_ANGLE && total.is_finite() {
+            let (t, u) = pick(&mut self.angles.iter().copied(), total);
+            let w = sample_spherical_triangle(x, &fans[t], u, v)?;
+            // Where the direction meets the emitter's plane.
+            let along = e.dot(fans[t][0] - x) / e.dot(w);
+            if !(along.is_finite() && along > 0.0) {
+                return None;
+            }
+            let cos = n.dot(w).max(0.0);
+            return Some((x + w * along, total * cos / std::f64::consts::PI));
         }
-        (last.0, last.1.clamp(0.0, 1.0))
-    };
-    let angles: Vec<f64> = fans.iter().map(|t| solid_angle(x, t)).collect();
-    let total: f64 = angles.iter().sum();
-    if total >= TINY_SOLID_ANGLE && total.is_finite() {
-        let (t, u) = pick(&mut angles.iter().copied(), total);
-        let w = sample_spherical_triangle(x, &fans[t], u, v)?;
-        // Where the direction meets the emitter's plane.
-        let along = e.dot(fans[t][0] - x) / e.dot(w);
-        if !(along.is_finite() && along > 0.0) {
+        // By area.
+        let area = |[a, b, c]: &[DVec3; 3]| 0.5 * (b - a).cross(c - a).length();
+        let total: f64 = fans.iter().map(area).sum();
+        if total <= 0.0 {
             return None;
         }
-        let cos = n.dot(w).max(0.0);
-        return Some((x + w * along, total * cos / std::f64::consts::PI));
+        let (t, u) = pick(&mut fans.iter().map(area), total);
+        let y = triangle_point(&fans[t], u, v);
+        let d = y - x;
+        let r2 = d.length_squared();
+        if r2 <= 0.0 {
+            return None;
+        }
+        let r = r2.sqrt();
+        let cos = n.dot(d) / r;
+        let cos_emitter = -e.dot(d) / r;
+        (cos > 0.0 && cos_emitter > 0.0)
+            .then(|| (y, total * cos * cos_emitter / (std::f64::consts::PI * r2)))
     }
-    // By area.
-    let area = |[a, b, c]: &[DVec3; 3]| 0.5 * (b - a).cross(c - a).length();
-    let total: f64 = fans.iter().map(area).sum();
-    if total <= 0.0 {
-        return None;
-    }
-    let (t, u) = pick(&mut fans.iter().map(area), total);
-    let y = triangle_point(&fans[t], u, v);
-    let d = y - x;
-    let r2 = d.length_squared();
-    if r2 <= 0.0 {
-        return None;
-    }
-    let r = r2.sqrt();
-    let cos = n.dot(d) / r;
-    let cos_emitter = -e.dot(d) / r;
-    (cos > 0.0 && cos_emitter > 0.0)
-        .then(|| (y, total * cos * cos_emitter / (std::f64::consts::PI * r2)))
 }
 
 /// The angle between unit vectors, accurate near 0 and π.
