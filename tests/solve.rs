@@ -705,15 +705,23 @@ proptest::proptest! {
 /// (`SolveParams::noise`, 5% of each patch's σ): against the solve to a relative residual of
 /// 1e-10 (the noise and precision stops off), every patch of every frame of the sample scenes,
 /// warm-started from the frame before as `solve_all` does (both), is within 0.05σ, and so is
-/// its σ.
+/// its σ. Solved on pieces (a split bake), so is every piece, within 0.05 of its patch's σ
+/// (the error bar of what reads it).
 #[test]
 fn stopping_at_the_noise_moves_no_patch_by_a_twentieth_of_its_error() {
-    for name in ["level.gltf", "cornell_moving.gltf"] {
+    let scenes = [("level.gltf", false), ("cornell_moving.gltf", false)];
+    let split = [("level.gltf", true), ("cornell_moving.gltf", true)];
+    for (name, split) in scenes.into_iter().chain(split) {
         let options = LoadOptions {
             fps: 4.0,
             ..LoadOptions::default()
         };
-        let bake = Bake::trace(sample(name, &options), &lines(200_000, 3)).unwrap();
+        let mut bake = Bake::trace(sample(name, &options), &lines(200_000, 3)).unwrap();
+        if split {
+            let control = radiosity::control::Control::default();
+            assert!(bake.split(&SolveParams::default(), &control).unwrap() > 0);
+        }
+        let name = format!("{name}{}", if split { " on pieces" } else { "" });
         let materials = &bake.scene.materials;
         let quick = bake.solve_all(materials, &SolveParams::default());
         let exact = SolveParams {
@@ -724,7 +732,7 @@ fn stopping_at_the_noise_moves_no_patch_by_a_twentieth_of_its_error() {
         // Solved as `solve_all` solves them, runs and all (a run's later frames carry their
         // first frame's replicas), to the tolerance.
         let exacts = bake.solve_all(materials, &exact);
-        let (mut worst, mut worst_sigma) = (0.0f64, 0.0f64);
+        let (mut worst, mut worst_sigma, mut worst_piece) = (0.0f64, 0.0f64, 0.0f64);
         for (f, q) in quick.iter().enumerate() {
             let e = &exacts[f];
             assert!(q.converged && e.converged);
@@ -755,7 +763,21 @@ fn stopping_at_the_noise_moves_no_patch_by_a_twentieth_of_its_error() {
                     worst_sigma = worst_sigma.max((sq[c] - se[c]).abs() / se[c]);
                 }
             }
+            // Each piece against its patch's σ from the lines (their values in `f32`).
+            for (k, (pq, pe)) in q.pieces.iter().zip(&e.pieces).enumerate() {
+                let p = bake.piece_map().expect("pieces").patch[k] as usize;
+                for c in 0..3 {
+                    let se = f64::from(e.pieces_stderr[p][c]);
+                    let moved = f64::from((pq[c] - pe[c]).abs());
+                    let rounding = 2.0 * f64::from(f32::EPSILON) * f64::from(pe[c].abs());
+                    if se > 0.0 {
+                        worst_piece = worst_piece.max((moved - rounding).max(0.0) / se);
+                    }
+                }
+            }
         }
+        eprintln!("{name}: worst piece's move {worst_piece:.2e} of its patch's σ");
+        assert!(worst_piece < 0.05, "{name}: a piece moved {worst_piece} σ");
         eprintln!("{name}: worst move {worst:.2e} σ, worst change of σ {worst_sigma:.2e} of it");
         assert!(worst < 0.05, "{name}: {worst} σ");
         assert!(

@@ -26,7 +26,8 @@
 //! [`SolveParams::noise`] times every patch's standard error (its first bounce's spread between
 //! the replicas, a lower bound on the σ reported, measured at the iterate and lowered by what
 //! the remaining error can change it), or below [`SolveParams::precision`] times its radiance
-//! (patches without noise, a furnace); reaching the relative residual
+//! (patches without noise, a furnace); solved on pieces, each piece is held to its group's
+//! standard error, the error bar of every answer that reads it; reaching the relative residual
 //! [`SolveParams::tolerance`] also stops it, so it never costs more than that. At the default
 //! 5% the answer moves by less than 0.05σ, by the bound, and in practice by 0.002σ to 0.01σ
 //! against a solve to 1e-10 (`tests/solve.rs`).
@@ -336,14 +337,6 @@ impl Groups {
             + self.offsets.len() * size_of::<usize>()
     }
 
-    /// The most pieces of a group.
-    fn largest(&self) -> usize {
-        (0..self.len())
-            .map(|g| self.members(g).len())
-            .max()
-            .unwrap_or(0)
-    }
-
     /// Each group's radiance from its pieces' `values`: what the lines do not carry (`source`:
     /// emission and direct light) averaged over the pieces' visible area (`visible`: the share
     /// of each piece no surface touches, all of it if `None`), and what they gather
@@ -407,9 +400,11 @@ impl Groups {
 
 /// [`solve_lit_from`] answering for `groups` of the tally's patches, if given: the pieces are
 /// solved, each group answered by the mean of its pieces ([`Groups`]), its error bar from the
-/// replicas' means (or as `spread` says). The solve then stops when the pieces can move by
-/// `noise / √(pieces)` of their own standard error, so that their group's answer moves by no
-/// more than `noise` of its (narrower) one.
+/// replicas' means (or as `spread` says). The solve then stops when no piece can move by more
+/// than `noise` of its group's standard error (its first bounce's spread, measured over the
+/// group's pieces): the group's answer, a mean of its pieces, then moves by no more than that,
+/// and so does any answer read from a piece (the outputs' gather, whose error bar is its
+/// group's).
 #[must_use]
 pub fn solve_grouped(
     tally: &FrameTally,
@@ -493,8 +488,9 @@ fn solve_with(
     let stop = Stop {
         tolerance: params.tolerance,
         max_iterations: params.max_iterations,
-        noise: params.noise / groups.map_or(1.0, |g| (g.largest().max(1) as f64).sqrt()),
+        noise: params.noise,
         precision: params.precision,
+        groups,
     };
     let light = system.solve::<f64>(&emission, &seen, params.sky, start, &stop);
     let converged = light.converged.iter().all(|&c| c);
@@ -674,6 +670,7 @@ fn replica_errors(
         max_iterations: params.max_iterations,
         noise: 0.0,
         precision: 0.0,
+        groups: None,
     };
     // The replicas are solved in parallel (a frame alone, as a static scene is, then uses every
     // core), and summed in their order: the result does not depend on the thread count. With
@@ -748,7 +745,7 @@ struct Replicas<'a> {
 }
 
 /// When conjugate gradients stop (see the module docs).
-struct Stop {
+struct Stop<'g> {
     /// Relative residual that stops a channel whatever the noise.
     tolerance: f64,
     /// Iterations after which a channel gives up, not converged.
@@ -757,6 +754,9 @@ struct Stop {
     noise: f64,
     /// [`SolveParams::precision`].
     precision: f64,
+    /// The groups answered for, if the unknowns are pieces: each piece is then held to its
+    /// group's standard error, the error bar of every answer that reads it.
+    groups: Option<&'g Groups>,
 }
 
 /// The precision of a solve's working vectors: `f64` for the answer; `f32` for the replicas,
@@ -1329,16 +1329,20 @@ impl Noise {
                 })
             })
             .collect();
-        let sigma = system.first_bounce(&values, problem.seen, problem.sky, None);
+        let sigma = system.first_bounce(&values, problem.seen, problem.sky, stop.groups);
         // The first bounce's spread is a seminorm of the radiance (plus a constant): an error of
         // at most E on every patch moves it by at most ρ·2E·√(K/(K−1)) (each group's term by
         // 2E·X_g). What is left is a lower bound on the spread at the answer.
         let k = f64::from(tally::GROUPS);
         let slack = 2.0 * (k / (k - 1.0)).sqrt();
-        self.floor = sigma
-            .iter()
-            .zip(system.rho)
-            .map(|(s, rho)| {
+        // A group's pieces are of its patch's material: one reflectance.
+        let rho = |k: usize| match stop.groups {
+            Some(g) => (g.members(k).first()).map_or([0.0; 3], |&i| system.rho[i as usize]),
+            None => system.rho[k],
+        };
+        self.floor = (sigma.iter().enumerate())
+            .map(|(k, s)| {
+                let rho = rho(k);
                 std::array::from_fn(|c| {
                     if check[c] {
                         (s[c] - slack * rho[c] * bound[c]).max(0.0)
@@ -1364,10 +1368,12 @@ impl Noise {
         stop: &Stop,
     ) -> [bool; 3] {
         for (i, (xi, zi)) in x.iter().zip(z).enumerate() {
+            // A piece's group's floor: the error bar of every answer that reads the piece.
+            let k = stop.groups.map_or(i, |g| g.of()[i] as usize);
             for c in 0..3 {
                 if quiet[c] && system.unknown(i, c) {
                     let error = zi[c].get().abs() + system.coupling[i][c] * bound[c];
-                    let floor = floor.get(i).map_or(0.0, |f| f[c]);
+                    let floor = floor.get(k).map_or(0.0, |f| f[c]);
                     if error > (stop.noise * floor).max(stop.precision * xi[c].get().abs()) {
                         quiet[c] = false;
                     }

@@ -624,7 +624,11 @@ impl FrameTally {
                 break;
             }
             // The changed row: its per-group entries merged with its changes, in key order.
-            let end = next + changes[next..].partition_point(|&(k, _)| unkey(k).0 as usize == row);
+            // A row's changes are few: a scan, not a binary search over the rest.
+            let end = next
+                + (changes[next..].iter())
+                    .position(|&(k, _)| unkey(k).0 as usize != row)
+                    .unwrap_or(changes.len() - next);
             t.offsets.push(t.columns.len());
             t.group_offsets.push(t.group_entries.len());
             t.crossings[row] = 0;
