@@ -276,3 +276,58 @@ fn a_gaps_pieces_are_cut_no_finer_than_it_is_high() {
     assert!(count > 32, "{count} pieces: the gap was not cut");
     assert!(narrowest >= height, "{narrowest} m");
 }
+
+/// Khronos' `BoxAnimated` draws every quad of its outer box as three overlapping triangles
+/// (ABC, ACD, ABD: edges shared by three and four triangles, faces overlapping in one plane);
+/// exports also hold degenerate triangles on a box's edges (two corners at one position, or
+/// three on a line) and faces drawn twice. The split (`source`, the default) and `auto`'s rounds cut such a box
+/// under a white sky (issue 48: both panicked in the cutter), and the frame is answered.
+#[test]
+fn a_box_of_overlapping_split_quads_is_cut_and_baked() {
+    let mut corners: Vec<[f32; 3]> = (0..8u32)
+        .map(|k| [(k & 1) as f32, ((k >> 1) & 1) as f32, (k >> 2) as f32])
+        .collect();
+    // Corner 0 again (another index), and the midpoint of the edge from 0 to 1.
+    corners.extend([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0]]);
+    let faces = [
+        [0, 2, 3, 1],
+        [4, 5, 7, 6],
+        [0, 1, 5, 4],
+        [2, 6, 7, 3],
+        [0, 4, 6, 2],
+        [1, 3, 7, 5],
+    ];
+    let mut indices: Vec<u32> = (faces.iter())
+        .flat_map(|&[a, b, c, d]| [a, b, c, a, c, d, a, b, d])
+        .collect();
+    indices.extend([0, 1, 8, 0, 9, 1]);
+    // Two faces drawn twice over (coincident triangles, as a duplicated mesh part).
+    let twice = indices[..18].to_vec();
+    indices.extend(twice);
+    let solve = SolveParams {
+        sky: [1.0; 3],
+        ..SolveParams::default()
+    };
+    let params = LineParams {
+        lines: 40_000,
+        seed: 4,
+    };
+    let control = Control::default();
+    let scene = common::static_scene(&[(corners, indices)], None);
+    let mut split = Bake::trace(scene.clone(), &params).unwrap();
+    assert!(split.split(&solve, &control).unwrap() > split.scene.patches.len());
+    let mut auto = Bake::trace(scene, &params).unwrap();
+    let choice = radiosity::adaptive::Adaptive::for_lines(params.lines, auto.scene.patches.len());
+    radiosity::adaptive::adapt(&mut auto, &choice, &solve, &control).unwrap();
+    for bake in [&split, &auto] {
+        let s = bake.solve_frame(0, &bake.scene.materials, &solve);
+        assert!(s.converged);
+        let lit = (s.radiance.iter()).filter(|l| l[1] > 0.0).count();
+        assert!(
+            s.radiance
+                .iter()
+                .all(|l| l.iter().all(|x| x.is_finite() && *x >= 0.0))
+        );
+        assert!(lit > 0, "nothing lit");
+    }
+}

@@ -187,35 +187,46 @@ impl MeshCutter {
         }
     }
 
-    /// Cuts leaf `t` at its longest edge, and whatever the propagation path needs.
+    /// Cuts leaf `t` at its longest edge, and whatever the propagation path needs. Meshes as
+    /// exported hold edges shared by more than two triangles, overlapping, duplicated and
+    /// degenerate ones: every leaf on the edge is cut once (a degenerate one may hold the edge
+    /// twice), and a leaf the propagation has cut meanwhile is done.
     fn bisect(&mut self, t: u32, depth: usize) {
-        let k = self.longest(t);
-        let key = self.edge_key(t, k);
-        loop {
-            let others: Vec<u32> = self.edges[&key]
-                .iter()
+        let node = self.leaf_node[t as usize];
+        for round in 0.. {
+            if self.leaf_node[t as usize] != node {
+                // Cut by a neighbour's propagation: done.
+                return;
+            }
+            let k = self.longest(t);
+            let key = self.edge_key(t, k);
+            let mut others: Vec<u32> = (self.edges.get(&key).into_iter().flatten())
                 .copied()
                 .filter(|&o| o != t)
                 .collect();
+            others.sort_unstable();
+            others.dedup();
             let off_path: Vec<u32> = others
                 .iter()
                 .copied()
                 .filter(|&o| self.edge_key(o, self.longest(o)) != key)
                 .collect();
-            if off_path.is_empty() || depth >= MAX_PATH {
+            if off_path.is_empty() || depth >= MAX_PATH || round >= MAX_PATH {
                 self.cut(t, k);
                 for o in others {
-                    let edge = (0..3)
-                        .find(|&e| self.edge_key(o, e) == key)
-                        .expect("a leaf on an edge has it");
-                    self.cut(o, edge);
+                    if let Some(edge) = (0..3).find(|&e| self.edge_key(o, e) == key) {
+                        self.cut(o, edge);
+                    }
                 }
                 return;
             }
             for o in off_path {
                 // Cutting `o` at its longer edge leaves `key` on one of its halves; that half
-                // may still have another longest edge: the loop looks again.
-                self.bisect(o, depth + 1);
+                // may still have another longest edge: the loop looks again. An earlier one's
+                // propagation may have cut `o` off the edge already.
+                if self.edges.get(&key).is_some_and(|on| on.contains(&o)) {
+                    self.bisect(o, depth + 1);
+                }
             }
         }
     }
@@ -798,6 +809,124 @@ mod tests {
                 assert!(
                     inside.iter().all(|&l| l > -1e-6),
                     "{p} of {old} located in {leaf}: {inside:?}"
+                );
+            }
+        }
+    }
+
+    /// A unit box whose every face, a quad ABCD, is drawn as three overlapping triangles
+    /// (ABC, ACD and ABD: each edge of the quad shared by two of them, the diagonals by two
+    /// or more), as Khronos' `BoxAnimated` draws its outer box (the cutter panicked on it,
+    /// issue 48), with `extra` more awkward triangles from `seed`: duplicates, degenerate
+    /// ones (two corners at one position, or all three on a line), T-junctions (a corner at
+    /// the midpoint of another triangle's edge) and corners repeated under other indices (a
+    /// flat-shaded export).
+    fn awkward_box(seed: u64, extra: usize) -> TriangleMesh {
+        let mut state = seed | 1;
+        let mut next = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        let mut mesh = TriangleMesh::default();
+        let corner = |k: u32| Vec3::new((k & 1) as f32, ((k >> 1) & 1) as f32, (k >> 2) as f32);
+        mesh.positions.extend((0..8).map(corner));
+        let faces = [
+            [0, 1, 3, 2],
+            [4, 6, 7, 5],
+            [0, 4, 5, 1],
+            [2, 3, 7, 6],
+            [0, 2, 6, 4],
+            [1, 5, 7, 3],
+        ];
+        for [a, b, c, d] in faces {
+            mesh.triangles.extend([[a, b, c], [a, c, d], [a, b, d]]);
+        }
+        for _ in 0..extra {
+            let t = mesh.triangles[next() as usize % mesh.triangles.len()];
+            match next() % 4 {
+                0 => mesh.triangles.push(t),
+                1 => {
+                    // Two corners at one position (another index), or three on a line.
+                    let p = mesh.positions[t[0] as usize];
+                    let q = mesh.positions[t[1] as usize];
+                    mesh.positions.push(p);
+                    mesh.positions.push((p + q) * 0.5);
+                    let (same, middle) = (
+                        mesh.positions.len() as u32 - 2,
+                        mesh.positions.len() as u32 - 1,
+                    );
+                    mesh.triangles.push(if next() % 2 == 0 {
+                        [t[0], t[1], same]
+                    } else {
+                        [t[0], middle, t[1]]
+                    });
+                }
+                2 => {
+                    // A T-junction: a triangle with a corner at the midpoint of t's first edge.
+                    let [p, q, r] = t.map(|v| mesh.positions[v as usize]);
+                    mesh.positions.push((p + q) * 0.5);
+                    let m = mesh.positions.len() as u32 - 1;
+                    let _ = r;
+                    mesh.triangles.push([t[0], m, t[2]]);
+                }
+                _ => {
+                    // t again on corners repeated under new indices.
+                    let base = mesh.positions.len() as u32;
+                    let copies = t.map(|v| mesh.positions[v as usize]);
+                    mesh.positions.extend(copies);
+                    mesh.triangles.push([base, base + 1, base + 2]);
+                }
+            }
+        }
+        mesh.faces = (0..mesh.triangles.len() as u32)
+            .map(|t| super::Faces {
+                front: t,
+                back: None,
+            })
+            .collect();
+        mesh
+    }
+
+    /// The leaves of root `root`'s cut tree.
+    fn leaves(cutter: &MeshCutter, root: u32) -> Vec<u32> {
+        let (mut out, mut stack) = (Vec::new(), vec![root]);
+        while let Some(node) = stack.pop() {
+            match cutter.nodes[node as usize] {
+                Node::Leaf(leaf) => out.push(leaf),
+                Node::Cut { children, .. } => stack.extend(children),
+            }
+        }
+        out
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(256))]
+        /// Any mesh a glTF file can hold is cut without a panic (edges shared by any number
+        /// of triangles, overlapping, duplicated and degenerate triangles, T-junctions), and
+        /// every triangle's pieces cover its area.
+        #[test]
+        fn awkward_meshes_are_cut_and_keep_their_area(
+            seed in proptest::prelude::any::<u64>(),
+            extra in 0usize..12,
+            trees in proptest::collection::vec(0u32..(1 << 8), 1..40),
+        ) {
+            let mesh = awkward_box(seed, extra);
+            let cuts: Vec<u32> = (0..mesh.triangles.len())
+                .map(|t| trees[t % trees.len()] & !1)
+                .collect();
+            let cutter = MeshCutter::with_cuts(&mesh, &cuts);
+            let corners = |t: &[u32; 3], positions: &[Vec3]| t.map(|v| positions[v as usize]);
+            for (root, t) in mesh.triangles.iter().enumerate() {
+                let whole = area(corners(t, &mesh.positions));
+                let pieces: f64 = leaves(&cutter, root as u32)
+                    .iter()
+                    .map(|&l| area(corners(&cutter.triangles[l as usize], &cutter.positions)))
+                    .sum();
+                proptest::prop_assert!(
+                    (pieces - whole).abs() <= 1e-6 * whole.max(1e-6),
+                    "triangle {root}: pieces {pieces} of {whole}"
                 );
             }
         }

@@ -736,7 +736,12 @@ impl IntersectionList {
     /// The crossings of `line` at `frame`, sorted along the line, into `out` (cleared first):
     /// the static crossings merged with the moving ones tagged `frame`.
     pub fn frame_hits(&self, line: usize, frame: usize, out: &mut Vec<Hit>) {
-        let start = (self.moving_hits(line)).partition_point(|h| h.frame < frame as u32);
+        let moving = self.moving_hits(line);
+        // Frame 0's crossings (the split's, the gaps') come first: no search.
+        let start = match moving.first() {
+            Some(h) if h.frame >= frame as u32 => 0,
+            _ => moving.partition_point(|h| h.frame < frame as u32),
+        };
         self.frame_hits_from(line, frame, start, out);
     }
 
