@@ -753,6 +753,22 @@ pub fn bake_all(
     control: &Control,
     progress: &Progress,
 ) -> Vec<String> {
+    let stage = |prefix: &str, line: &str| progress.stage(prefix, line);
+    let show = |line: &str| progress.line(line);
+    each_scene(scenes, control, (&stage, &show), |path, log| {
+        bake_one(path, out, params, control, log)
+    })
+}
+
+/// [`bake_all`]'s loop: `bake` each scene in turn (given a log for its stages), each stage
+/// shown by `stage` (with the scene's `[k/n]` prefix) and each outcome by `show`. A bake that
+/// panics (a bug) fails its scene alone: the scenes after it are baked.
+fn each_scene(
+    scenes: &[PathBuf],
+    control: &Control,
+    (stage, show): (&dyn Fn(&str, &str), &dyn Fn(&str)),
+    mut bake: impl FnMut(&Path, &mut dyn FnMut(&str)) -> Outcome,
+) -> Vec<String> {
     let mut failures = Vec::new();
     for (k, path) in scenes.iter().enumerate() {
         if control.is_cancelled() {
@@ -760,24 +776,23 @@ pub fn bake_all(
             continue;
         }
         let prefix = format!("[{}/{}]", k + 1, scenes.len());
-        let outcome = bake_one(path, out, params, control, &mut |line| {
-            progress.stage(&prefix, line)
-        });
+        let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            bake(path, &mut |line| stage(&prefix, line))
+        }))
+        .unwrap_or_else(|payload| Outcome::Failed(panicked(payload.as_ref())));
         match outcome {
-            Outcome::Baked(dir) => progress.line(&format!(
+            Outcome::Baked(dir) => show(&format!(
                 "{prefix} baked {} -> {}",
                 path.display(),
                 dir.display()
             )),
-            Outcome::Skipped(dir) => {
-                progress.line(&format!("{prefix} up to date: {}", dir.display()))
-            }
+            Outcome::Skipped(dir) => show(&format!("{prefix} up to date: {}", dir.display())),
             Outcome::Failed(reason) => {
-                progress.line(&format!("{prefix} FAILED {}: {reason}", path.display()));
+                show(&format!("{prefix} FAILED {}: {reason}", path.display()));
                 failures.push(format!("{}: {reason}", path.display()));
             }
             Outcome::Cancelled => {
-                progress.line(&format!(
+                show(&format!(
                     "{prefix} interrupted {}: nothing written",
                     path.display()
                 ));
@@ -786,6 +801,14 @@ pub fn bake_all(
         }
     }
     failures
+}
+
+/// Why a bake that panicked failed: the panic's message, as a bug of the baker's.
+fn panicked(payload: &(dyn std::any::Any + Send)) -> String {
+    let message = (payload.downcast_ref::<&str>().copied())
+        .or_else(|| payload.downcast_ref::<String>().map(String::as_str))
+        .unwrap_or("no message");
+    format!("the baker failed on this scene (a bug: please report it with the scene): {message}")
 }
 
 #[cfg(test)]
@@ -807,6 +830,28 @@ mod tests {
         assert_eq!(gif_frames(1001, 1e12), (vec![0], 20));
         assert_eq!(frame_name(7, 25, "png"), "frame_0007.png");
         assert_eq!(frame_name(7, 100_000, "glb"), "frame_00007.glb");
+    }
+
+    /// A bake that panics on one scene (a bug) fails that scene with the panic's message;
+    /// the scenes after it are baked, and the failures say which failed and why.
+    #[test]
+    fn a_scene_whose_bake_panics_fails_alone() {
+        let scenes: Vec<PathBuf> = ["a.gltf", "b.gltf", "c.gltf"].map(PathBuf::from).into();
+        let shown = std::sync::Mutex::new(Vec::new());
+        let show = |line: &str| shown.lock().unwrap().push(line.to_string());
+        let mut baked = Vec::new();
+        let failures = each_scene(&scenes, &Control::default(), (&|_, _| {}, &show), |p, _| {
+            assert!(p != Path::new("b.gltf"), "a bug in the cutter");
+            baked.push(p.to_path_buf());
+            Outcome::Baked(p.to_path_buf())
+        });
+        assert_eq!(baked, [PathBuf::from("a.gltf"), PathBuf::from("c.gltf")]);
+        assert_eq!(failures.len(), 1, "{failures:?}");
+        assert!(failures[0].starts_with("b.gltf: "), "{failures:?}");
+        assert!(failures[0].contains("a bug in the cutter"), "{failures:?}");
+        let shown = shown.lock().unwrap();
+        assert!(shown[1].starts_with("[2/3] FAILED b.gltf"), "{shown:?}");
+        assert!(shown[2].starts_with("[3/3] baked c.gltf"), "{shown:?}");
     }
 
     fn params() -> BatchParams {
