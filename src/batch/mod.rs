@@ -760,13 +760,16 @@ pub fn bake_all(
     })
 }
 
+/// Where [`each_scene`] shows a scene's stages (with its prefix) and its outcome.
+type Shown<'a> = (&'a dyn Fn(&str, &str), &'a dyn Fn(&str));
+
 /// [`bake_all`]'s loop: `bake` each scene in turn (given a log for its stages), each stage
 /// shown by `stage` (with the scene's `[k/n]` prefix) and each outcome by `show`. A bake that
 /// panics (a bug) fails its scene alone: the scenes after it are baked.
 fn each_scene(
     scenes: &[PathBuf],
     control: &Control,
-    (stage, show): (&dyn Fn(&str, &str), &dyn Fn(&str)),
+    (stage, show): Shown<'_>,
     mut bake: impl FnMut(&Path, &mut dyn FnMut(&str)) -> Outcome,
 ) -> Vec<String> {
     let mut failures = Vec::new();
