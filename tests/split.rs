@@ -284,22 +284,15 @@ fn a_gaps_pieces_are_cut_no_finer_than_it_is_high() {
 /// under a white sky (issue 48: both panicked in the cutter), and the frame is answered.
 #[test]
 fn a_box_of_overlapping_split_quads_is_cut_and_baked() {
-    let mut corners: Vec<[f32; 3]> = (0..8u32)
-        .map(|k| [(k & 1) as f32, ((k >> 1) & 1) as f32, (k >> 2) as f32])
+    // The unit box's quads as two triangles each (ABC, ACD), and ABD over them.
+    let (mut corners, two) = common::cuboid([1.0; 3], [0.5; 3], false);
+    let mut indices: Vec<u32> = (two.chunks(6))
+        .flat_map(|t| [t[0], t[1], t[2], t[3], t[4], t[5], t[0], t[1], t[5]])
         .collect();
-    // Corner 0 again (another index), and the midpoint of the edge from 0 to 1.
-    corners.extend([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0]]);
-    let faces = [
-        [0, 2, 3, 1],
-        [4, 5, 7, 6],
-        [0, 1, 5, 4],
-        [2, 6, 7, 3],
-        [0, 4, 6, 2],
-        [1, 3, 7, 5],
-    ];
-    let mut indices: Vec<u32> = (faces.iter())
-        .flat_map(|&[a, b, c, d]| [a, b, c, a, c, d, a, b, d])
-        .collect();
+    // Degenerate triangles on the edge from corner 0 to corner 1: two corners at one position
+    // (corner 0 again, under another index), and three on a line (through the midpoint).
+    let (a, b) = (corners[0], corners[1]);
+    corners.extend([a, std::array::from_fn(|k| 0.5 * (a[k] + b[k]))]);
     indices.extend([0, 1, 8, 0, 9, 1]);
     // Two faces drawn twice over (coincident triangles, as a duplicated mesh part).
     let twice = indices[..18].to_vec();
