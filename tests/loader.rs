@@ -945,3 +945,34 @@ fn meshopt_compressed_views_load_as_their_plain_bytes_do() {
         "{message}"
     );
 }
+
+/// A material that leaves `metallicFactor` out is fully metallic by glTF's rule (Khronos'
+/// `Box`, `BoxTextured`: COLLADA2GLTF leaves it out), so its diffuse reflectance is 0 and it
+/// bakes black: the loader says so, naming the material (issue 48). One with metallicFactor 0
+/// says nothing.
+#[test]
+fn a_material_that_leaves_metallic_out_is_named_in_a_warning() {
+    let mut d = three_quads();
+    d.push(
+        "materials",
+        json!({"name": "Red", "pbrMetallicRoughness": {"baseColorFactor": [0.8, 0.0, 0.0, 1.0]}}),
+    );
+    d.json["meshes"][0]["primitives"][0]["material"] = json!(0);
+    let scene = load_ok(&d);
+    assert_eq!(scene.materials[0].reflectance, [0.0; 3]);
+    let metallic = |w: &&String| w.contains("material 0 (Red)") && w.contains("metallicFactor");
+    assert_eq!(
+        scene.warnings.iter().filter(metallic).count(),
+        1,
+        "{:?}",
+        scene.warnings
+    );
+    d.json["materials"][0]["pbrMetallicRoughness"]["metallicFactor"] = json!(0.0);
+    let scene = load_ok(&d);
+    assert!((scene.materials[0].reflectance[0] - 0.8).abs() < 1e-6);
+    assert!(
+        !scene.warnings.iter().any(|w| w.contains("metallic")),
+        "{:?}",
+        scene.warnings
+    );
+}

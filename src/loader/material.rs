@@ -56,7 +56,18 @@ fn convert_one(
     {
         metallic *= mean[2];
     }
+    let coloured = reflectance.iter().any(|&r| r > 0.0);
     reflectance = reflectance.map(|r| r * (1.0 - metallic.clamp(0.0, 1.0)));
+    if coloured && metallic >= 1.0 {
+        // glTF's metallicFactor is 1 when a file leaves it out (COLLADA2GLTF and older
+        // exporters do): the surface then bakes black, and a user should hear why.
+        let name = m.name().map_or_else(String::new, |n| format!(" ({n})"));
+        warnings.push(format!(
+            "material {index}{name} is fully metallic (metallicFactor 1, glTF's default when a \
+             file leaves it out): its diffuse reflectance is 0 and it reflects no light in the \
+             bake; set metallicFactor to 0 if it is a diffuse surface"
+        ));
+    }
     let strength = f64::from(m.emissive_strength().unwrap_or(1.0));
     let factor = m.emissive_factor();
     let mut emission = [0, 1, 2].map(|c| f64::from(factor[c]) * strength);
