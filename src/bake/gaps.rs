@@ -467,7 +467,63 @@ mod tests {
     use super::*;
     use crate::bake::Bake;
     use crate::scene::refine;
-    use crate::timeline::LineParams;
+    use crate::timeline::{Crossings, LineParams};
+
+    /// The split moves the later frames' crossings once, through every round's cuts
+    /// ([`refine::Chain`]), where it moved every frame's after each cut: on the moving Cornell
+    /// box (a rigid block, 13 frames), three rounds of cuts (every third triangle, then every
+    /// fifth piece twice), each moving crossing ends on the piece moving it after each cut
+    /// puts it. Fails when the chain measures a point on the frame-0 pose.
+    #[test]
+    fn the_later_frames_moved_once_land_where_moving_them_after_each_cut_puts_them() {
+        let path = format!("{}/scenes/cornell_moving.gltf", env!("CARGO_MANIFEST_DIR"));
+        let options = crate::loader::LoadOptions {
+            fps: 6.0,
+            ..Default::default()
+        };
+        let scene = crate::loader::load(&std::fs::read(path).unwrap(), &options).unwrap();
+        assert!(scene.frames.count > 10);
+        let bake = Bake::trace(
+            scene,
+            &LineParams {
+                lines: 40_000,
+                seed: 3,
+            },
+        )
+        .unwrap();
+        let (mut each, mut once) = (bake.list.clone(), bake.list.clone());
+        let mut scene = bake.scene.clone();
+        let mut chain = refine::Chain::default();
+        for step in [3, 5, 5] {
+            let table = SurfaceTable::new(&scene);
+            let order: Vec<(u32, u32)> = (0..table.triangles() as u32)
+                .step_by(step)
+                .map(|t| (t, 1))
+                .collect();
+            let cuts = refine::within_budget(&scene, &order, usize::MAX);
+            let (next, refinement) = refine::cut(&scene, &cuts);
+            Bake::move_crossings(&mut each, (&scene, None), &refinement, Crossings::All);
+            let zero = Crossings::AtFrameZero;
+            Bake::move_crossings(&mut once, (&scene, None), &refinement, zero);
+            chain.push(&scene, refinement);
+            scene = next;
+        }
+        once.relabel((&bake.scene, None), Crossings::Later, |hit, f, at| {
+            chain.locate(&scene, hit.surface(), f.unwrap_or_default(), at)
+        });
+        let mut later = 0;
+        for line in 0..each.lines() {
+            assert_eq!(each.static_hits(line), once.static_hits(line));
+            let (a, b) = (each.moving_hits(line), once.moving_hits(line));
+            assert_eq!(a.len(), b.len());
+            for (a, b) in a.iter().zip(b) {
+                assert_eq!((a.frame, a.hit), (b.frame, b.hit), "line {line}");
+                later += usize::from(a.frame > 0);
+            }
+        }
+        eprintln!("{later} crossings at later frames");
+        assert!(later > 10_000);
+    }
 
     /// A round of the split walks the lines only for the pieces the last round cut and
     /// carries the others' sides over ([`Walked::after`]): every piece's score, segments and
@@ -496,7 +552,7 @@ mod tests {
                 .collect();
             let cuts = refine::within_budget(&scene, &order, usize::MAX);
             let (next, refinement) = refine::cut(&scene, &cuts);
-            Bake::move_crossings(&mut bake.list, (&scene, None), &refinement);
+            Bake::move_crossings(&mut bake.list, (&scene, None), &refinement, Crossings::All);
             let parents = refinement.parents();
             let gathered = |k: u32| light(parents[k as usize]);
             let table = SurfaceTable::new(&next);

@@ -20,7 +20,7 @@ use crate::solve::tally::{FrameTally, Tallies};
 use crate::solve::{
     Direct, FrameSolution, Groups, SolveParams, Spread, solve_answer, solve_grouped,
 };
-use crate::timeline::{IntersectionList, LineParams};
+use crate::timeline::{Crossings, IntersectionList, LineParams};
 use crate::trace::{SceneTracer, SurfaceTable};
 
 /// A traced scene, ready to solve any frame with any materials.
@@ -297,7 +297,12 @@ impl Bake {
             ),
         };
         self.inherited = lights == Lights::Inherit;
-        Self::move_crossings(&mut self.list, (&self.scene, None), &refinement);
+        Self::move_crossings(
+            &mut self.list,
+            (&self.scene, None),
+            &refinement,
+            Crossings::All,
+        );
         (self.pieces, self.shown) = (None, None);
         let mut tallies = Tallies::default();
         tallies.update(&self.list, &tracer.surfaces(), scene.patches.len());
@@ -332,16 +337,17 @@ impl Bake {
         Ok(removed)
     }
 
-    /// Moves every crossing of `list` to the piece of its triangle it lies on, as `refinement`
-    /// cut the triangles of `scene` (the scene the crossings are on).
+    /// Moves the crossings of `list` that `which` says to the piece of its triangle each lies
+    /// on, as `refinement` cut the triangles of `scene` (the scene the crossings are on).
     fn move_crossings(
         list: &mut IntersectionList,
         (scene, bundles): (&Scene, Option<&[crate::lines::Bundle]>),
         refinement: &crate::scene::refine::Refinement,
+        which: Crossings,
     ) {
         use crate::scene::refine::{Corners, barycentric};
         let corners = Corners::new(scene);
-        list.relabel((scene, bundles), |hit, frame, point| {
+        list.relabel((scene, bundles), which, |hit, frame, point| {
             let old = hit.surface();
             let bary = if refinement.is_cut(old) {
                 corners
@@ -486,10 +492,15 @@ impl Bake {
         let mut of: Vec<u32> = (refinement.parents().iter())
             .map(|&q| of_apart[q as usize])
             .collect();
-        // The apart scene has the bake's triangles: the crossings move to the pieces.
+        // The apart scene has the bake's triangles: the crossings move to the pieces. The
+        // rounds read frame 0 alone: the moving crossings at the later frames move once, after
+        // them, through every round's cuts (`chain`).
         // The lines' bundles, generated once for every round's relabelling.
         let bundles = self.list.regenerate_bundles(&self.scene);
-        Self::move_crossings(&mut self.list, (&self.scene, Some(&bundles)), &refinement);
+        let zero = (Some(&bundles[..]), Crossings::AtFrameZero);
+        Self::move_crossings(&mut self.list, (&self.scene, zero.0), &refinement, zero.1);
+        let mut chain = refine::Chain::default();
+        chain.push(&self.scene, refinement.clone());
         let budget = budget as usize;
         // Each round walks the lines only for the pieces the last one cut.
         let mut last: Option<(gaps::Walked, refine::Refinement)> = None;
@@ -510,11 +521,19 @@ impl Bake {
             of = (refinement.parents().iter())
                 .map(|&q| of[q as usize])
                 .collect();
-            Self::move_crossings(&mut self.list, (&scene, Some(&bundles)), &refinement);
+            Self::move_crossings(&mut self.list, (&scene, zero.0), &refinement, zero.1);
+            chain.push(&scene, refinement.clone());
             scene = next;
             last = Some((walked, refinement));
         }
-        drop(bundles);
+        if self.scene.frames.count > 1 {
+            (self.list).relabel(
+                (&self.scene, Some(&bundles)),
+                Crossings::Later,
+                |hit, f, at| chain.locate(&scene, hit.surface(), f.unwrap_or_default(), at),
+            );
+        }
+        drop((bundles, chain));
         // The bake's patches on the pieces' triangles from here on: if it is cancelled now,
         // the bake answers as before (the patches' tallies count the same crossings on the
         // same patches), without pieces.

@@ -68,17 +68,24 @@ impl Refinement {
     /// A point on a cut goes to the half at the cut edge's first corner.
     #[must_use]
     pub fn locate(&self, old: u32, bary: [f64; 3]) -> u32 {
+        self.locate_in(old, bary).0
+    }
+
+    /// [`Refinement::locate`], with the point's barycentric coordinates in the new triangle
+    /// (of its corners in order).
+    #[must_use]
+    pub fn locate_in(&self, old: u32, bary: [f64; 3]) -> (u32, [f64; 3]) {
         let mut node = old as usize;
         let mut l = bary;
         loop {
             match self.nodes[node] {
-                Node::Leaf(id) => return id,
+                Node::Leaf(id) => return (id, l),
                 Node::Cut { edge, children } => {
                     let k = usize::from(edge);
                     let (a, b, c) = (l[k], l[(k + 1) % 3], l[(k + 2) % 3]);
                     // A point of the triangle (a, b, c) in the half (a, m, c) or (m, b, c),
                     // m = (a + b) / 2: its coordinates there follow from b = 2m − a
-                    // (respectively a = 2m − b).
+                    // (respectively a = 2m − b). The halves keep their corners in that order.
                     (node, l) = if a >= b {
                         (children[0] as usize, [a - b, 2.0 * b, c])
                     } else {
@@ -689,6 +696,80 @@ impl<'a> Corners<'a> {
             }
             _ => None,
         }
+    }
+}
+
+/// Refinements one after the other (each cutting the scene the one before it made), kept to
+/// move the crossings of the rigid objects at the frames after the first through all of them
+/// at once ([`Chain::locate`]): the same triangle, step by step, as moving them after each cut.
+#[derive(Default)]
+pub struct Chain {
+    steps: Vec<Step>,
+}
+
+/// One refinement of a [`Chain`] and the rigid objects' triangles it cut.
+struct Step {
+    refinement: Refinement,
+    /// First global index of each moving object's triangles.
+    firsts: Vec<usize>,
+    /// Each moving object's triangles in object space (a deforming one's: none, its triangles
+    /// are never cut).
+    meshes: Vec<TriangleMesh>,
+}
+
+impl Chain {
+    /// Adds `refinement`, which cut `scene`.
+    pub fn push(&mut self, scene: &Scene, refinement: Refinement) {
+        let corners = Corners::new(scene);
+        let meshes = (scene.objects.iter())
+            .map(|o| match o.motion {
+                Motion::Rigid { .. } => o.mesh.clone(),
+                Motion::Deforming(_) => TriangleMesh::default(),
+            })
+            .collect();
+        self.steps.push(Step {
+            refinement,
+            firsts: corners.firsts[1..].to_vec(),
+            meshes,
+        });
+    }
+
+    /// The triangle, after every refinement, holding `point` (in normalised space) of moving
+    /// triangle `global` of the first refinement's scene at `frame`, the objects posed as in
+    /// `scene` (any scene of the chain: cuts keep the poses). The point's barycentric
+    /// coordinates are measured once, in the first triangle cut, and carried down through
+    /// the cuts ([`Refinement::locate_in`]); a point within a rounding error of a cut may go
+    /// to the other half than measuring them again in each piece would send it.
+    #[must_use]
+    pub fn locate(&self, scene: &Scene, global: u32, frame: usize, point: DVec3) -> u32 {
+        let mut g = global;
+        let mut bary: Option<[f64; 3]> = None;
+        for step in &self.steps {
+            if !step.refinement.is_cut(g) {
+                // The same triangle, renumbered: the coordinates hold.
+                g = step.refinement.locate(g, [1.0, 0.0, 0.0]);
+                continue;
+            }
+            if bary.is_none() {
+                let k = step.firsts.partition_point(|&f| f <= g as usize) - 1;
+                let mesh = &step.meshes[k];
+                if let Motion::Rigid { poses } = &scene.objects[k].motion {
+                    let t = mesh.triangles[g as usize - step.firsts[k]];
+                    let corners = t.map(|v| {
+                        poses[frame].transform_point3(mesh.positions[v as usize].as_dvec3())
+                    });
+                    bary = barycentric(corners, point);
+                }
+            }
+            match bary {
+                Some(b) => {
+                    let (next, b) = step.refinement.locate_in(g, b);
+                    (g, bary) = (next, Some(b));
+                }
+                None => g = step.refinement.locate(g, [1.0, 0.0, 0.0]),
+            }
+        }
+        g
     }
 }
 

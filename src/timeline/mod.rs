@@ -80,6 +80,17 @@ pub struct FrameHit {
     pub hit: Hit,
 }
 
+/// Which crossings [`IntersectionList::relabel`] gives new triangles.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Crossings {
+    /// Every crossing.
+    All,
+    /// The static crossings and the moving ones at frame 0: the list as frame 0 reads it.
+    AtFrameZero,
+    /// The moving crossings at the frames after the first.
+    Later,
+}
+
 /// A batch of lines in the list and where its lines start.
 #[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
 struct BatchLines {
@@ -836,13 +847,15 @@ impl IntersectionList {
             .collect()
     }
 
-    /// Gives every crossing the traced triangle `surface(hit, frame, point)` (the frame of a
-    /// moving crossing, `None` for a static one; the point crossed, in normalised space), then
-    /// sorts each line's crossings again: the list of the same lines through a scene whose
-    /// triangles were cut ([`crate::scene::refine`]), without tracing them again.
+    /// Gives every crossing of `which` the traced triangle `surface(hit, frame, point)` (the
+    /// frame of a moving crossing, `None` for a static one; the point crossed, in normalised
+    /// space), then sorts each line's crossings again where that changed their order: the list
+    /// of the same lines through a scene whose triangles were cut ([`crate::scene::refine`]),
+    /// without tracing them again.
     pub fn relabel(
         &mut self,
         (scene, bundles): (&Scene, Option<&[Bundle]>),
+        which: Crossings,
         surface: impl Fn(Hit, Option<usize>, glam::DVec3) -> u32 + Sync,
     ) {
         // Each bundle's crossings, split off the two arrays so bundles are relabelled apart.
@@ -859,6 +872,8 @@ impl IntersectionList {
         }
         let (batches, static_offsets, dynamic_offsets) =
             (&self.batches, &self.static_offsets, &self.dynamic_offsets);
+        let moving_order =
+            |a: &FrameHit, b: &FrameHit| a.frame.cmp(&b.frame).then(Hit::order(&a.hit, &b.hit));
         tasks
             .into_par_iter()
             .for_each(|(index, (b, k, first, n), s_hits, d_hits)| {
@@ -873,20 +888,31 @@ impl IntersectionList {
                     let range = |offsets: &[u32], base: u32| {
                         (offsets[l] - base) as usize..(offsets[l + 1] - base) as usize
                     };
-                    let hits = &mut s_hits[range(static_offsets, s0)];
-                    for h in hits.iter_mut() {
-                        *h = Hit::new(h.t, surface(*h, None, point(&line, h.t)), h.front());
+                    if which != Crossings::Later {
+                        let hits = &mut s_hits[range(static_offsets, s0)];
+                        for h in hits.iter_mut() {
+                            *h = Hit::new(h.t, surface(*h, None, point(&line, h.t)), h.front());
+                        }
+                        if !hits.is_sorted_by(|a, b| Hit::order(a, b).is_le()) {
+                            hits.sort_unstable_by(Hit::order);
+                        }
                     }
-                    hits.sort_unstable_by(Hit::order);
                     let hits = &mut d_hits[range(dynamic_offsets, d0)];
+                    // A line's moving crossings are in frame order: frame 0's first.
+                    let zero = hits.partition_point(|h| h.frame == 0);
+                    let hits = match which {
+                        Crossings::All => hits,
+                        Crossings::AtFrameZero => &mut hits[..zero],
+                        Crossings::Later => &mut hits[zero..],
+                    };
                     for h in hits.iter_mut() {
                         let at = point(&line, h.hit.t);
                         let new = surface(h.hit, Some(h.frame as usize), at);
                         h.hit = Hit::new(h.hit.t, new, h.hit.front());
                     }
-                    hits.sort_unstable_by(|a, b| {
-                        a.frame.cmp(&b.frame).then(Hit::order(&a.hit, &b.hit))
-                    });
+                    if !hits.is_sorted_by(|a, b| moving_order(a, b).is_le()) {
+                        hits.sort_unstable_by(moving_order);
+                    }
                 }
             });
     }
