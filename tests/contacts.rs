@@ -837,8 +837,25 @@ fn a_large_patch_no_line_crossed_gets_a_warning() {
         .unwrap();
     sparse[floor] = 0;
     assert_eq!(
-        radiosity::bake::unsampled_warning(&scene, &[fine, frame(sparse)]),
+        radiosity::bake::unsampled_warning(&scene, &[fine.clone(), frame(sparse.clone())]),
         None
+    );
+    // Every floor cell missed (each expected 0.3 crossings, but together they are a sixth of
+    // the room): too small for the lines, and said so.
+    let floors: Vec<usize> = (0..patches)
+        .filter(|&p| scene.patches[p].source.node == node("floor"))
+        .collect();
+    for &p in &floors {
+        sparse[p] = 0;
+    }
+    let warning =
+        radiosity::bake::unsampled_warning(&scene, &[fine, frame(sparse)]).expect("a warning");
+    assert!(
+        warning.starts_with(&format!("{} patches were", floors.len()))
+            && warning.contains(r#"in node 0 ("floor"))"#)
+            && warning.contains("frame(s) 1:")
+            && warning.contains("too small for the lines"),
+        "{warning}"
     );
 }
 

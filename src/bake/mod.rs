@@ -1394,66 +1394,106 @@ fn overlap_warnings(scene: &Scene, tracer: &SceneTracer, list: &IntersectionList
         .collect()
 }
 
-/// A warning for patches that no line crossed in some frame although their area should have
-/// drawn at least 10 crossings (the chance of none is then below 5e-5): geometry hidden from
-/// the lines, which bakes black (samples 0). Tiny patches that the lines simply missed are not
-/// worth one.
+/// The share of the scene's area that may bake black unannounced: patches no line crossed
+/// (samples 0) that are each too small to have expected any crossing, together over this
+/// share of the area, get a warning of their own.
+const UNSAMPLED_SHARE: f64 = 0.01;
+
+/// A warning for patches that no line crossed in some frame, which bake black (samples 0):
+/// those whose area should have drawn at least 10 crossings (the chance of none is then below
+/// 5e-5: geometry hidden from the lines), and patches too small for the lines when together
+/// they are over [`UNSAMPLED_SHARE`] of the scene's area in a frame (a fine `--patch-size` on
+/// few lines). A few tiny patches that the lines simply missed are not worth one.
 #[must_use]
 pub fn unsampled_warning(scene: &Scene, frames: &[Arc<FrameSolution>]) -> Option<String> {
     let total_area: f64 = scene.patches.iter().map(|p| p.area).sum();
     if total_area <= 0.0 {
         return None;
     }
-    let mut missed = vec![false; scene.patches.len()];
-    let mut in_frames = Vec::new();
+    // Per patch: missed though it expected 10 crossings, missed at all in a frame where the
+    // missed ones are over the share.
+    let (mut hidden, mut sparse) = (
+        vec![false; scene.patches.len()],
+        vec![false; scene.patches.len()],
+    );
+    let (mut hidden_frames, mut sparse_frames) = (Vec::new(), Vec::new());
     // Frames that share a solution are checked once.
-    let mut checked: std::collections::HashMap<*const FrameSolution, bool> = Default::default();
+    let mut checked: std::collections::HashMap<*const FrameSolution, (bool, bool)> =
+        Default::default();
     for (f, frame) in frames.iter().enumerate() {
-        let any = *checked.entry(Arc::as_ptr(frame)).or_insert_with(|| {
+        let (any_hidden, too_sparse) = *checked.entry(Arc::as_ptr(frame)).or_insert_with(|| {
             let crossings: u64 = frame.samples.iter().sum();
-            let mut any = false;
+            let (mut any_hidden, mut missed_area) = (false, 0.0);
             for (i, patch) in scene.patches.iter().enumerate() {
-                if frame.samples[i] == 0 && crossings as f64 * patch.area / total_area >= 10.0 {
-                    missed[i] = true;
-                    any = true;
+                if frame.samples[i] == 0 {
+                    missed_area += patch.area;
+                    if crossings as f64 * patch.area / total_area >= 10.0 {
+                        hidden[i] = true;
+                        any_hidden = true;
+                    }
                 }
             }
-            any
+            let too_sparse = missed_area > UNSAMPLED_SHARE * total_area;
+            if too_sparse {
+                for (i, missed) in sparse.iter_mut().enumerate() {
+                    *missed |= frame.samples[i] == 0;
+                }
+            }
+            (any_hidden, too_sparse)
         });
-        if any {
-            in_frames.push(f as u32);
+        if any_hidden {
+            hidden_frames.push(f as u32);
+        }
+        if too_sparse {
+            sparse_frames.push(f as u32);
         }
     }
-    let patches: Vec<usize> = (0..missed.len()).filter(|&i| missed[i]).collect();
-    if patches.is_empty() {
-        return None;
-    }
-    let area: f64 = patches.iter().map(|&i| scene.patches[i].area).sum();
-    let mut nodes: Vec<u32> = patches
-        .iter()
-        .map(|&i| scene.patches[i].source.node)
-        .collect();
-    nodes.sort_unstable();
-    nodes.dedup();
     let list = |v: &[u32], name: &dyn Fn(u32) -> String| {
         let shown: Vec<String> = v.iter().take(8).map(|&k| name(k)).collect();
         let more = if v.len() > 8 { ", …" } else { "" };
         format!("{}{more}", shown.join(", "))
     };
-    Some(format!(
-        "{} {} ({:.2}% of the scene's area, in {}) crossed by no line in frame(s) {}, \
-         though their area should have drawn at least 10 crossings each: they bake black \
-         (samples 0)",
-        patches.len(),
-        if patches.len() == 1 {
+    // The patches marked, their share of the area and their nodes.
+    let described = |marked: &[bool]| {
+        let patches: Vec<usize> = (0..marked.len()).filter(|&i| marked[i]).collect();
+        let area: f64 = patches.iter().map(|&i| scene.patches[i].area).sum();
+        let mut nodes: Vec<u32> = (patches.iter())
+            .map(|&i| scene.patches[i].source.node)
+            .collect();
+        nodes.sort_unstable();
+        nodes.dedup();
+        let was = if patches.len() == 1 {
             "patch was"
         } else {
             "patches were"
-        },
-        100.0 * area / total_area,
-        list(&nodes, &|n| scene.node_label(n)),
-        list(&in_frames, &|f| f.to_string())
-    ))
+        };
+        format!(
+            "{} {was} ({:.2}% of the scene's area, in {})",
+            patches.len(),
+            100.0 * area / total_area,
+            list(&nodes, &|n| scene.node_label(n)),
+        )
+    };
+    let mut found = Vec::new();
+    if !hidden_frames.is_empty() {
+        found.push(format!(
+            "{} crossed by no line in frame(s) {}, though their area should have drawn at \
+             least 10 crossings each: they bake black (samples 0)",
+            described(&hidden),
+            list(&hidden_frames, &|f| f.to_string())
+        ));
+    }
+    if !sparse_frames.is_empty() {
+        found.push(format!(
+            "{} crossed by no line in frame(s) {}: they bake black (samples 0), over {}% of \
+             the scene's area; their patches are too small for the lines (bake with more \
+             lines, or a larger patch size)",
+            described(&sparse),
+            list(&sparse_frames, &|f| f.to_string()),
+            100.0 * UNSAMPLED_SHARE
+        ));
+    }
+    (!found.is_empty()).then(|| found.join("; "))
 }
 
 /// Memory a job will need, estimated from the scene before tracing: crossings per line from

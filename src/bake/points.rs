@@ -74,7 +74,13 @@ impl Bake {
     ) -> Vec<PointRadiance> {
         let state = (&self.scene, &self.tracer, &self.area);
         let sampling = (gather, &self.gathered);
-        crate::direct::points::radiance_at(state, frame, points, (solved, lighting), sampling)
+        let mut values =
+            crate::direct::points::radiance_at(state, frame, points, (solved, lighting), sampling);
+        // Radiance is never negative: a sum of gathered terms can round below 0 (by 1e-13).
+        for v in &mut values {
+            v.radiance = v.radiance.map(|c| c.max(0.0));
+        }
+        values
     }
 }
 

@@ -607,6 +607,13 @@ fn solve_with(
             (error, spread)
         }
     };
+    // Radiance is never negative: an answer within the solve's tolerance of 0 (a patch no
+    // light reaches, a mean of pieces that are) can round below it, by 1e-13.
+    let clamp = |v: &mut [f64; 3]| *v = v.map(|c| c.max(0.0));
+    let mut radiance = radiance;
+    radiance.iter_mut().for_each(clamp);
+    let mut pieces = pieces;
+    pieces.iter_mut().for_each(|v| *v = v.map(|c| c.max(0.0)));
     let stderr = (0..answered)
         .map(|i| {
             answered_by[i].then(|| {
