@@ -94,3 +94,11 @@ impl Control {
         }
     }
 }
+
+/// A panic's message, from its payload (what `panic!` was given, if text).
+#[must_use]
+pub fn panic_message(payload: &(dyn std::any::Any + Send)) -> &str {
+    (payload.downcast_ref::<&str>().copied())
+        .or_else(|| payload.downcast_ref::<String>().map(String::as_str))
+        .unwrap_or("(no message)")
+}

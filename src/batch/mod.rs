@@ -808,9 +808,7 @@ fn each_scene(
 
 /// Why a bake that panicked failed: the panic's message, as a bug of the baker's.
 fn panicked(payload: &(dyn std::any::Any + Send)) -> String {
-    let message = (payload.downcast_ref::<&str>().copied())
-        .or_else(|| payload.downcast_ref::<String>().map(String::as_str))
-        .unwrap_or("no message");
+    let message = crate::control::panic_message(payload);
     format!("the baker failed on this scene (a bug: please report it with the scene): {message}")
 }
 

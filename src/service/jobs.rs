@@ -1261,8 +1261,18 @@ impl Jobs {
                 return;
             }
             let runner = job.clone();
-            if let Err(e) = tokio::task::spawn_blocking(move || runner.run(work)).await {
-                job.fail(format!("the job stopped unexpectedly: {e}"));
+            let run = move || super::panics::as_job(&runner.id.clone(), || runner.run(work));
+            if let Err(e) = tokio::task::spawn_blocking(run).await {
+                // Its panic is logged where it happened, with a backtrace
+                // ([`super::panics::log_panics`]).
+                let why = match e.try_into_panic() {
+                    Ok(payload) => {
+                        format!("it panicked: {}", crate::control::panic_message(&*payload))
+                    }
+                    Err(e) => e.to_string(),
+                };
+                tracing::error!(id = %job.id, %why, "the job failed");
+                job.fail(format!("the job stopped unexpectedly: {why}"));
             }
             job.touch();
             jobs.enforce_budget();

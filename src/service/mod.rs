@@ -9,6 +9,7 @@
 mod error;
 mod frames;
 mod jobs;
+mod panics;
 mod query;
 mod relight;
 mod store;
@@ -274,6 +275,7 @@ pub async fn serve(
     state: AppState,
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> std::io::Result<()> {
+    panics::log_panics();
     state.resume_pending();
     // Retention by age is applied every minute, and by count (and age) whenever a job ends.
     let jobs = state.0.jobs.clone();
