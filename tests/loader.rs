@@ -976,3 +976,136 @@ fn a_material_that_leaves_metallic_out_is_named_in_a_warning() {
         scene.warnings
     );
 }
+
+/// Every triangle of a scene knows where it lies on the source triangle it was made from,
+/// through subdivision and cuts: its corners, rebuilt from its origin and its source
+/// triangle's corners, are its own (the moving Cornell box: static walls and a rigid block);
+/// and the patch table's parts say what each patch is, merged patches included: shares that
+/// sum to 1, source triangles among the patch's own.
+#[test]
+fn every_triangle_knows_where_it_lies_on_its_source_triangle() {
+    use radiosity::scene::{TriangleMesh, refine};
+    use std::collections::HashMap;
+    let load = |patch_size: Option<f64>| {
+        let sample = (radiosity::samples::all().into_iter())
+            .find(|s| s.file_name == "cornell_moving.gltf")
+            .unwrap();
+        let options = LoadOptions {
+            fps: 2.0,
+            patch_size,
+            ..LoadOptions::default()
+        };
+        load(sample.gltf.as_bytes(), &options).unwrap()
+    };
+    // The traced meshes: the static one, then each object's (its index + 1).
+    let meshes = |s: &Scene| -> Vec<TriangleMesh> {
+        std::iter::once(s.statics.clone())
+            .chain(s.objects.iter().map(|o| o.mesh.clone()))
+            .collect()
+    };
+    let whole = load(None);
+    // Each source triangle's corners, by mesh and provenance.
+    let mut sources = HashMap::new();
+    for (m, mesh) in meshes(&whole).iter().enumerate() {
+        for (t, f) in mesh.triangles.iter().zip(&mesh.faces) {
+            let s = whole.patches[f.front as usize].source;
+            let corners = t.map(|v| mesh.positions[v as usize].as_dvec3());
+            sources.insert((m, s.node, s.mesh, s.primitive, s.triangle), corners);
+        }
+    }
+    let fine = load(Some(0.15));
+    assert!(fine.patches.len() > 4 * whole.patches.len());
+    let triangles: usize = meshes(&fine).iter().map(|m| m.triangles.len()).sum();
+    let cuts: Vec<u32> = (0..triangles)
+        .map(|t| if t % 3 == 0 { 0b1110 } else { 0 })
+        .collect();
+    let (cut, _) = refine::cut(&fine, &cuts);
+    for (name, scene) in [("subdivided", &fine), ("cut", &cut)] {
+        let mut checked = 0;
+        for (m, mesh) in meshes(scene).iter().enumerate() {
+            assert_eq!(mesh.origins.len(), mesh.triangles.len(), "{name}: mesh {m}");
+            for ((t, f), o) in mesh.triangles.iter().zip(&mesh.faces).zip(&mesh.origins) {
+                let s = scene.patches[f.front as usize].source;
+                let [a, b, c] = sources[&(m, s.node, s.mesh, s.primitive, o.triangle)];
+                for (k, &[u, v]) in o.corners.iter().enumerate() {
+                    let (u, v) = (f64::from(u), f64::from(v));
+                    let rebuilt = a * (1.0 - u - v) + b * u + c * v;
+                    let own = mesh.positions[t[k] as usize].as_dvec3();
+                    assert!(
+                        (rebuilt - own).length() < 1e-5,
+                        "{name}: mesh {m}, corner {own} rebuilt at {rebuilt} from {o:?}"
+                    );
+                }
+                checked += 1;
+            }
+        }
+        assert_eq!(
+            checked,
+            meshes(scene).iter().map(|m| m.triangles.len()).sum::<usize>()
+        );
+    }
+    // Merged: each static patch with the next one of its primitive and side.
+    let mut into = Vec::with_capacity(cut.patches.len());
+    let mut next = 0u32;
+    for (p, patch) in cut.patches.iter().enumerate() {
+        let same = |q: &radiosity::scene::Patch| {
+            (q.source.node, q.source.primitive, q.side, q.object)
+                == (patch.source.node, patch.source.primitive, patch.side, None)
+        };
+        if p % 2 == 1 && same(&cut.patches[p - 1]) && patch.object.is_none() {
+            into.push(next - 1);
+        } else {
+            into.push(next);
+            next += 1;
+        }
+    }
+    let merged = refine::merge(&cut, &into);
+    let table = radiosity::output::patch_table(&merged);
+    let (mut with_parts, mut of_two) = (0, 0);
+    for entry in table["patches"].as_array().unwrap() {
+        let Some(parts) = entry["parts"].as_array() else {
+            continue;
+        };
+        with_parts += 1;
+        let share: f64 = parts.iter().map(|p| p["share"].as_f64().unwrap()).sum();
+        assert!((share - 1.0).abs() < 1e-9, "{entry}");
+        let mut own = vec![entry["triangle"].as_u64().unwrap()];
+        own.extend(
+            entry["merged"]
+                .as_array()
+                .into_iter()
+                .flatten()
+                .map(|t| t.as_u64().unwrap()),
+        );
+        let triangles: std::collections::HashSet<u64> = parts
+            .iter()
+            .map(|p| p["triangle"].as_u64().unwrap())
+            .collect();
+        assert!(triangles.iter().all(|t| own.contains(t)), "{entry}");
+        of_two += usize::from(triangles.len() == 2);
+        for part in parts {
+            for corner in part["corners"].as_array().unwrap() {
+                let sum: f64 = corner
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .map(|w| w.as_f64().unwrap())
+                    .sum();
+                assert!((sum - 1.0).abs() < 1e-6, "{entry}");
+            }
+        }
+    }
+    assert!(
+        with_parts > merged.patches.len() / 2 && of_two > 0,
+        "{with_parts} {of_two}"
+    );
+    // The source's triangles whole need no parts.
+    let table = radiosity::output::patch_table(&whole);
+    assert!(
+        table["patches"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .all(|e| e.get("parts").is_none())
+    );
+}

@@ -18,7 +18,7 @@ use glam::{DAffine3, DMat4, DVec3, Vec3};
 use crate::scene::subdivide::{self, Subdivision, triangle_area};
 use crate::scene::{
     Bounds, Deformation, Faces, Frames, Light, LightKind, Material, Motion, MovingObject,
-    Normalisation, Patch, Projection, Provenance, Scene, SceneCamera, Side, SkinBinding,
+    Normalisation, Origin, Patch, Projection, Provenance, Scene, SceneCamera, Side, SkinBinding,
     TriangleMesh,
 };
 pub use animation::{Interpolation, Sampler};
@@ -1026,6 +1026,7 @@ fn build(
             None => Subdivision {
                 midpoints: Vec::new(),
                 sources: (0..triangles.len() as u32).collect(),
+                corners: vec![Origin::WHOLE.map(|c| c.map(|x| x as f32)); triangles.len()],
                 triangles,
             },
         };
@@ -1037,7 +1038,12 @@ fn build(
         };
         let mut mesh = TriangleMesh::default();
         let areas = inst.areas(&split, &measure);
-        for ((t, &src), area) in split.triangles.iter().zip(&split.sources).zip(areas) {
+        let corners = split.corners.iter();
+        for (((t, &src), area), &corners) in (split.triangles.iter())
+            .zip(&split.sources)
+            .zip(areas)
+            .zip(corners)
+        {
             let (primitive, triangle, material) = inst.geometry.origin[kept[src as usize]];
             let source = Provenance {
                 node: inst.node,
@@ -1062,6 +1068,7 @@ fn build(
                 .then(|| patch(Side::Back));
             mesh.triangles.push(*t);
             mesh.faces.push(Faces { front, back });
+            mesh.origins.push(Origin { triangle, corners });
         }
         if patches.len() > options.max_patches {
             return Err(too_many());
@@ -1078,6 +1085,7 @@ fn build(
                     .triangles
                     .extend(mesh.triangles.iter().map(|t| t.map(|i| i + base)));
                 statics.faces.extend(mesh.faces);
+                statics.origins.extend(mesh.origins);
             }
             Placement::Rigid(poses) => {
                 let positions = &inst.geometry.positions;

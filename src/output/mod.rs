@@ -155,9 +155,13 @@ pub fn preview_image(
 
 /// The patch table (the service's `GET /v1/timelines/{id}/patches`, the bake's
 /// `patches.json`): each patch's source, side, area and material, and the materials' names
-/// (what relighting takes).
+/// (what relighting takes). A patch that is not its source triangle whole (cut by a patch
+/// size or by `auto`, or merged from several) has `parts`: each of its triangles' source
+/// triangle, share of the patch's area and corners in barycentric coordinates on that source
+/// triangle, so that an answer can be put back on the source mesh.
 #[must_use]
 pub fn patch_table(scene: &Scene) -> serde_json::Value {
+    let parts = patch_parts(scene);
     let patches: Vec<serde_json::Value> = scene
         .patches
         .iter()
@@ -169,6 +173,19 @@ pub fn patch_table(scene: &Scene) -> serde_json::Value {
             if !p.merged.is_empty() {
                 entry["merged"] = json!(p.merged);
             }
+            let own = &parts[id];
+            let whole = matches!(own.as_slice(), [(o, _)] if o.is_whole() && o.triangle == p.source.triangle);
+            let total: f64 = own.iter().map(|(_, a)| a).sum();
+            if !own.is_empty() && !whole {
+                let listed: Vec<serde_json::Value> = (own.iter())
+                    .map(|(o, area)| {
+                        let corners = o.corners.map(|[u, v]| [1.0 - u - v, u, v]);
+                        let share = if total > 0.0 { area / total } else { 0.0 };
+                        json!({"triangle": o.triangle, "share": share, "corners": corners})
+                    })
+                    .collect();
+                entry["parts"] = json!(listed);
+            }
             entry
         })
         .collect();
@@ -176,6 +193,23 @@ pub fn patch_table(scene: &Scene) -> serde_json::Value {
         .map(|(index, m)| json!({"index": index, "name": m.name}))
         .collect();
     json!({ "patches": patches, "materials": materials })
+}
+
+/// Each patch's triangles: where each lies on its source triangle, and its area (in its
+/// mesh's own units). None for a mesh whose origins are unknown.
+fn patch_parts(scene: &Scene) -> Vec<Vec<(crate::scene::Origin, f64)>> {
+    let mut parts = vec![Vec::new(); scene.patches.len()];
+    let meshes = std::iter::once(&scene.statics).chain(scene.objects.iter().map(|o| &o.mesh));
+    for mesh in meshes.filter(|m| m.origins.len() == m.triangles.len()) {
+        for ((t, faces), origin) in mesh.triangles.iter().zip(&mesh.faces).zip(&mesh.origins) {
+            let [a, b, c] = t.map(|v| mesh.positions[v as usize].as_dvec3());
+            let area = crate::scene::subdivide::triangle_area(a, b, c);
+            for p in [Some(faces.front), faces.back].into_iter().flatten() {
+                parts[p as usize].push((*origin, area));
+            }
+        }
+    }
+    parts
 }
 
 /// A choice of frames on the command line: `all`, `none`, or a comma-separated list of frame

@@ -122,6 +122,58 @@ pub struct TriangleMesh {
     pub triangles: Vec<[u32; 3]>,
     /// Patches on the faces of each triangle (same length as `triangles`).
     pub faces: Vec<Faces>,
+    /// Where each triangle lies on the source triangle it was made from (same length as
+    /// `triangles`; empty for a mesh built otherwise than from a file, whose triangles are
+    /// then taken for their patches' source triangles whole).
+    #[serde(default)]
+    pub origins: Vec<Origin>,
+}
+
+/// Where a triangle of the scene lies on a triangle of the source file: the source triangle
+/// (within its patch's primitive) and its corners there, in order. Subdivision and cuts make
+/// a triangle part of its source triangle; merges make a patch of several source triangles'.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Origin {
+    /// The source triangle's index within its primitive ([`Provenance::triangle`]).
+    pub triangle: u32,
+    /// Each corner's barycentric coordinates on the source triangle: the weights `(u, v)` of
+    /// its second and third corners (the first's is `1 − u − v`).
+    pub corners: [[f32; 2]; 3],
+}
+
+impl Origin {
+    /// The corners of a whole source triangle.
+    pub const WHOLE: [[f64; 2]; 3] = [[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]];
+
+    /// Whether this is its source triangle whole, corners in the source's order.
+    #[must_use]
+    pub fn is_whole(&self) -> bool {
+        self.corners == Self::WHOLE.map(|c| c.map(|x| x as f32))
+    }
+
+    /// The halves of a triangle at this origin cut at the midpoint of its edge `k` (from
+    /// corner `k` to corner `k + 1`), with the corners `[a, m, c]` and `[m, b, c]` the cut
+    /// gives them ([`refine`]).
+    #[must_use]
+    pub fn halves(&self, k: usize) -> [Self; 2] {
+        let (a, b, c) = (
+            self.corners[k],
+            self.corners[(k + 1) % 3],
+            self.corners[(k + 2) % 3],
+        );
+        let m = [0.5 * (a[0] + b[0]), 0.5 * (a[1] + b[1])];
+        let triangle = self.triangle;
+        [
+            Self {
+                triangle,
+                corners: [a, m, c],
+            },
+            Self {
+                triangle,
+                corners: [m, b, c],
+            },
+        ]
+    }
 }
 
 /// A transform-animated or deforming part of the scene (one node of the source file).

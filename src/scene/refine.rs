@@ -19,7 +19,7 @@ use std::collections::HashMap;
 
 use glam::{DVec3, Vec3};
 
-use super::{Faces, Motion, MovingObject, Patch, Scene, TriangleMesh};
+use super::{Faces, Motion, MovingObject, Origin, Patch, Scene, TriangleMesh};
 
 /// A node of the cut tree of one traced triangle.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -136,6 +136,9 @@ struct MeshCutter {
     leaf_node: Vec<u32>,
     /// Local cut-tree nodes; `Leaf` holds a leaf id here. Roots are `0..triangles`.
     nodes: Vec<Node>,
+    /// Where each leaf lies on its source triangle, by leaf id (empty if the mesh's origins are
+    /// unknown).
+    origins: Vec<Origin>,
     /// The leaves on each edge.
     edges: HashMap<EdgeKey, Vec<u32>>,
     /// The midpoint vertex of each cut edge, by its corners' indices.
@@ -153,6 +156,11 @@ impl MeshCutter {
             positions: mesh.positions.clone(),
             triangles: mesh.triangles.clone(),
             leaf_node: (0..mesh.triangles.len() as u32).collect(),
+            origins: if mesh.origins.len() == mesh.triangles.len() {
+                mesh.origins.clone()
+            } else {
+                Vec::new()
+            },
             nodes: (0..mesh.triangles.len() as u32).map(Node::Leaf).collect(),
             edges: HashMap::new(),
             midpoints: HashMap::new(),
@@ -284,6 +292,11 @@ impl MeshCutter {
         let second = self.triangles.len() as u32;
         self.triangles[t as usize] = [a, m, c];
         self.triangles.push([m, b, c]);
+        if let Some(origin) = self.origins.get(t as usize) {
+            let [first_half, second_half] = origin.halves(k);
+            self.origins[t as usize] = first_half;
+            self.origins.push(second_half);
+        }
         let parent = self.leaf_node[t as usize] as usize;
         let children = [self.nodes.len() as u32, self.nodes.len() as u32 + 1];
         self.nodes[parent] = Node::Cut {
@@ -568,6 +581,7 @@ pub fn cut(scene: &Scene, cuts: &[u32]) -> (Scene, Refinement) {
             positions: cutter.positions.clone(),
             triangles: Vec::with_capacity(order.len()),
             faces: Vec::with_capacity(order.len()),
+            origins: Vec::with_capacity(cutter.origins.len().min(order.len())),
         };
         for (i, &(leaf, depth, root)) in order.iter().enumerate() {
             global[leaf as usize] = new_first + i as u32;
@@ -593,6 +607,9 @@ pub fn cut(scene: &Scene, cuts: &[u32]) -> (Scene, Refinement) {
             let back = faces.back.map(&mut piece);
             out.triangles.push(cutter.triangles[leaf as usize]);
             out.faces.push(Faces { front, back });
+            if let Some(&origin) = cutter.origins.get(leaf as usize) {
+                out.origins.push(origin);
+            }
         }
         // This mesh's nodes in global numbering: roots at `first..first + count`, the rest
         // appended after every root.

@@ -23,6 +23,9 @@ pub struct Subdivision {
     pub triangles: Vec<[u32; 3]>,
     /// For each resulting triangle, the index of the source triangle it came from.
     pub sources: Vec<u32>,
+    /// For each resulting triangle, where its corners lie on its source triangle
+    /// ([`super::Origin::corners`]).
+    pub corners: Vec<[[f32; 2]; 3]>,
 }
 
 /// Subdivision would create more triangles than allowed.
@@ -47,10 +50,12 @@ pub fn subdivide(
     let mut points: Vec<DVec3> = positions.to_vec();
     let mut out = Subdivision::default();
     let mut cut: HashMap<(u32, u32), u32> = HashMap::new();
-    let mut stack: Vec<[u32; 3]> = Vec::new();
+    // Each triangle with its corners' coordinates on its source triangle (halves of halves:
+    // exact in binary).
+    let mut stack: Vec<([u32; 3], [[f64; 2]; 3])> = Vec::new();
     for (source, &triangle) in triangles.iter().enumerate() {
-        stack.push(triangle);
-        while let Some(t) = stack.pop() {
+        stack.push((triangle, super::Origin::WHOLE));
+        while let Some((t, at)) = stack.pop() {
             // Edge k runs from t[k] to t[(k + 1) % 3]; the first longest one wins ties.
             let lengths = [0, 1, 2].map(|k| {
                 (points[t[k] as usize] - points[t[(k + 1) % 3] as usize]).length_squared()
@@ -65,6 +70,7 @@ pub fn subdivide(
                 }
                 out.triangles.push(t);
                 out.sources.push(source as u32);
+                out.corners.push(at.map(|c| c.map(|x| x as f32)));
                 continue;
             }
             let (a, b, c) = (t[k], t[(k + 1) % 3], t[(k + 2) % 3]);
@@ -74,9 +80,11 @@ pub fn subdivide(
                 points.push(midpoint(points[key.0 as usize], points[key.1 as usize]));
                 (points.len() - 1) as u32
             });
+            let (ua, ub, uc) = (at[k], at[(k + 1) % 3], at[(k + 2) % 3]);
+            let um = [0.5 * (ua[0] + ub[0]), 0.5 * (ua[1] + ub[1])];
             // Push the second half first so the first half comes out first (stable order).
-            stack.push([m, b, c]);
-            stack.push([a, m, c]);
+            stack.push(([m, b, c], [um, ub, uc]));
+            stack.push(([a, m, c], [ua, um, uc]));
         }
     }
     Ok(out)
