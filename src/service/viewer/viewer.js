@@ -1,7 +1,8 @@
 // The service's page: the timelines (home) or one timeline in 3D (viewer), from this service
 // alone. The viewer draws each frame's baked glTF (`baked.glb`) with WebGL2: the HDR radiance
 // per vertex (`_RADIANCE`) through the same tone curve as the files' vertex colours, or a false
-// colour per patch (the primitive's `extras.patches` names each triangle's patch).
+// colour per patch (the primitive's `extras.patches` names each triangle's patch). The unlit
+// side of a triangle lit on its other side is cut away, as in the previews (`cutaway`).
 'use strict';
 
 const $ = (id) => document.getElementById(id);
@@ -182,6 +183,60 @@ function frameFromGlb(buffer) {
   }));
   const extras = json.scenes[0].extras || {};
   return { origin, position, radiance, patch, corners, nodeOfPatch, min, max, cameras, time: extras.time };
+}
+
+/** A patch is unlit at or below this share of the frame's brightest luminance (`tonemap::UNLIT`). */
+const UNLIT_SHARE = 1e-4;
+
+/**
+ * The previews' cutaway (`output::preview_image`): the unlit side of a triangle whose other
+ * side is lit is not drawn. A closed room of double-sided walls (as Blender exports every
+ * material) seen from outside then shows its lit inside through the walls' dark outer sides,
+ * as a room of one-sided walls does with its back faces culled. Lit is the patch's radiance in
+ * `solution` (the frame's, `parseSolution`) above `UNLIT_SHARE` of the brightest patch's.
+ * The glb draws the two sides of a triangle as two triangles on the same corners, turning
+ * opposite ways: those are paired here. Returns the frame's arrays without the cut triangles,
+ * and how many were cut.
+ */
+function cutaway(frame, solution) {
+  const L = solution.radiance;
+  const y = (p) => 0.2126 * L[3 * p] + 0.7152 * L[3 * p + 1] + 0.0722 * L[3 * p + 2];
+  let brightest = 0;
+  for (let p = 0; p < solution.patches; p++) brightest = Math.max(brightest, y(p));
+  const lit = (p) => p < solution.patches && y(p) > UNLIT_SHARE * brightest;
+  const { position, patch } = frame;
+  const triangles = frame.corners / 3;
+  // Each triangle's corners from the least (as a string, exact for f32 positions): the two
+  // sides of one triangle list the same three, the second and third swapped.
+  const other = new Int32Array(triangles).fill(-1);
+  const open = new Map();
+  for (let t = 0; t < triangles; t++) {
+    const c = [0, 1, 2].map((k) => `${position[9 * t + 3 * k]},${position[9 * t + 3 * k + 1]},${position[9 * t + 3 * k + 2]}`);
+    if (new Set(c).size < 3) continue; // degenerate: no sides to tell apart
+    const first = c.indexOf(c.reduce((a, b) => (b < a ? b : a)));
+    const [b, d] = [c[(first + 1) % 3], c[(first + 2) % 3]];
+    const key = b < d ? `${c[first]};${b};${d}` : `${c[first]};${d};${b}`;
+    const turn = b < d;
+    const seen = open.get(key);
+    if (seen && seen.turn !== turn) {
+      other[t] = seen.t;
+      other[seen.t] = t;
+      open.delete(key);
+    } else if (!seen) open.set(key, { t, turn });
+  }
+  const keep = [];
+  for (let t = 0; t < triangles; t++) {
+    const p = patch[3 * t];
+    if (!(other[t] >= 0 && !lit(p) && lit(patch[3 * other[t]]))) keep.push(t);
+  }
+  if (keep.length === triangles) return { arrays: frame, cut: 0 };
+  const kept = { ...frame, position: new Float32Array(9 * keep.length), radiance: new Float32Array(9 * keep.length), patch: new Uint32Array(3 * keep.length), corners: 3 * keep.length };
+  keep.forEach((t, k) => {
+    kept.position.set(position.subarray(9 * t, 9 * t + 9), 9 * k);
+    kept.radiance.set(frame.radiance.subarray(9 * t, 9 * t + 9), 9 * k);
+    kept.patch.set(patch.subarray(3 * t, 3 * t + 3), 3 * k);
+  });
+  return { arrays: kept, cut: triangles - keep.length };
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -612,13 +667,17 @@ class Viewer {
     if (kept && kept.version === this.version) return Promise.resolve(kept);
     if (this.loading.has(frame)) return this.loading.get(frame);
     const promise = (async () => {
-      const response = await request(`${this.base}/frames/${frame}/baked.glb`);
+      // The frame's solution too: which side of each triangle is lit, for the cutaway.
+      const [response, solution] = await Promise.all([
+        request(`${this.base}/frames/${frame}/baked.glb`),
+        this.solution(frame, this.version),
+      ]);
       const version = parseInt(response.headers.get('x-result-version'), 10);
       const exposure = parseFloat(response.headers.get('x-exposure'));
-      const arrays = frameFromGlb(await response.arrayBuffer());
+      const { arrays, cut } = cutaway(frameFromGlb(await response.arrayBuffer()), solution);
       const mesh = this.renderer.upload(arrays);
       // The GPU has the vertices; the page keeps the rest.
-      const data = { ...arrays, position: null, radiance: null, patch: null };
+      const data = { ...arrays, position: null, radiance: null, patch: null, cut };
       const entry = { frame, version, data, mesh, used: performance.now() };
       const old = this.frames.get(frame);
       if (old && old !== this.shown) old.mesh.release();
