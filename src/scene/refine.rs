@@ -722,6 +722,10 @@ impl<'a> Corners<'a> {
 #[derive(Default)]
 pub struct Chain {
     steps: Vec<Step>,
+    /// Per step, each triangle's index after the last step if no step from this one on cuts
+    /// it (`u32::MAX` if one does): a crossing is carried through the steps that only
+    /// renumber its triangle at once. Made at the first [`Chain::locate`].
+    through: std::sync::OnceLock<Vec<Vec<u32>>>,
 }
 
 /// One refinement of a [`Chain`] and the rigid objects' triangles it cut.
@@ -751,6 +755,24 @@ impl Chain {
         });
     }
 
+    /// [`Chain::through`], from the last step back.
+    fn through(&self) -> Vec<Vec<u32>> {
+        let mut out: Vec<Vec<u32>> = Vec::with_capacity(self.steps.len());
+        for step in self.steps.iter().rev() {
+            let r = &step.refinement;
+            let after = out.last();
+            let row = (0..r.roots as u32)
+                .map(|g| match r.nodes[g as usize] {
+                    Node::Leaf(new) => after.map_or(new, |a| a[new as usize]),
+                    Node::Cut { .. } => u32::MAX,
+                })
+                .collect();
+            out.push(row);
+        }
+        out.reverse();
+        out
+    }
+
     /// The triangle, after every refinement, holding `point` (in normalised space) of moving
     /// triangle `global` of the first refinement's scene at `frame`, the objects posed as in
     /// `scene` (any scene of the chain: cuts keep the poses). The point's barycentric
@@ -759,13 +781,13 @@ impl Chain {
     /// to the other half than measuring them again in each piece would send it.
     #[must_use]
     pub fn locate(&self, scene: &Scene, global: u32, frame: usize, point: DVec3) -> u32 {
+        let through = self.through.get_or_init(|| self.through());
         let mut g = global;
         let mut bary: Option<[f64; 3]> = None;
-        for step in &self.steps {
-            if !step.refinement.is_cut(g) {
-                // The same triangle, renumbered: the coordinates hold.
-                g = step.refinement.locate(g, [1.0, 0.0, 0.0]);
-                continue;
+        for (step, through) in self.steps.iter().zip(through) {
+            if through[g as usize] != u32::MAX {
+                // Only renumbered from here on.
+                return through[g as usize];
             }
             if bary.is_none() {
                 let k = step.firsts.partition_point(|&f| f <= g as usize) - 1;
