@@ -1041,7 +1041,10 @@ fn every_triangle_knows_where_it_lies_on_its_source_triangle() {
         }
         assert_eq!(
             checked,
-            meshes(scene).iter().map(|m| m.triangles.len()).sum::<usize>()
+            meshes(scene)
+                .iter()
+                .map(|m| m.triangles.len())
+                .sum::<usize>()
         );
     }
     // Merged: each static patch with the next one of its primitive and side.
