@@ -1410,8 +1410,8 @@ pub fn unsampled_warning(scene: &Scene, frames: &[Arc<FrameSolution>]) -> Option
     if total_area <= 0.0 {
         return None;
     }
-    // Per patch: missed though it expected 10 crossings, missed at all in a frame where the
-    // missed ones are over the share.
+    // Per patch: missed though it expected 10 crossings; missed, expecting fewer, in a frame
+    // where such patches are over the share.
     let (mut hidden, mut sparse) = (
         vec![false; scene.patches.len()],
         vec![false; scene.patches.len()],
@@ -1424,19 +1424,21 @@ pub fn unsampled_warning(scene: &Scene, frames: &[Arc<FrameSolution>]) -> Option
         let (any_hidden, too_sparse) = *checked.entry(Arc::as_ptr(frame)).or_insert_with(|| {
             let crossings: u64 = frame.samples.iter().sum();
             let (mut any_hidden, mut missed_area) = (false, 0.0);
+            let expected = |i: usize| crossings as f64 * scene.patches[i].area / total_area;
             for (i, patch) in scene.patches.iter().enumerate() {
                 if frame.samples[i] == 0 {
-                    missed_area += patch.area;
-                    if crossings as f64 * patch.area / total_area >= 10.0 {
+                    if expected(i) >= 10.0 {
                         hidden[i] = true;
                         any_hidden = true;
+                    } else {
+                        missed_area += patch.area;
                     }
                 }
             }
             let too_sparse = missed_area > UNSAMPLED_SHARE * total_area;
             if too_sparse {
                 for (i, missed) in sparse.iter_mut().enumerate() {
-                    *missed |= frame.samples[i] == 0;
+                    *missed |= frame.samples[i] == 0 && expected(i) < 10.0;
                 }
             }
             (any_hidden, too_sparse)
