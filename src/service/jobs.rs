@@ -1261,7 +1261,7 @@ impl Jobs {
                 return;
             }
             let runner = job.clone();
-            let run = move || super::panics::as_job(&runner.id.clone(), || runner.run(work));
+            let run = move || super::panics::as_job(&runner.id, || runner.run(work));
             if let Err(e) = tokio::task::spawn_blocking(run).await {
                 // Its panic is logged where it happened, with a backtrace
                 // ([`super::panics::log_panics`]).
