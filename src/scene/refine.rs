@@ -705,14 +705,26 @@ impl<'a> Corners<'a> {
     #[must_use]
     pub fn posed(&self, global: u32, frame: Option<usize>) -> Option<[DVec3; 3]> {
         let (object, mesh, t) = self.find(global);
-        let own = mesh.triangles[t].map(|v| mesh.positions[v as usize].as_dvec3());
-        match (object.map(|o| &o.motion), frame) {
-            (None, _) => Some(own),
-            (Some(Motion::Rigid { poses }), Some(f)) => {
-                Some(own.map(|p| poses[f].transform_point3(p)))
-            }
-            _ => None,
+        posed(mesh, t, object.map(|o| &o.motion), frame)
+    }
+}
+
+/// Triangle `t` of `mesh` in normalised space at `frame`, moved by `motion` (`None`: static
+/// geometry, as it is), or `None` for a deforming object's.
+fn posed(
+    mesh: &TriangleMesh,
+    t: usize,
+    motion: Option<&Motion>,
+    frame: Option<usize>,
+) -> Option<[DVec3; 3]> {
+    // Read only when posed: a deforming object's mesh may hold no triangles here.
+    let own = || mesh.triangles[t].map(|v| mesh.positions[v as usize].as_dvec3());
+    match (motion, frame) {
+        (None, _) => Some(own()),
+        (Some(Motion::Rigid { poses }), Some(f)) => {
+            Some(own().map(|p| poses[f].transform_point3(p)))
         }
+        _ => None,
     }
 }
 
@@ -791,14 +803,10 @@ impl Chain {
             }
             if bary.is_none() {
                 let k = step.firsts.partition_point(|&f| f <= g as usize) - 1;
-                let mesh = &step.meshes[k];
-                if let Motion::Rigid { poses } = &scene.objects[k].motion {
-                    let t = mesh.triangles[g as usize - step.firsts[k]];
-                    let corners = t.map(|v| {
-                        poses[frame].transform_point3(mesh.positions[v as usize].as_dvec3())
-                    });
-                    bary = barycentric(corners, point);
-                }
+                let t = g as usize - step.firsts[k];
+                let motion = Some(&scene.objects[k].motion);
+                bary = posed(&step.meshes[k], t, motion, Some(frame))
+                    .and_then(|corners| barycentric(corners, point));
             }
             match bary {
                 Some(b) => {

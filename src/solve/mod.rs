@@ -540,11 +540,11 @@ fn solve_with(
         }
         seen > 0 || (hidden > 0 && open == 0.0)
     };
-    let pieces = match groups {
+    let mut pieces: Vec<[f32; 3]> = match groups {
         Some(_) => (light.values.iter()).map(|l| l.map(|x| x as f32)).collect(),
         None => Vec::new(),
     };
-    let (radiance, sampled, crossings, unknown, answered_by) = match groups {
+    let (mut radiance, sampled, crossings, unknown, answered_by) = match groups {
         None => {
             let unknown: Vec<[bool; 3]> = (0..patches)
                 .map(|i| std::array::from_fn(|c| system.unknown(i, c)))
@@ -609,10 +609,7 @@ fn solve_with(
     };
     // Radiance is never negative: an answer within the solve's tolerance of 0 (a patch no
     // light reaches, a mean of pieces that are) can round below it, by 1e-13.
-    let clamp = |v: &mut [f64; 3]| *v = v.map(|c| c.max(0.0));
-    let mut radiance = radiance;
-    radiance.iter_mut().for_each(clamp);
-    let mut pieces = pieces;
+    radiance.iter_mut().for_each(|v| *v = v.map(|c| c.max(0.0)));
     pieces.iter_mut().for_each(|v| *v = v.map(|c| c.max(0.0)));
     let stderr = (0..answered)
         .map(|i| {
