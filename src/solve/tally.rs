@@ -161,24 +161,74 @@ fn aggregate(mut raw: Vec<(u64, i64)>) -> Entries {
     out
 }
 
-/// Adds sorted entry lists, pairwise in rounds (each entry is copied once per round, about
-/// log₂ of the lists' number times), the pairs of a round on every core.
-fn merge_all(mut lists: Vec<Entries>) -> Entries {
-    while lists.len() > 1 {
-        let mut pairs = Vec::with_capacity(lists.len().div_ceil(2));
-        let mut rest = lists.into_iter();
-        while let Some(a) = rest.next() {
-            pairs.push((a, rest.next()));
-        }
-        lists = pairs
-            .into_par_iter()
-            .map(|(a, b)| match b {
-                Some(b) => merge(&a, &b),
-                None => a,
-            })
-            .collect();
+/// [`aggregate`] of the entries of `chunks` together, in any order: a counting sort by row,
+/// then each row's entries sorted and added where they sit in cache, the rows in parallel.
+/// A frame's changes are a few hundred thousand entries over thousands of rows: sorting each
+/// chunk of lines and merging the chunks in rounds copied every entry five times or more.
+fn by_rows(chunks: Vec<Vec<(u64, i64)>>) -> Entries {
+    let row = |e: &(u64, i64)| (e.0 >> 32) as usize;
+    let rows = (chunks.iter().flatten())
+        .map(|e| row(e) + 1)
+        .max()
+        .unwrap_or(0);
+    let mut starts = vec![0usize; rows + 1];
+    for e in chunks.iter().flatten() {
+        starts[row(e) + 1] += 1;
     }
-    lists.pop().unwrap_or_default()
+    for r in 0..rows {
+        starts[r + 1] += starts[r];
+    }
+    let mut placed = vec![(0u64, 0i64); starts[rows]];
+    let mut next = starts[..rows].to_vec();
+    for e in chunks.into_iter().flatten() {
+        let r = row(&e);
+        placed[next[r]] = e;
+        next[r] += 1;
+    }
+    // Runs of whole rows of about equal entries, each sorted and added on its own.
+    let per_run = (placed.len() / (8 * rayon::current_num_threads()).max(1)).max(4096);
+    let mut runs = Vec::new();
+    let mut from = 0;
+    for r in 1..=rows {
+        if starts[r] - starts[from] >= per_run || r == rows {
+            runs.push(from..r);
+            from = r;
+        }
+    }
+    let mut slices = Vec::with_capacity(runs.len());
+    let mut rest = &mut placed[..];
+    for rows in runs {
+        let (run, after) = rest.split_at_mut(starts[rows.end] - starts[rows.start]);
+        slices.push((rows, run));
+        rest = after;
+    }
+    let parts: Vec<Entries> = slices
+        .into_par_iter()
+        .map(|(rows, placed)| {
+            let mut out: Entries = Vec::with_capacity(placed.len());
+            let mut at = 0;
+            for r in rows {
+                let len = starts[r + 1] - starts[r];
+                let row = &mut placed[at..at + len];
+                at += len;
+                row.sort_unstable_by_key(|e| e.0);
+                let mut k = 0;
+                while k < row.len() {
+                    let (key, mut count) = row[k];
+                    k += 1;
+                    while k < row.len() && row[k].0 == key {
+                        count += row[k].1;
+                        k += 1;
+                    }
+                    if count != 0 {
+                        out.push((key, count));
+                    }
+                }
+            }
+            out
+        })
+        .collect();
+    parts.concat()
 }
 
 /// Adds two sorted entry lists.
@@ -372,17 +422,17 @@ impl Tallies {
                         }
                     }
                 }
-                raw.map(aggregate)
+                raw
             })
             .collect();
-        let mut lists: [Vec<Entries>; N] =
+        let mut lists: [Vec<Vec<(u64, i64)>>; N] =
             std::array::from_fn(|_| Vec::with_capacity(chunks.len()));
         for chunk in chunks {
             for (list, entries) in lists.iter_mut().zip(chunk) {
                 list.push(entries);
             }
         }
-        lists.map(merge_all)
+        lists.map(by_rows)
     }
 
     /// Frames whose tallies equal an earlier frame's: `representative[f]` is the first frame
@@ -775,7 +825,7 @@ fn tally_static(
             aggregate(raw)
         })
         .collect();
-    merge_all(chunks)
+    by_rows(chunks)
 }
 
 #[cfg(test)]
@@ -887,5 +937,30 @@ mod tests {
             tally.with_changes(&changes),
             assemble(merge(&statics, &changes), patches as usize)
         );
+    }
+
+    /// The counting sort by row adds what a sort of all the entries adds: chunks in any order,
+    /// keys repeated within and across chunks, counts that cancel to zero dropped, rows with
+    /// no entries between others.
+    #[test]
+    fn entries_sorted_by_row_are_the_sorted_entries() {
+        use rand::{RngExt, SeedableRng};
+        let mut rng = rand::rngs::Xoshiro256PlusPlus::seed_from_u64(11);
+        let entry = |rng: &mut rand::rngs::Xoshiro256PlusPlus| {
+            let row = 3 * rng.random_range(0..2_000);
+            let k = key(
+                row,
+                rng.random_range(0..50),
+                rng.random_range(0..GROUPS) as u8,
+            );
+            (k, rng.random_range(-2..3))
+        };
+        let chunks: Vec<Vec<(u64, i64)>> = (0..7)
+            .map(|c| (0..c * 9_000).map(|_| entry(&mut rng)).collect())
+            .collect();
+        let all = aggregate(chunks.concat());
+        assert!(all.len() > 20_000 && all.iter().all(|e| e.1 != 0));
+        assert_eq!(by_rows(chunks), all);
+        assert!(by_rows(Vec::new()).is_empty());
     }
 }
