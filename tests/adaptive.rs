@@ -454,3 +454,36 @@ fn auto_cuts_where_a_lamps_light_falls_and_beats_uniform_patches_at_points() {
         100.0 * flat
     );
 }
+
+/// Cutting within a budget at once (the split's rounds) cuts what counting the patches first
+/// and then cutting does: the whole order where it fits, its longest prefix that fits where
+/// it does not.
+#[test]
+fn a_cut_within_budget_is_the_budgets_prefix_cut() {
+    use radiosity::scene::refine::{cut, cut_within_budget, within_budget};
+    let scene = sample_moving();
+    let triangles: u32 = (scene.statics.triangles.len()
+        + scene
+            .objects
+            .iter()
+            .map(|o| o.mesh.triangles.len())
+            .sum::<usize>()) as u32;
+    let order: Vec<(u32, u32)> = (0..triangles).rev().step_by(2).map(|t| (t, 1)).collect();
+    let whole = cut(&scene, &within_budget(&scene, &order, usize::MAX)).0;
+    let patches = scene.patches.len();
+    assert!(whole.patches.len() > patches + 10);
+    for budget in [
+        usize::MAX,
+        whole.patches.len(),
+        (patches + whole.patches.len()) / 2,
+        patches,
+    ] {
+        let expected = within_budget(&scene, &order, budget);
+        let (cuts, (next, refinement)) = cut_within_budget(&scene, &order, budget);
+        assert_eq!(cuts, expected, "budget {budget}");
+        let (fitted, fitted_refinement) = cut(&scene, &expected);
+        assert_eq!(next.patches.len(), fitted.patches.len(), "budget {budget}");
+        assert!(next.patches.len() <= budget);
+        assert_eq!(refinement.parents(), fitted_refinement.parents());
+    }
+}

@@ -219,6 +219,29 @@ fn walk_sides(
     let value = |to| light.value(to);
     let surfaces = table.surfaces();
     let weights = list.line_weights();
+    // Each piece walked: its place among those summed (every piece, or the fresh ones alone,
+    // whose sums then take little memory however many pieces the scene has).
+    let (slot, walked): (Option<Vec<u32>>, usize) = match fresh {
+        None => (None, pieces),
+        Some(fresh) => {
+            let mut next = 0;
+            let slot = (fresh.iter())
+                .map(|&f| {
+                    if f {
+                        next += 1;
+                        next - 1
+                    } else {
+                        u32::MAX
+                    }
+                })
+                .collect();
+            (Some(slot), next as usize)
+        }
+    };
+    let slot_of = |piece: u32| match &slot {
+        None => Some(piece as usize),
+        Some(slot) => Some(slot[piece as usize] as usize).filter(|&k| k != u32::MAX as usize),
+    };
     let counts = |piece: u32| fresh.is_none_or(|f| f[piece as usize]);
     // The triangles with a face to walk.
     let crossed: Option<Vec<bool>> = fresh.map(|_| {
@@ -226,10 +249,17 @@ fn walk_sides(
             .map(|f| counts(f.front) || f.back.is_some_and(counts))
             .collect()
     });
-    let sides = list
+    // Whether line `l` crosses a triangle with a face to walk at frame 0 (its moving
+    // crossings at frame 0 come first), read where the crossings are.
+    let crosses = |l: usize, crossed: &[bool]| {
+        let moving = list.moving_hits(l).iter().take_while(|h| h.frame == 0);
+        (list.static_hits(l).iter()).any(|h| crossed[h.surface() as usize])
+            || moving.map(|h| h.hit).any(|h| crossed[h.surface() as usize])
+    };
+    let summed = list
         .bundles_kept(scene, bundles)
         .fold(
-            || (vec![Sides::default(); pieces], Vec::new()),
+            || (vec![Sides::default(); walked], Vec::new()),
             |(mut acc, mut hits), (first, bundle)| {
                 let surfaces = surfaces.along(bundle.direction);
                 for i in 0..bundle.origins.len() {
@@ -237,19 +267,19 @@ fn walk_sides(
                     if w == 0 {
                         continue;
                     }
-                    list.frame_hits(first + i, 0, &mut hits);
                     if let Some(crossed) = &crossed
-                        && !hits.iter().any(|h| crossed[h.surface() as usize])
+                        && !crosses(first + i, crossed)
                     {
                         continue;
                     }
+                    list.frame_hits(first + i, 0, &mut hits);
                     walk_from(&hits, &surfaces, |from, to, at, length| {
-                        if !counts(from) {
+                        let Some(k) = slot_of(from) else {
                             return;
-                        }
+                        };
                         let side = usize::from(length >= width[at.surface() as usize]);
                         let g = value(to);
-                        let s = &mut acc[from as usize];
+                        let s = &mut acc[k];
                         s.hidden += u64::from(to == HIDDEN);
                         // Near, and facing back: across a gap, not into a corner.
                         let facing = (to as usize) < MAX_PATCHES
@@ -270,12 +300,18 @@ fn walk_sides(
         )
         .map(|(acc, _)| acc)
         .reduce(
-            || vec![Sides::default(); pieces],
+            || vec![Sides::default(); walked],
             |mut a, b| {
                 a.iter_mut().zip(&b).for_each(|(x, y)| x.add(y));
                 a
             },
         );
+    let sides = match &slot {
+        None => summed,
+        Some(slot) => (slot.iter())
+            .map(|&k| summed.get(k as usize).copied().unwrap_or_default())
+            .collect(),
+    };
     (sides, light.unit)
 }
 

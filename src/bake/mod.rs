@@ -677,12 +677,12 @@ impl Bake {
             .chain(dense.iter().map(|&(_, p)| p))
             .map(|p| (triangle[p as usize].0, 1))
             .collect();
-        let cuts = refine::within_budget(scene, &order, budget);
-        if cuts.iter().all(|&c| c == 0) {
+        if order.is_empty() {
             return None;
         }
-        let (next, refinement) = refine::cut(scene, &cuts);
-        (next.patches.len() > scene.patches.len()).then_some((next, refinement))
+        let (cuts, (next, refinement)) = refine::cut_within_budget(scene, &order, budget);
+        let cut = cuts.iter().any(|&c| c != 0) && next.patches.len() > scene.patches.len();
+        cut.then_some((next, refinement))
     }
 
     /// The direct light of the punctual lights and the area lights of `scene`, sampled as a

@@ -18,6 +18,7 @@
 use std::collections::HashMap;
 
 use glam::{DVec3, Vec3};
+use smallvec::SmallVec;
 
 use super::{Faces, Motion, MovingObject, Origin, Patch, Scene, TriangleMesh};
 
@@ -139,11 +140,16 @@ struct MeshCutter {
     /// Where each leaf lies on its source triangle, by leaf id (empty if the mesh's origins are
     /// unknown).
     origins: Vec<Origin>,
-    /// The leaves on each edge.
-    edges: HashMap<EdgeKey, Vec<u32>>,
+    /// The leaves on each edge (two, but for an exported mesh's odd edges).
+    edges: FastMap<EdgeKey, SmallVec<[u32; 2]>>,
     /// The midpoint vertex of each cut edge, by its corners' indices.
-    midpoints: HashMap<(u32, u32), u32>,
+    midpoints: FastMap<(u32, u32), u32>,
 }
+
+/// A map only looked up (never iterated: its order would be the hasher's) with a fast,
+/// fixed hasher: a cutter links every edge of the scene's triangles, a few hundred thousand
+/// in a round of the split, where the standard hasher took most of the cutter's time.
+type FastMap<K, V> = HashMap<K, V, foldhash::fast::FixedState>;
 
 /// Propagation paths longer than this cut the neighbours at the shared edge instead (still
 /// without T-junctions; only the shape guarantee is lost). Never reached in practice: a path
@@ -162,8 +168,8 @@ impl MeshCutter {
                 Vec::new()
             },
             nodes: (0..mesh.triangles.len() as u32).map(Node::Leaf).collect(),
-            edges: HashMap::new(),
-            midpoints: HashMap::new(),
+            edges: FastMap::default(),
+            midpoints: FastMap::default(),
         };
         for t in 0..cutter.triangles.len() as u32 {
             cutter.link(t);
@@ -197,7 +203,7 @@ impl MeshCutter {
         for k in 0..3 {
             let key = self.edge_key(t, k);
             if let Some(list) = self.edges.get_mut(&key) {
-                list.retain(|&o| o != t);
+                list.retain(|o| *o != t);
             }
         }
     }
@@ -352,6 +358,32 @@ pub fn within_budget(scene: &Scene, order: &[(u32, u32)], budget: usize) -> Vec<
         }
     }
     masks(fit)
+}
+
+/// [`cut`] of `scene` by [`within_budget`]'s cuts, and those cuts: the whole of `order` cut
+/// at once where its patches are within `budget` (as in most of the split's rounds), one
+/// cutting where counting them first and then cutting took two.
+#[must_use]
+pub fn cut_within_budget(
+    scene: &Scene,
+    order: &[(u32, u32)],
+    budget: usize,
+) -> (Vec<u32>, (Scene, Refinement)) {
+    let triangles: usize = traced_meshes(scene)
+        .iter()
+        .map(|(m, _)| m.triangles.len())
+        .sum();
+    let mut all = vec![0u32; triangles];
+    for &(t, heap) in order {
+        all[t as usize] |= 1 << heap;
+    }
+    let whole = cut(scene, &all);
+    if whole.0.patches.len() <= budget {
+        return (all, whole);
+    }
+    let cuts = within_budget(scene, order, budget);
+    let fitted = cut(scene, &cuts);
+    (cuts, fitted)
 }
 
 /// How many patches [`cut`] would make of `scene` with `cuts`, the cuts the neighbours need
