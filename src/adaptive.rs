@@ -151,6 +151,8 @@ pub fn adapt(
     solve: &SolveParams,
     control: &Control,
 ) -> Result<Vec<Round>, TraceError> {
+    // The rounds solve the patches at every frame.
+    bake.complete_lights(control)?;
     let mut rounds = Vec::new();
     // Cuts, then merges; once more if the merges freed budget the cuts had used up (the
     // patches they freed go where the light needs them).

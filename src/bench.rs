@@ -891,6 +891,7 @@ mod tests {
             pieces_stderr: Vec::new(),
             shape: Vec::new(),
             spread: Vec::new(),
+            first: Vec::new(),
             samples: stderr.iter().map(|e| u64::from(e.is_some())).collect(),
             radiance,
             stderr,
@@ -1264,11 +1265,14 @@ pub fn patch_scenes() -> Vec<(&'static str, Vec<crate::params::PatchSize>)> {
 }
 
 /// The scenes `bench-accuracy` measures.
-pub const ACCURACY_SCENES: [&str; 4] = [
+pub const ACCURACY_SCENES: [&str; 7] = [
     "furnace.gltf",
     "parallel_squares.gltf",
     "cornell_moving.gltf",
     "level.gltf",
+    "level_lamps.gltf",
+    "lamp_room.gltf",
+    "panel_room.gltf",
 ];
 
 /// A sample scene of the directory `scenes` loaded with `options`; the error names the file.

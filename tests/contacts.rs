@@ -802,6 +802,7 @@ fn a_large_patch_no_line_crossed_gets_a_warning() {
             pieces_stderr: Vec::new(),
             shape: Vec::new(),
             spread: Vec::new(),
+            first: Vec::new(),
             radiance: vec![[0.0; 3]; patches],
             stderr: vec![None; patches],
             samples,

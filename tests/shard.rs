@@ -71,7 +71,8 @@ fn a_bake_of_merged_parts_is_the_bake_of_one_machine() {
     let alone = Bake::trace(scene.clone(), &params).unwrap();
     let merged = IntersectionList::merge(parts(&scene, &params, 2)).unwrap();
     let control = Control::default();
-    let of_parts = Bake::of_merged_list(scene, merged, params.seed, &control).unwrap();
+    let all = radiosity::direct::area::Poses::All;
+    let of_parts = Bake::of_merged_list(scene, merged, (params.seed, all), &control).unwrap();
     assert!(of_parts.write_bytes(Vec::new()).unwrap() == alone.write_bytes(Vec::new()).unwrap());
 }
 

@@ -460,6 +460,71 @@ fn a_frame_where_nothing_moves_costs_no_light_sampling_and_no_solve() {
     assert_eq!((solved.into_inner(), served), (3, 9));
 }
 
+/// A bake that is split next samples its patches' lights at frame 0 alone
+/// ([`Poses::First`]; at the other frames the patches are solved whole with their pieces'
+/// light): the stepped Cornell box's patches' emitter at 1 pose of 3 (its pieces' at all 3),
+/// the lamp room's lamps at frame 0 alone, and every frame the same radiance as a bake whose
+/// patches were lit at every pose. Where the split makes no pieces (too few lines for
+/// them), the patches' light is completed before their frames are solved.
+#[test]
+fn a_bake_split_next_lights_its_patches_at_the_first_pose_alone() {
+    use radiosity::control::Control;
+    use radiosity::direct::area::Poses;
+    let params = SolveParams::default();
+    let solve = |bake: &Bake| bake.solve_all(&bake.scene.materials, &params);
+    let traced = |scene: &Scene, lines: &LineParams, poses| {
+        Bake::trace_with(scene.clone(), (lines, poses), &Control::default()).unwrap()
+    };
+    let lamps = sample(
+        "lamp_room.gltf",
+        &LoadOptions {
+            fps: 6.0,
+            ..LoadOptions::default()
+        },
+    );
+    let cornell = stepped_cornell();
+    let many = lines(20_000, 9);
+    for scene in [&cornell, &lamps] {
+        let mut first = traced(scene, &many, Poses::First);
+        let lit = if scene.lights.is_empty() {
+            first.area_lights().pending()
+        } else {
+            first.direct().pending()
+        };
+        assert!(lit, "{} frames", scene.frames.count);
+        first.split(&params, &Control::default()).unwrap();
+        assert!(
+            first
+                .pieces()
+                .is_some_and(|p| p > first.scene.patches.len())
+        );
+        let mut all = traced(scene, &many, Poses::All);
+        all.split(&params, &Control::default()).unwrap();
+        let (a, b) = (solve(&first), solve(&all));
+        assert_eq!(a.len(), scene.frames.count);
+        for (a, b) in a.iter().zip(&b) {
+            assert_eq!(a.radiance, b.radiance);
+            assert!(
+                a.stderr
+                    .iter()
+                    .flatten()
+                    .all(|e| e.iter().all(|x| x.is_finite()))
+            );
+        }
+    }
+    let mut first = traced(&cornell, &many, Poses::First);
+    first.split(&params, &Control::default()).unwrap();
+    assert_eq!(first.area_lights().poses(), 1);
+    assert_eq!(first.piece_area_lights().map(|a| a.poses()), Some(3));
+    // 30 lines: three pieces each are over the budget of 3 (a piece per 10 lines).
+    let mut few = traced(&cornell, &lines(30, 9), Poses::First);
+    few.split(&params, &Control::default()).unwrap();
+    assert_eq!(few.pieces(), None);
+    assert!(!few.area_lights().pending());
+    assert_eq!(few.area_lights().poses(), 3);
+    assert_eq!(solve(&few).len(), 9);
+}
+
 #[test]
 fn inside_a_sphere_every_patch_sees_the_others_in_proportion_to_their_area() {
     // F_ij = A_j / A for every pair inside a sphere: with the sphere's lower half emitting 1 and

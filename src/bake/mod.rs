@@ -14,7 +14,7 @@ use rayon::prelude::*;
 
 use crate::control::{Control, Stop, TraceError};
 use crate::direct::DirectLight;
-use crate::direct::area::{AreaLights, Sampling};
+use crate::direct::area::{AreaLights, Poses, Sampling};
 use crate::scene::{Light, Material, Scene};
 use crate::solve::tally::{FrameTally, Tallies};
 use crate::solve::{
@@ -56,6 +56,9 @@ pub struct Bake {
 /// What a set of patches is solved with ([`Bake::solve_frame`]): the scene they are in, its
 /// tracer, their direct light from lamps and from emitters, and their visible shares kept
 /// across frames.
+/// The direct light of a bake's patches at a frame, and its variance.
+type LightOf<'a> = dyn Fn(usize) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) + Sync + 'a;
+
 type State<'a> = (
     &'a Scene,
     &'a SceneTracer,
@@ -140,18 +143,21 @@ pub enum Lights {
 impl Bake {
     /// Traces `params.lines` lines through the whole timeline and tallies them.
     pub fn trace(scene: Scene, params: &LineParams) -> Result<Self, TraceError> {
-        Self::trace_with(scene, params, &Control::default())
+        Self::trace_with(scene, (params, Poses::All), &Control::default())
     }
 
-    /// [`Bake::trace`] watched by `control` (progress, cancellation).
+    /// [`Bake::trace`] watched by `control` (progress, cancellation), the patches' sampled
+    /// emitters' light computed at the `poses` given: [`Poses::First`] for a bake that is
+    /// [`Bake::split`] next, whose patches are solved whole at frame 0 alone (the poses after
+    /// it are computed if the split makes no pieces, or by [`Bake::complete_lights`]).
     pub fn trace_with(
         scene: Scene,
-        params: &LineParams,
+        (params, poses): (&LineParams, Poses),
         control: &Control,
     ) -> Result<Self, TraceError> {
         let tracer = SceneTracer::for_lines(&scene, params.lines);
         let list = IntersectionList::build(&scene, &tracer, params, control)?;
-        Self::of_list((scene, tracer), list, params.seed, control)
+        Self::of_list((scene, tracer), list, (params.seed, poses), control)
     }
 
     /// The bake of `scene` whose lines, of `seed`, are `list` (traced here, or by several
@@ -164,7 +170,7 @@ impl Bake {
     pub fn of_merged_list(
         scene: Scene,
         list: IntersectionList,
-        seed: u64,
+        (seed, poses): (u64, Poses),
         control: &Control,
     ) -> Result<Self, Stop> {
         let tracer = SceneTracer::new(&scene);
@@ -173,19 +179,25 @@ impl Bake {
                 "the lines cross triangles the scene does not have".into(),
             ));
         }
-        Ok(Self::of_list((scene, tracer), list, seed, control)?)
+        Ok(Self::of_list(
+            (scene, tracer),
+            list,
+            (seed, poses),
+            control,
+        )?)
     }
 
     /// [`Bake::of_merged_list`] with the scene's tracer.
     fn of_list(
         (scene, tracer): (Scene, SceneTracer),
         list: IntersectionList,
-        seed: u64,
+        (seed, poses): (u64, Poses),
         control: &Control,
     ) -> Result<Self, TraceError> {
         let mut tallies = Tallies::default();
         tallies.update(&list, &tracer.surfaces(), scene.patches.len());
-        let (direct, area) = Self::sampled_lights(&scene, &tracer, (list.lines(), seed), control)?;
+        let sampling = (list.lines(), seed, poses);
+        let (direct, area) = Self::sampled_lights(&scene, &tracer, sampling, control)?;
         let warnings = overlap_warnings(&scene, &tracer, &list);
         Ok(Self {
             scene,
@@ -288,9 +300,12 @@ impl Bake {
         // What can fail (cancellation) first: the bake is left as it was.
         let tracer = SceneTracer::new(&scene);
         let (direct, area) = match lights {
-            Lights::Sample => {
-                Self::sampled_lights(&scene, &tracer, (self.list.lines(), self.seed), control)?
-            }
+            Lights::Sample => Self::sampled_lights(
+                &scene,
+                &tracer,
+                (self.list.lines(), self.seed, Poses::All),
+                control,
+            )?,
             Lights::Inherit => (
                 self.direct.inherit(refinement.parents()),
                 self.area.inherit(refinement.parents()),
@@ -326,8 +341,12 @@ impl Bake {
             return Ok(0);
         }
         let tracer = SceneTracer::new(&scene);
-        let (direct, area) =
-            Self::sampled_lights(&scene, &tracer, (self.list.lines(), self.seed), control)?;
+        let (direct, area) = Self::sampled_lights(
+            &scene,
+            &tracer,
+            (self.list.lines(), self.seed, Poses::All),
+            control,
+        )?;
         let mut tallies = Tallies::default();
         tallies.update(&self.list, &tracer.surfaces(), scene.patches.len());
         (self.scene, self.tracer, self.tallies) = (scene, tracer, tallies);
@@ -482,8 +501,9 @@ impl Bake {
                 ((1u64 << (1u32 << depth(m, least))) - 1) as u32 & !1
             })
             .collect();
-        // Nothing to split: the patches are their own pieces.
+        // Nothing to split: the patches are their own pieces, solved at every frame.
         if cuts.iter().all(|&c| c == 0) && apart.patches.len() == self.scene.patches.len() {
+            self.complete_lights(control)?;
             return Ok(self.scene.patches.len());
         }
         // The patches' answer at frame 0, for the gap scores: what each piece faces.
@@ -548,7 +568,7 @@ impl Bake {
             return Err(TraceError::Cancelled);
         }
         let tracer = SceneTracer::new(&scene);
-        let sampling = (self.list.lines(), self.seed);
+        let sampling = (self.list.lines(), self.seed, Poses::All);
         let (direct, area) = Self::sampled_lights(&scene, &tracer, sampling, control)?;
         let mut tallies = Tallies::default();
         tallies.update(&self.list, &tracer.surfaces(), scene.patches.len());
@@ -690,17 +710,28 @@ impl Bake {
     fn sampled_lights(
         scene: &Scene,
         tracer: &SceneTracer,
-        (lines, seed): (usize, u64),
+        (lines, seed, poses): (usize, u64, Poses),
         control: &Control,
     ) -> Result<(DirectLight, AreaLights), TraceError> {
-        let direct = DirectLight::compute(scene, tracer, control)?;
-        let area = AreaLights::compute(
-            scene,
-            tracer,
-            Sampling::for_lines(lines as u64, scene.patches.len(), seed),
-            control,
-        )?;
+        let direct = DirectLight::compute_poses(scene, tracer, poses, control)?;
+        let sampling = Sampling::for_lines(lines as u64, scene.patches.len(), seed);
+        let area = AreaLights::compute_poses(scene, tracer, (sampling, poses), control)?;
         Ok((direct, area))
+    }
+
+    /// Computes the poses of the patches' sampled emitters' light that [`Poses::First`] left
+    /// pending: before the patches are solved at other frames than the first.
+    ///
+    /// # Errors
+    /// [`TraceError::Cancelled`] if `control` is cancelled (the light is then left as it was).
+    pub fn complete_lights(&mut self, control: &Control) -> Result<(), TraceError> {
+        let sampling = Sampling::for_lines(
+            self.list.lines() as u64,
+            self.scene.patches.len(),
+            self.seed,
+        );
+        (self.area).complete(&self.scene, &self.tracer, sampling, control)?;
+        (self.direct).complete(&self.scene, &self.tracer, control)
     }
 
     /// Samples the direct light again for the patches as they are, if the last cut let the
@@ -710,7 +741,7 @@ impl Bake {
     /// [`TraceError::Cancelled`] if `control` is cancelled (the light is then left as it was).
     pub fn sample_lights(&mut self, control: &Control) -> Result<(), TraceError> {
         if self.inherited {
-            let sampling = (self.list.lines(), self.seed);
+            let sampling = (self.list.lines(), self.seed, Poses::All);
             (self.direct, self.area) =
                 Self::sampled_lights(&self.scene, &self.tracer, sampling, control)?;
             self.inherited = false;
@@ -936,8 +967,14 @@ impl Bake {
                     }
                 };
                 let groups = Some(&pieces.groups);
-                let mut solution =
-                    Self::solve_state_from(&tally, state, groups, solve, start, Some(spread));
+                let mut solution = Self::solve_state_from(
+                    &tally,
+                    state,
+                    (groups, None),
+                    solve,
+                    start,
+                    Some(spread),
+                );
                 match (whole_tally, carried) {
                     // The patches solved whole as well (the answer alone): how far the pieces
                     // moved it says how far the pieces themselves may still be from the light's
@@ -1013,7 +1050,7 @@ impl Bake {
         let spread = (start.map(|(_, s)| &s.spread[..]))
             .filter(|spread| spread.len() == self.scene.patches.len())
             .map_or(Spread::Replicas, Spread::Carried);
-        Self::solve_state_from(tally, state, None, solve, start, Some(spread))
+        Self::solve_state_from(tally, state, (None, None), solve, start, Some(spread))
     }
 
     /// What the bake's patches are solved with: the scene, its tracer, their direct light and
@@ -1039,6 +1076,9 @@ impl Bake {
     }
 
     /// [`Bake::whole_answer`] from `tally`, the patches' tallies at the frame.
+    /// A split bake's patches take their direct light from their pieces' (the area-weighted
+    /// mean of the pieces', sampled at every frame: the patches' own is sampled at frame 0
+    /// alone, [`Poses::First`]).
     fn whole_answer_of(
         &self,
         tally: &FrameTally,
@@ -1046,22 +1086,37 @@ impl Bake {
         start: Option<(usize, &FrameSolution)>,
     ) -> FrameSolution {
         let state = self.state();
-        Self::solve_state_from(tally, state, None, solve, start, None)
+        let (_, materials, power, _) = solve;
+        let of_pieces = |frame: usize| {
+            let pieces = self.pieces.as_ref().expect("a split bake");
+            let (e, v) = direct_light(&pieces.direct, &pieces.area, frame, materials, power);
+            if e.is_empty() {
+                return (e, v);
+            }
+            pieces.groups.area_mean(&e, &v)
+        };
+        let light_of: Option<&LightOf<'_>> = self.pieces.is_some().then_some(&of_pieces);
+        Self::solve_state_from(tally, state, (None, light_of), solve, start, None)
     }
 
     /// Solves `tally`, the tallies of `state`'s patches (the bake's, or its pieces' with their
     /// `groups`) and their direct light, at `frame` with `materials` and the lights at `power`,
     /// starting from `start` (the answer for the bake's patches at a nearby frame).
+    /// `light_of` gives their direct light at a frame, if not `state`'s own (its direct light
+    /// and visible shares are read at `frame` and at the start's).
     fn solve_state_from(
         tally: &FrameTally,
         (scene, tracer, direct, area, shares): State<'_>,
-        groups: Option<&Groups>,
+        (groups, light_of): (Option<&Groups>, Option<&LightOf<'_>>),
         (frame, materials, power, params): (usize, &[Material], &[[f64; 3]], &SolveParams),
         start: Option<(usize, &FrameSolution)>,
         spread: Option<Spread<'_>>,
     ) -> FrameSolution {
         let patch_materials: Vec<u32> = scene.patches.iter().map(|p| p.material).collect();
-        let light = |frame| direct_light(direct, area, frame, materials, power);
+        let light = |frame| match light_of {
+            Some(light_of) => light_of(frame),
+            None => direct_light(direct, area, frame, materials, power),
+        };
         let (mut irradiance, mut variance) = light(frame);
         // The direct light of what can be seen of each patch, as the tallies count only the
         // crossings of its visible part: sampled over the whole patch, it is the visible
@@ -1094,6 +1149,7 @@ impl Bake {
         });
         // The start's radiance (each piece its patch's), with this frame's direct light in
         // place of its own (both of the visible part, by this frame's shares).
+        let start_solution = start.map(|(_, s)| s);
         let start = start.map(|(from, solution)| {
             // A split solution's own pieces where it has them (a patch's mean would start
             // every piece at its patch's light, the shape the solve has to find again).
@@ -1120,6 +1176,8 @@ impl Bake {
             radiance
         });
         let start = start.as_deref();
+        // What the start's noise test measured, if it answered for the same patches.
+        let guess = start_solution.map(|s| &s.first[..]);
         match spread {
             Some(spread) => solve_grouped(
                 tally,
@@ -1128,7 +1186,7 @@ impl Bake {
                 params,
                 lit,
                 start,
-                (groups, spread),
+                (groups, spread, guess),
             ),
             None => solve_answer(tally, &patch_materials, materials, params, lit, start),
         }
@@ -1191,7 +1249,7 @@ impl Bake {
         }
         (solved.into_iter())
             .map(|(f, mut s)| {
-                (s.shape, s.spread) = (Vec::new(), Vec::new());
+                (s.shape, s.spread, s.first) = (Vec::new(), Vec::new(), Vec::new());
                 (f, Arc::new(s))
             })
             .collect()
@@ -1268,7 +1326,12 @@ fn resample(
     let before = Sampling::for_lines(before as u64, patches, seed);
     let after = Sampling::for_lines(after as u64, patches, seed);
     if after.density != before.density && !area.is_empty() {
-        *area = AreaLights::compute(scene, tracer, after, control)?;
+        let poses = if area.pending() {
+            Poses::First
+        } else {
+            Poses::All
+        };
+        *area = AreaLights::compute_poses(scene, tracer, (after, poses), control)?;
     }
     Ok(())
 }

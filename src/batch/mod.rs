@@ -35,6 +35,7 @@ use serde::Serialize;
 use crate::adaptive;
 use crate::bake::Bake;
 use crate::control::{Control, Stop};
+use crate::direct::area::Poses;
 use crate::direct::points::Lighting;
 use crate::loader;
 use crate::output::{self, FrameSpec, ToneMap};
@@ -525,9 +526,20 @@ fn bake_scene(
         if frames == 1 { "" } else { "s" },
         scene.patches.len()
     ));
-    let bake = Bake::trace_with(scene, &settings.lines, control)?;
+    let poses = poses_for(settings, &scene);
+    let bake = Bake::trace_with(scene, (&settings.lines, poses), control)?;
     timings.trace = lap();
     finish(bake, timings, params, control, log)
+}
+
+/// The poses of the moving geometry a bake of `scene` with `settings` needs its patches'
+/// sampled emitters' light at, from the start: the first alone when its patches are split into
+/// pieces (solved whole at frame 0 alone), every one for `auto`'s rounds.
+pub(crate) fn poses_for(settings: &BakeSettings, scene: &crate::scene::Scene) -> Poses {
+    match settings.adaptive(scene.patches.len()) {
+        Some(_) => Poses::All,
+        None => Poses::First,
+    }
 }
 
 /// [`bake_scene`] from its traced `bake` on (`timings` of the stages before it): its patches

@@ -227,7 +227,8 @@ pub fn merge(
         let scene = loader::load(&scene_bytes, &params.settings.load)
             .map_err(|e| Stop::Failed(e.to_string()))?;
         let seed = params.settings.lines.seed;
-        let bake = Bake::of_merged_list(scene, list, seed, control)?;
+        let poses = super::poses_for(&params.settings, &scene);
+        let bake = Bake::of_merged_list(scene, list, (seed, poses), control)?;
         let timings = Timings {
             trace: started.elapsed().as_secs_f64(),
             ..Timings::default()

@@ -123,8 +123,23 @@ pub struct AreaLights {
     visible: Vec<u64>,
     /// For each frame, its pose of the moving geometry (an index into `states`).
     frame_state: Vec<u32>,
-    /// Per distinct pose of the moving geometry: the pairs it changes, by patch.
+    /// Per distinct pose of the moving geometry: the pairs it changes, by patch (the first
+    /// pose's alone while [`AreaLights::pending`]).
     states: Vec<Vec<(u32, Pair)>>,
+    /// Whether the poses after the first are still to be computed ([`AreaLights::first_pose`]:
+    /// the light of a split bake's patches, read at frame 0 only).
+    #[serde(default)]
+    pending: bool,
+}
+
+/// Which poses of the moving geometry [`AreaLights::compute`] computes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Poses {
+    /// Every pose: the light of every frame.
+    All,
+    /// Frame 0's alone (the first pose); the others are computed by
+    /// [`AreaLights::complete`] if they turn out to be needed.
+    First,
 }
 
 /// A patch's form factor to one cluster.
@@ -176,6 +191,21 @@ impl AreaLights {
         scene: &Scene,
         tracer: &SceneTracer,
         sampling: Sampling,
+        control: &Control,
+    ) -> Result<Self, TraceError> {
+        Self::compute_poses(scene, tracer, (sampling, Poses::All), control)
+    }
+
+    /// [`AreaLights::compute`] of the `poses` given: with [`Poses::First`], the light of frame
+    /// 0 alone (the same values as [`Poses::All`] computes for it), the poses after it left
+    /// [`AreaLights::pending`].
+    ///
+    /// # Errors
+    /// [`TraceError::Cancelled`] if `control` was cancelled.
+    pub fn compute_poses(
+        scene: &Scene,
+        tracer: &SceneTracer,
+        (sampling, poses): (Sampling, Poses),
         control: &Control,
     ) -> Result<Self, TraceError> {
         let materials = choose(scene, tracer);
@@ -266,6 +296,7 @@ impl AreaLights {
             visible,
             frame_state,
             states: Vec::new(),
+            pending: poses == Poses::First && firsts.len() > 1,
         };
         control.advance(1);
 
@@ -277,7 +308,9 @@ impl AreaLights {
             let swept = swept_block(scene, &firsts);
             keep_pairs(&out, &receivers, &emitters, &clusters, &swept, sampling)
         };
-        for &frame in &firsts {
+        let computed = if out.pending { 1 } else { firsts.len() };
+        control.advance((firsts.len() - computed) as u64);
+        for &frame in &firsts[..computed] {
             if control.is_cancelled() {
                 return Err(TraceError::Cancelled);
             }
@@ -290,6 +323,31 @@ impl AreaLights {
             control.advance(1);
         }
         Ok(out)
+    }
+
+    /// Whether the poses after the first are still to be computed ([`Poses::First`]).
+    #[must_use]
+    pub fn pending(&self) -> bool {
+        self.pending
+    }
+
+    /// Computes the poses [`Poses::First`] left pending (all of them again, as
+    /// [`AreaLights::compute`] does: the same values), with `sampling`, the sampling they were
+    /// computed with.
+    ///
+    /// # Errors
+    /// [`TraceError::Cancelled`] if `control` was cancelled (the lights are left as they were).
+    pub fn complete(
+        &mut self,
+        scene: &Scene,
+        tracer: &SceneTracer,
+        sampling: Sampling,
+        control: &Control,
+    ) -> Result<(), TraceError> {
+        if self.pending {
+            *self = Self::compute(scene, tracer, sampling, control)?;
+        }
+        Ok(())
     }
 
     /// The same lights for patches cut from these: new patch `k` takes the form factors of
@@ -421,6 +479,10 @@ impl AreaLights {
         let Some(state) = self.state(frame) else {
             return (values, variances);
         };
+        assert!(
+            state < self.states.len(),
+            "the area lights of frame {frame} were not computed (poses pending)"
+        );
         let row = |p: usize| &self.pairs[self.offsets[p] as usize..self.offsets[p + 1] as usize];
         let mut changed = self.states[state].iter().peekable();
         let mut buffer: Vec<Pair> = Vec::new();

@@ -67,6 +67,9 @@ pub struct DirectLight {
     /// For each frame, the index of its combination of every light's state: frames with equal
     /// states have equal direct light.
     frame_state: Vec<u32>,
+    /// Whether the states after frame 0's are still to be computed ([`area::Poses::First`]).
+    #[serde(default)]
+    pending: bool,
 }
 
 impl DirectLight {
@@ -80,6 +83,20 @@ impl DirectLight {
     pub fn compute(
         scene: &Scene,
         tracer: &SceneTracer,
+        control: &Control,
+    ) -> Result<Self, TraceError> {
+        Self::compute_poses(scene, tracer, area::Poses::All, control)
+    }
+
+    /// [`DirectLight::compute`] at the `poses` given: with [`area::Poses::First`], each light's
+    /// state at frame 0 alone (the same values), the others left [`DirectLight::pending`].
+    ///
+    /// # Errors
+    /// [`TraceError::Cancelled`] if `control` was cancelled.
+    pub fn compute_poses(
+        scene: &Scene,
+        tracer: &SceneTracer,
+        poses: area::Poses,
         control: &Control,
     ) -> Result<Self, TraceError> {
         if scene.lights.is_empty() {
@@ -109,6 +126,12 @@ impl DirectLight {
             frame_term.push(states);
         }
         control.add_work(jobs.len() as u64);
+        // Frame 0 is the first of its states: each light's state 0.
+        let pending = poses == area::Poses::First && jobs.iter().any(|&(_, f)| f > 0);
+        if pending {
+            control.advance(jobs.iter().filter(|&&(_, f)| f > 0).count() as u64);
+            jobs.retain(|&(_, f)| f == 0);
+        }
         // One posed scene per frame that needs one, shared by its lights. In frame order, so
         // each light's states come out in the order they were numbered.
         let mut grouped: std::collections::BTreeMap<usize, Vec<usize>> = Default::default();
@@ -149,7 +172,31 @@ impl DirectLight {
             terms,
             variances,
             frame_state,
+            pending,
         })
+    }
+
+    /// Whether the states after frame 0's are still to be computed ([`area::Poses::First`]).
+    #[must_use]
+    pub fn pending(&self) -> bool {
+        self.pending
+    }
+
+    /// Computes the states [`area::Poses::First`] left pending (all of them again, as
+    /// [`DirectLight::compute`] does: the same values).
+    ///
+    /// # Errors
+    /// [`TraceError::Cancelled`] if `control` was cancelled (the light is left as it was).
+    pub fn complete(
+        &mut self,
+        scene: &Scene,
+        tracer: &SceneTracer,
+        control: &Control,
+    ) -> Result<(), TraceError> {
+        if self.pending {
+            *self = Self::compute(scene, tracer, control)?;
+        }
+        Ok(())
     }
 
     /// Whether there is any direct light.
@@ -199,6 +246,7 @@ impl DirectLight {
             terms: map(&self.terms),
             variances: map(&self.variances),
             frame_state: self.frame_state.clone(),
+            pending: self.pending,
         }
     }
 
@@ -215,7 +263,9 @@ impl DirectLight {
         let patches = per_light.first()?.first().map_or(0, Vec::len);
         let mut out = vec![[0.0; 3]; patches];
         for ((states, values), p) in self.frame_term.iter().zip(per_light).zip(power) {
-            let unit = &values[states[frame] as usize];
+            let Some(unit) = values.get(states[frame] as usize) else {
+                panic!("the direct light of frame {frame} was not computed (states pending)");
+            };
             let w = p.map(weight);
             for (e, &u) in out.iter_mut().zip(unit) {
                 for c in 0..3 {

@@ -154,6 +154,7 @@ mod tests {
                 pieces_stderr: Vec::new(),
                 shape: Vec::new(),
                 spread: Vec::new(),
+                first: Vec::new(),
                 radiance,
                 stderr: vec![None; n],
                 samples: vec![0; n],

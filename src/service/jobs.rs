@@ -15,6 +15,7 @@ use super::store::{Lighting, Record, Saved, Store, Traced, unix_seconds};
 use crate::adaptive::{self, Adaptive};
 use crate::bake::Bake;
 use crate::control::{Control, Stop};
+use crate::direct::area::Poses;
 use crate::params::BakeSettings;
 use crate::scene::{Material, Scene};
 use crate::solve::{FrameSolution, NotConverged, SolveParams};
@@ -974,7 +975,13 @@ impl Job {
         // A job read back from disk has its request's, for the scene as loaded.
         let auto = (self.auto)
             .or_else(|| (self.source.as_ref()).and_then(|s| s.adaptive(scene.patches.len())));
-        let mut bake = Bake::trace_with(scene, &self.lines, &self.control)?;
+        // The patches are solved at other frames than the first by `auto`'s rounds alone.
+        let poses = if auto.is_some() {
+            Poses::All
+        } else {
+            Poses::First
+        };
+        let mut bake = Bake::trace_with(scene, (&self.lines, poses), &self.control)?;
         if let Some(auto) = &auto {
             adaptive::adapt(&mut bake, auto, &self.solve, &self.control)?;
             self.set_patches(&bake.scene);

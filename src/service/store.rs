@@ -226,6 +226,7 @@ fn decode_frame(frame: usize, patches: usize, bytes: &[u8]) -> std::io::Result<F
         pieces_stderr: Vec::new(),
         shape: Vec::new(),
         spread: Vec::new(),
+        first: Vec::new(),
         iterations: usize::try_from(u64::from_le_bytes(word(0))).unwrap_or(usize::MAX),
         residual: f64_at(8),
         converged: body[16] == 1,
@@ -639,6 +640,7 @@ fn read_first_layout(bytes: &[u8], frames: usize) -> Option<Vec<FrameSolution>> 
             pieces_stderr: Vec::new(),
             shape: Vec::new(),
             spread: Vec::new(),
+            first: Vec::new(),
             radiance,
             stderr,
             samples,
@@ -660,6 +662,7 @@ mod tests {
             pieces_stderr: Vec::new(),
             shape: Vec::new(),
             spread: Vec::new(),
+            first: Vec::new(),
             radiance: (0..patches).map(|p| [k, p as f64, 0.5]).collect(),
             stderr: (0..patches)
                 .map(|p| (p % 3 != 0).then_some([0.1 * k, 0.0, 1e-300]))

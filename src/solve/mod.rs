@@ -123,6 +123,11 @@ pub struct FrameSolution {
     /// frames carry it ([`Spread::Carried`]).
     #[serde(skip)]
     pub spread: Vec<[Option<[f32; 2]>; 3]>,
+    /// Per patch, the first bounce's spread at this answer (the lower bound of its error
+    /// bar): the next frame of its run takes it as its noise test's first guess. Dropped
+    /// with [`FrameSolution::shape`].
+    #[serde(skip)]
+    pub first: Vec<[f64; 3]>,
     /// Crossings of each patch by the lines, where a surface touches it included (0:
     /// unsampled), in global lines (a gap's denser lines count a fraction each).
     pub samples: Vec<u64>,
@@ -264,7 +269,7 @@ pub fn solve_lit_from(
         params,
         direct,
         start,
-        (None, Spread::Replicas),
+        (None, Spread::Replicas, None),
     )
 }
 
@@ -328,6 +333,37 @@ impl Groups {
     /// Group `g`'s pieces.
     fn members(&self, g: usize) -> &[u32] {
         &self.members[self.offsets[g]..self.offsets[g + 1]]
+    }
+
+    /// Each group's mean of its pieces' `values` weighed by their areas (what one sampling
+    /// over the whole group estimates, when each piece's value is a mean over the piece), and
+    /// that mean's variance from the pieces' `variances` (sampled independently).
+    #[must_use]
+    pub fn area_mean(
+        &self,
+        values: &[[f64; 3]],
+        variances: &[[f64; 3]],
+    ) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
+        (0..self.len())
+            .map(|g| {
+                let members = self.members(g);
+                let total: f64 = members.iter().map(|&k| self.area[k as usize]).sum();
+                let (mut mean, mut variance) = ([0.0; 3], [0.0; 3]);
+                for &k in members {
+                    let k = k as usize;
+                    let w = if total > 0.0 {
+                        self.area[k] / total
+                    } else {
+                        0.0
+                    };
+                    for c in 0..3 {
+                        mean[c] += w * values[k][c];
+                        variance[c] += w * w * variances[k][c];
+                    }
+                }
+                (mean, variance)
+            })
+            .unzip()
     }
 
     /// Bytes it holds.
@@ -413,10 +449,10 @@ pub fn solve_grouped(
     params: &SolveParams,
     direct: Option<Direct<'_>>,
     start: Option<&[[f64; 3]]>,
-    (groups, spread): (Option<&Groups>, Spread<'_>),
+    (groups, spread, guess): (Option<&Groups>, Spread<'_>, Option<&[[f64; 3]]>),
 ) -> FrameSolution {
     let setup = (tally, patch_material, materials, params);
-    solve_with(setup, direct, start, groups, spread)
+    solve_with(setup, direct, (start, guess), groups, spread)
 }
 
 /// How a solve measures each answer's error from the lines.
@@ -446,14 +482,17 @@ pub fn solve_answer(
     start: Option<&[[f64; 3]]>,
 ) -> FrameSolution {
     let setup = (tally, patch_material, materials, params);
-    solve_with(setup, direct, start, None, Spread::FirstBounce)
+    solve_with(setup, direct, (start, None), None, Spread::FirstBounce)
 }
+
+/// An RGB value per patch.
+type PerPatch = [[f64; 3]];
 
 /// [`solve_grouped`], with the replicas' error bars or not.
 fn solve_with(
     (tally, patch_material, materials, params): (&FrameTally, &[u32], &[Material], &SolveParams),
     direct: Option<Direct<'_>>,
-    start: Option<&[[f64; 3]]>,
+    (start, guess): (Option<&[[f64; 3]]>, Option<&PerPatch>),
     groups: Option<&Groups>,
     spread: Spread<'_>,
 ) -> FrameSolution {
@@ -491,6 +530,7 @@ fn solve_with(
         noise: params.noise,
         precision: params.precision,
         groups,
+        guess: guess.filter(|g| g.len() == groups.map_or(patches, Groups::len)),
     };
     let light = system.solve::<f64>(&emission, &seen, params.sky, start, &stop);
     let converged = light.converged.iter().all(|&c| c);
@@ -633,6 +673,7 @@ fn solve_with(
         pieces_stderr: Vec::new(),
         shape: Vec::new(),
         spread,
+        first,
         samples: crossings,
         iterations: light.iterations,
         residual: light.residual.iter().copied().fold(0.0, f64::max),
@@ -675,6 +716,7 @@ fn replica_errors(
         noise: 0.0,
         precision: 0.0,
         groups: None,
+        guess: None,
     };
     // The replicas are solved in parallel (a frame alone, as a static scene is, then uses every
     // core), and summed in their order: the result does not depend on the thread count. With
@@ -761,6 +803,10 @@ struct Stop<'g> {
     /// The groups answered for, if the unknowns are pieces: each piece is then held to its
     /// group's standard error, the error bar of every answer that reads it.
     groups: Option<&'g Groups>,
+    /// The first bounce's spread per answered patch at a nearby frame's answer (the one the
+    /// solve starts from, [`FrameSolution::first`]): the noise test's guess of this frame's
+    /// until it measures its own, where a cold start measures it at the start.
+    guess: Option<&'g [[f64; 3]]>,
 }
 
 /// The precision of a solve's working vectors: `f64` for the answer; `f32` for the replicas,
@@ -1027,8 +1073,14 @@ impl<'a> System<'a> {
             seen: &seen_s,
             sky: sky_s,
         };
+        // A nearby frame's first-bounce spread, in this solve's scale: the noise test's guess.
+        let guess = (stop.guess).map(|g| {
+            (g.iter())
+                .map(|s| std::array::from_fn(|c| if solvable[c] { s[c] / scale[c] } else { 0.0 }))
+                .collect()
+        });
         let (x, iterations, mut residual, mut converged) =
-            self.conjugate_gradients(&problem, x0, solvable, stop);
+            self.conjugate_gradients(&problem, (x0, guess), solvable, stop);
         let mut values = le.to_vec();
         for (i, v) in values.iter_mut().enumerate() {
             for c in 0..3 {
@@ -1057,7 +1109,7 @@ impl<'a> System<'a> {
     fn conjugate_gradients<T: Real>(
         &self,
         problem: &Scaled<'_>,
-        mut x: Vec<[T; 3]>,
+        (mut x, guess): (Vec<[T; 3]>, Option<Vec<[f64; 3]>>),
         solvable: [bool; 3],
         stop: &Stop,
     ) -> (Vec<[T; 3]>, usize, [f64; 3], [bool; 3]) {
@@ -1094,7 +1146,7 @@ impl<'a> System<'a> {
         let (mut r, mut z) = (narrow(r), narrow(z));
         let mut p = z.clone();
         let mut q = vec![[T::of(0.0); 3]; n];
-        let mut noise = Noise::new();
+        let mut noise = Noise::new(guess);
         let mut iteration = 0;
         // Per channel, the largest |z_i|.
         let mut largest = z.iter().fold([0.0f64; 3], |m, v| {
@@ -1208,6 +1260,11 @@ impl<'a> System<'a> {
         const K: usize = tally::GROUPS as usize;
         let answered = groups.map_or(l.len(), Groups::len);
         let mut out = vec![[0.0; 3]; answered];
+        // What a segment to each patch carries, once: the per-group entries name it a few
+        // times in a row (a column's groups), and every row names it.
+        let carried: Vec<[f64; 3]> = (l.iter().zip(seen))
+            .map(|(l, s)| std::array::from_fn(|c| l[c] - s[c]))
+            .collect();
         for_rows(&mut out, |h| {
             let single = [h as u32];
             let members = groups.map_or(&single[..], |g| g.members(h));
@@ -1229,7 +1286,7 @@ impl<'a> System<'a> {
                         ABSORBED => [0.0; 3],
                         // Not a crossing of what can be seen of the patch (its `N_i`).
                         HIDDEN => continue,
-                        j => std::array::from_fn(|c| l[j as usize][c] - seen[j as usize][c]),
+                        j => carried[j as usize],
                     };
                     let w = f64::from(count);
                     (0..3).for_each(|c| y[g as usize][c] += w * v[c]);
@@ -1286,11 +1343,18 @@ struct Noise {
 }
 
 impl Noise {
-    fn new() -> Self {
+    /// With `guess`, the first bounce's spread as a nearby frame measured it: the test waits
+    /// until it would let a channel stop before it measures this frame's (a cold start
+    /// measures it at once, to have a guess).
+    fn new(guess: Option<Vec<[f64; 3]>>) -> Self {
         Self {
             floor: Vec::new(),
-            spread: Vec::new(),
-            measured_at: [f64::INFINITY; 3],
+            measured_at: [if guess.is_some() {
+                f64::NAN
+            } else {
+                f64::INFINITY
+            }; 3],
+            spread: guess.unwrap_or_default(),
         }
     }
 
@@ -1307,6 +1371,12 @@ impl Noise {
         stop: &Stop,
     ) -> [bool; 3] {
         let check = bound.map(f64::is_finite);
+        // With a guess, the bound it stands for is the first one.
+        for (at, bound) in self.measured_at.iter_mut().zip(bound) {
+            if at.is_nan() {
+                *at = bound;
+            }
+        }
         if check == [false; 3] || (stop.noise == 0.0 && stop.precision == 0.0) {
             // Nothing to test, or stopped by the residual alone.
             return [false; 3];
