@@ -239,7 +239,8 @@ impl Bake {
         let lines = (before, self.list.lines(), self.seed);
         if let Some(pieces) = &mut self.pieces {
             let count = pieces.scene.patches.len();
-            (pieces.tallies).update(&self.list, &pieces.tracer.surfaces(), count);
+            let like = Some(&self.tallies);
+            (pieces.tallies).update_like(&self.list, &pieces.tracer.surfaces(), count, like);
             resample(
                 &mut pieces.area,
                 &pieces.scene,
@@ -272,7 +273,8 @@ impl Bake {
         (self.tallies).update(&self.list, &self.tracer.surfaces(), patches);
         if let Some(pieces) = &mut self.pieces {
             let count = pieces.scene.patches.len();
-            (pieces.tallies).update(&self.list, &pieces.tracer.surfaces(), count);
+            let like = Some(&self.tallies);
+            (pieces.tallies).update_like(&self.list, &pieces.tracer.surfaces(), count, like);
         }
         Ok(())
     }
@@ -571,7 +573,8 @@ impl Bake {
         let sampling = (self.list.lines(), self.seed, Poses::All);
         let (direct, area) = Self::sampled_lights(&scene, &tracer, sampling, control)?;
         let mut tallies = Tallies::default();
-        tallies.update(&self.list, &tracer.surfaces(), scene.patches.len());
+        let like = Some(&self.tallies);
+        tallies.update_like(&self.list, &tracer.surfaces(), scene.patches.len(), like);
         let areas = scene.patches.iter().map(|p| p.area).collect();
         let map = crate::direct::points::PieceMap::new(&scene, &of);
         let groups = Groups::new(of, areas, self.scene.patches.len());

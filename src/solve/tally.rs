@@ -316,6 +316,19 @@ impl Tallies {
     /// Tallies the lines `list` holds beyond those already tallied (all of them the first
     /// time): call again after [`IntersectionList::add_lines`] to refine.
     pub fn update(&mut self, list: &IntersectionList, surfaces: &Surfaces<'_>, patches: usize) {
+        self.update_like(list, surfaces, patches, None);
+    }
+
+    /// [`Tallies::update`], the lines each frame touches and the frames' fingerprints taken
+    /// from `like` where it has tallied the same lines of `list` (other patches on the same
+    /// triangles: a split bake's patches and pieces), rather than read from the list again.
+    pub fn update_like(
+        &mut self,
+        list: &IntersectionList,
+        surfaces: &Surfaces<'_>,
+        patches: usize,
+        like: Option<&Self>,
+    ) {
         if list.dense().0.len() != self.dense {
             *self = Self::default();
             self.dense = list.dense().0.len();
@@ -332,6 +345,18 @@ impl Tallies {
         self.statics = assemble(entries, patches);
         self.statics.unit = u64::from(list.dense().1);
         self.lines = new.end;
+        let same = |like: &&Self| {
+            like.lines == list.lines()
+                && like.dense == self.dense
+                && like.weights == self.weights
+                && like.touched_offsets.len() == list.frames() + 1
+        };
+        if let Some(like) = like.filter(same) {
+            self.touched_offsets.clone_from(&like.touched_offsets);
+            self.touched.clone_from(&like.touched);
+            self.fingerprints.clone_from(&like.fingerprints);
+            return;
+        }
         // Which lines each frame's moving objects touch, over all lines that count.
         // Each line's frames in line order, placed by frame (a counting sort: line order kept).
         let starts = |l: usize| {
