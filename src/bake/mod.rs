@@ -53,12 +53,12 @@ pub struct Bake {
     shares: crate::direct::KeptShares,
 }
 
-/// What a set of patches is solved with ([`Bake::solve_frame`]): the scene they are in, its
-/// tracer, their direct light from lamps and from emitters, and their visible shares kept
-/// across frames.
 /// The direct light of a bake's patches at a frame, and its variance.
 type LightOf<'a> = dyn Fn(usize) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) + Sync + 'a;
 
+/// What a set of patches is solved with ([`Bake::solve_frame`]): the scene they are in, its
+/// tracer, their direct light from lamps and from emitters, and their visible shares kept
+/// across frames.
 type State<'a> = (
     &'a Scene,
     &'a SceneTracer,
@@ -1079,6 +1079,7 @@ impl Bake {
     }
 
     /// [`Bake::whole_answer`] from `tally`, the patches' tallies at the frame.
+    ///
     /// A split bake's patches take their direct light from their pieces' (the area-weighted
     /// mean of the pieces', sampled at every frame: the patches' own is sampled at frame 0
     /// alone, [`Poses::First`]).
@@ -1090,15 +1091,16 @@ impl Bake {
     ) -> FrameSolution {
         let state = self.state();
         let (_, materials, power, _) = solve;
-        let of_pieces = |frame: usize| {
-            let pieces = self.pieces.as_ref().expect("a split bake");
-            let (e, v) = direct_light(&pieces.direct, &pieces.area, frame, materials, power);
-            if e.is_empty() {
-                return (e, v);
+        let of_pieces = (self.pieces.as_ref()).map(|pieces| {
+            move |frame: usize| {
+                let (e, v) = direct_light(&pieces.direct, &pieces.area, frame, materials, power);
+                if e.is_empty() {
+                    return (e, v);
+                }
+                pieces.groups.area_mean(&e, &v)
             }
-            pieces.groups.area_mean(&e, &v)
-        };
-        let light_of: Option<&LightOf<'_>> = self.pieces.is_some().then_some(&of_pieces);
+        });
+        let light_of = of_pieces.as_ref().map(|f| f as &LightOf<'_>);
         Self::solve_state_from(tally, state, (None, light_of), solve, start, None)
     }
 

@@ -126,7 +126,7 @@ pub struct AreaLights {
     /// Per distinct pose of the moving geometry: the pairs it changes, by patch (the first
     /// pose's alone while [`AreaLights::pending`]).
     states: Vec<Vec<(u32, Pair)>>,
-    /// Whether the poses after the first are still to be computed ([`AreaLights::first_pose`]:
+    /// Whether the poses after the first are still to be computed ([`Poses::First`]:
     /// the light of a split bake's patches, read at frame 0 only).
     #[serde(default)]
     pending: bool,
