@@ -1,9 +1,11 @@
 #!/usr/bin/env bash
-# The stage times of docs/speed.md's table (issue 47): each bake run once, one after the other,
-# by each binary given (a build of this commit and, say, one of an earlier commit), the rows
-# of one binary printed as it finishes, in seconds from the bake's timings.json:
+# The stage times of docs/speed.md's tables (issue 47): each bake run by each binary given (a
+# build of this commit and, say, one of an earlier commit), the binaries alternated bake by
+# bake and the whole set repeated ROUNDS times (default 1), so that a machine growing busier or
+# quieter weighs on every binary alike; one row per run as it finishes, in seconds from the
+# bake's timings.json:
 #
-#   docs/speed.sh [BINARY...]          (default: ./target/release/radiosity)
+#   [ROUNDS=2] docs/speed.sh [BINARY...]          (default: ./target/release/radiosity)
 #
 # Run it on a quiet machine: the ratios between rows of one run are what it measures.
 set -euo pipefail
@@ -20,15 +22,16 @@ out=$(mktemp -d)
 trap 'rm -rf "$out"' EXIT
 echo "| binary | bake | trace | split | solve | outputs | whole command | whole / trace |"
 echo "|---|---|---|---|---|---|---|---|"
-for binary in "${binaries[@]}"; do
+for _ in $(seq "${ROUNDS:-1}"); do
   for bake in "${bakes[@]}"; do
-    read -r -a args <<<"$bake"
-    rm -rf "$out/bake"
-    start=$(date +%s.%N)
-    "$binary" bake "${args[@]}" --no-gif --out "$out/bake" >/dev/null 2>&1
-    end=$(date +%s.%N)
-    name=$(basename "${args[0]%.*}")
-    python3 - "$out/bake/$name/timings.json" "$start" "$end" "$binary" "$bake" <<'EOF'
+    for binary in "${binaries[@]}"; do
+      read -r -a args <<<"$bake"
+      rm -rf "$out/bake"
+      start=$(date +%s.%N)
+      "$binary" bake "${args[@]}" --no-gif --out "$out/bake" >/dev/null 2>&1
+      end=$(date +%s.%N)
+      name=$(basename "${args[0]%.*}")
+      python3 - "$out/bake/$name/timings.json" "$start" "$end" "$binary" "$bake" <<'EOF'
 import json, sys
 t = json.load(open(sys.argv[1]))
 whole = float(sys.argv[3]) - float(sys.argv[2])
@@ -36,5 +39,6 @@ stages = [t["trace"] + t["adapt"], t["split"], t["solve"], t["outputs"]]
 cells = " | ".join(f"{s:.2f}" for s in stages)
 print(f"| `{sys.argv[4]}` | `{sys.argv[5]}` | {cells} | {whole:.1f} | {whole / stages[0]:.1f} |")
 EOF
+    done
   done
 done
