@@ -242,11 +242,11 @@ fn walk_sides(
         None => Some(piece as usize),
         Some(slot) => Some(slot[piece as usize] as usize).filter(|&k| k != u32::MAX as usize),
     };
-    let counts = |piece: u32| fresh.is_none_or(|f| f[piece as usize]);
+    let walks = |piece: u32| slot_of(piece).is_some();
     // The triangles with a face to walk.
     let crossed: Option<Vec<bool>> = fresh.map(|_| {
         (table.faces().iter())
-            .map(|f| counts(f.front) || f.back.is_some_and(counts))
+            .map(|f| walks(f.front) || f.back.is_some_and(walks))
             .collect()
     });
     // Whether line `l` crosses a triangle with a face to walk at frame 0 (its moving

@@ -331,33 +331,40 @@ fn traced_meshes(scene: &Scene) -> Vec<(&TriangleMesh, bool)> {
 /// the cuts the neighbours need included, stay within `budget`.
 #[must_use]
 pub fn within_budget(scene: &Scene, order: &[(u32, u32)], budget: usize) -> Vec<u32> {
+    let all = masks(scene, order);
+    if patches_after(scene, &all) <= budget {
+        return all;
+    }
+    longest_within(scene, order, budget)
+}
+
+/// Each traced triangle's cuts for the (triangle, node) pairs of `order`.
+fn masks(scene: &Scene, order: &[(u32, u32)]) -> Vec<u32> {
     let triangles: usize = traced_meshes(scene)
         .iter()
         .map(|(m, _)| m.triangles.len())
         .sum();
-    let masks = |k: usize| {
-        let mut cuts = vec![0u32; triangles];
-        for &(t, heap) in &order[..k] {
-            cuts[t as usize] |= 1 << heap;
-        }
-        cuts
-    };
-    // More cuts never make fewer patches: the longest prefix is found by bisection.
-    let fits = |k: usize| patches_after(scene, &masks(k)) <= budget;
+    let mut cuts = vec![0u32; triangles];
+    for &(t, heap) in order {
+        cuts[t as usize] |= 1 << heap;
+    }
+    cuts
+}
+
+/// [`within_budget`] where the whole of `order` is known not to fit: more cuts never make
+/// fewer patches, so the longest prefix that fits is found by bisection.
+fn longest_within(scene: &Scene, order: &[(u32, u32)], budget: usize) -> Vec<u32> {
+    let fits = |k: usize| patches_after(scene, &masks(scene, &order[..k])) <= budget;
     let (mut fit, mut over) = (0, order.len());
-    if fits(order.len()) {
-        fit = order.len();
-    } else {
-        while over - fit > 1 {
-            let mid = fit + (over - fit) / 2;
-            if fits(mid) {
-                fit = mid;
-            } else {
-                over = mid;
-            }
+    while over - fit > 1 {
+        let mid = fit + (over - fit) / 2;
+        if fits(mid) {
+            fit = mid;
+        } else {
+            over = mid;
         }
     }
-    masks(fit)
+    masks(scene, &order[..fit])
 }
 
 /// [`cut`] of `scene` by [`within_budget`]'s cuts, and those cuts: the whole of `order` cut
@@ -369,19 +376,12 @@ pub fn cut_within_budget(
     order: &[(u32, u32)],
     budget: usize,
 ) -> (Vec<u32>, (Scene, Refinement)) {
-    let triangles: usize = traced_meshes(scene)
-        .iter()
-        .map(|(m, _)| m.triangles.len())
-        .sum();
-    let mut all = vec![0u32; triangles];
-    for &(t, heap) in order {
-        all[t as usize] |= 1 << heap;
-    }
+    let all = masks(scene, order);
     let whole = cut(scene, &all);
     if whole.0.patches.len() <= budget {
         return (all, whole);
     }
-    let cuts = within_budget(scene, order, budget);
+    let cuts = longest_within(scene, order, budget);
     let fitted = cut(scene, &cuts);
     (cuts, fitted)
 }

@@ -149,16 +149,26 @@ pub fn walk_from(hits: &[Hit], surfaces: &Surfaces<'_>, mut visit: impl FnMut(u3
 
 /// Sorts and merges equal keys, dropping zero counts.
 fn aggregate(mut raw: Vec<(u64, i64)>) -> Entries {
-    raw.sort_unstable_by_key(|e| e.0);
     let mut out: Entries = Vec::with_capacity(raw.len() / 2);
-    for (k, c) in raw {
-        match out.last_mut() {
-            Some(last) if last.0 == k => last.1 += c,
-            _ => out.push((k, c)),
+    add_sorted(&mut raw, &mut out);
+    out
+}
+
+/// Sorts `entries` by key and appends them to `out`, equal keys added and zero counts dropped.
+fn add_sorted(entries: &mut [(u64, i64)], out: &mut Entries) {
+    entries.sort_unstable_by_key(|e| e.0);
+    let mut k = 0;
+    while k < entries.len() {
+        let (key, mut count) = entries[k];
+        k += 1;
+        while k < entries.len() && entries[k].0 == key {
+            count += entries[k].1;
+            k += 1;
+        }
+        if count != 0 {
+            out.push((key, count));
         }
     }
-    out.retain(|e| e.1 != 0);
-    out
 }
 
 /// [`aggregate`] of the entries of `chunks` together, in any order: a counting sort by row,
@@ -209,21 +219,8 @@ fn by_rows(chunks: Vec<Vec<(u64, i64)>>) -> Entries {
             let mut at = 0;
             for r in rows {
                 let len = starts[r + 1] - starts[r];
-                let row = &mut placed[at..at + len];
+                add_sorted(&mut placed[at..at + len], &mut out);
                 at += len;
-                row.sort_unstable_by_key(|e| e.0);
-                let mut k = 0;
-                while k < row.len() {
-                    let (key, mut count) = row[k];
-                    k += 1;
-                    while k < row.len() && row[k].0 == key {
-                        count += row[k].1;
-                        k += 1;
-                    }
-                    if count != 0 {
-                        out.push((key, count));
-                    }
-                }
             }
             out
         })
@@ -432,19 +429,7 @@ impl Tallies {
                         // The line's segments away from the moving crossings are the same in
                         // both walks: they cancel here, where the line's few entries sort in
                         // cache, rather than in the frame's sort.
-                        line.sort_unstable_by_key(|e| e.0);
-                        let mut k = 0;
-                        while k < line.len() {
-                            let (key, mut count) = line[k];
-                            k += 1;
-                            while k < line.len() && line[k].0 == key {
-                                count += line[k].1;
-                                k += 1;
-                            }
-                            if count != 0 {
-                                raw.push((key, count));
-                            }
-                        }
+                        add_sorted(&mut line, raw);
                     }
                 }
                 raw
