@@ -324,3 +324,82 @@ fn a_box_of_overlapping_split_quads_is_cut_and_baked() {
         assert!(lit > 0, "nothing lit");
     }
 }
+
+/// The lines that meet a dense region carry everything that crosses it, the light from far
+/// off included: a floor 3 m under a small square sees the square through the region's lines
+/// alone once a box around the square is made denser. Those lines take the global lines'
+/// directions and more ([`radiosity::lines::Batch::dense`]), so every floor patch's form
+/// factor to the square is no noisier than the global lines alone make it (measured, four
+/// seeds, 1,024 floor patches seeing the square under a few global lines each: RMS relative
+/// error 1.16 with the global lines, 0.78 with the dense ones). Drawn in √ of the region's
+/// lines' directions, as they were, the dense lines read 1.56: it fails.
+#[test]
+fn a_dense_region_sees_far_surfaces_at_least_as_well_as_the_global_lines() {
+    use common::quad;
+    use radiosity::solve::analytic::triangle_to_parallel_rectangle;
+    let (h, height) = (0.25f32, 3.0f32);
+    let scene = common::static_scene(&[quad(4.0, 0.0, true), quad(h, height, false)], Some(1.0));
+    let (h, height) = (f64::from(h), f64::from(height));
+    let n = scene.normalisation;
+    let square_at = |p: glam::DVec3| n.to_normalised().transform_point3(p);
+    let (a, b) = (
+        square_at(glam::DVec3::new(-0.3, height - 0.05, -0.3)),
+        square_at(glam::DVec3::new(0.3, height + 0.05, 0.3)),
+    );
+    let region = radiosity::scene::Bounds {
+        min: a.min(b),
+        max: a.max(b),
+    };
+    // Every floor patch's relative error of its form factor to the square, squared, summed.
+    let squared_error = |bake: &Bake| {
+        let scene = &bake.scene;
+        let tally = bake.frame_tally(0);
+        let on_square = |j: u32| {
+            let t = scene.statics.faces.iter().position(|f| f.front == j);
+            t.is_some_and(|t| {
+                let v = scene.statics.triangles[t][0] as usize;
+                n.to_scene(scene.statics.positions[v].as_dvec3()).y > 1.0
+            })
+        };
+        let (mut sum, mut count) = (0.0, 0usize);
+        for (t, face) in scene.statics.faces.iter().enumerate() {
+            let corners = (scene.statics.triangles[t])
+                .map(|v| n.to_scene(scene.statics.positions[v as usize].as_dvec3()));
+            if corners[0].y > 1.0 {
+                continue;
+            }
+            let i = face.front as usize;
+            let seen: u64 = (tally.offsets[i]..tally.offsets[i + 1])
+                .filter(|&k| on_square(tally.columns[k]))
+                .map(|k| u64::from(tally.counts[k]))
+                .sum();
+            let estimate = seen as f64 / tally.crossings[i] as f64;
+            let exact = triangle_to_parallel_rectangle(corners, (-h, h), (-h, h), height);
+            sum += ((estimate - exact) / exact).powi(2);
+            count += 1;
+        }
+        (sum, count)
+    };
+    let (mut global, mut dense, mut patches) = (0.0, 0.0, 0);
+    for seed in 1..=4 {
+        let params = LineParams {
+            lines: 200_000,
+            seed,
+        };
+        let mut bake = Bake::trace(scene.clone(), &params).unwrap();
+        let (sum, count) = squared_error(&bake);
+        bake.densify((&[region], 16), &Control::default()).unwrap();
+        global += sum;
+        dense += squared_error(&bake).0;
+        patches += count;
+    }
+    let (global, dense) = (
+        (global / patches as f64).sqrt(),
+        (dense / patches as f64).sqrt(),
+    );
+    eprintln!("{patches} floor patches: RMS relative error {global:.3} global, {dense:.3} dense");
+    assert!(
+        dense < global,
+        "the dense lines read {dense}, the global lines {global}"
+    );
+}
