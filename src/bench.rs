@@ -382,6 +382,7 @@ type PerFrame<T> = Vec<Vec<[T; 3]>>;
 /// A scene's reference radiance at some of its frames, with its own standard error (0 for
 /// closed forms), and for a path-traced one the half difference of its two independent halves
 /// (a draw of its noise) and the variance of the true radiance over each patch.
+#[derive(Clone)]
 struct Reference {
     name: String,
     /// The frames the values are for.
@@ -791,7 +792,10 @@ fn measured_frames(frames: usize, count: usize) -> Vec<usize> {
 /// Sweeps the line budget on each scene (its patches made as `patch_size` says, split into
 /// pieces and solved as a bake does) and measures error against time: against the closed form
 /// where the scene has one (every frame), else against the path tracer
-/// ([`PathReference`]) at a few frames.
+/// ([`PathReference`]) at a few frames. Unless the patches are `auto`'s, every budget bakes
+/// the same patches: the path tracer then runs once per scene and every budget is measured
+/// against it (its noise, taken out of each, is shared), so that a reference fine enough for
+/// the largest budget costs its time once.
 ///
 /// # Errors
 /// When a scene cannot be traced or cut.
@@ -805,14 +809,20 @@ pub fn accuracy(
     let mut points = Vec::new();
     let auto = patch_size == crate::params::PatchSize::Auto;
     for (name, scene) in scenes {
+        let mut traced: Option<Reference> = None;
         for &lines in budgets {
             let run = timed_bake(scene, lines, 1, (auto, true))?;
             let baked = &run.bake.scene;
-            let against = closed_form(name, baked).unwrap_or_else(|| {
-                let frames = measured_frames(baked.frames.count, reference.frames);
-                let sky = crate::solve::SolveParams::default().sky;
-                path_traced(&run.bake, &frames, reference.paths, sky, 0x5EED)
-            });
+            let against = match (closed_form(name, baked), &traced) {
+                (Some(exact), _) => exact,
+                (None, Some(shared)) if !auto => shared.clone(),
+                (None, _) => {
+                    let frames = measured_frames(baked.frames.count, reference.frames);
+                    let sky = crate::solve::SolveParams::default().sky;
+                    let paths = path_traced(&run.bake, &frames, reference.paths, sky, 0x5EED);
+                    traced.insert(paths).clone()
+                }
+            };
             let point = AccuracyPoint {
                 scene: name.clone(),
                 patch_size,
