@@ -354,27 +354,26 @@ fn a_dense_region_sees_far_surfaces_at_least_as_well_as_the_global_lines() {
     let squared_error = |bake: &Bake| {
         let scene = &bake.scene;
         let tally = bake.frame_tally(0);
-        let on_square = |j: u32| {
-            let t = scene.statics.faces.iter().position(|f| f.front == j);
-            t.is_some_and(|t| {
-                let v = scene.statics.triangles[t][0] as usize;
-                n.to_scene(scene.statics.positions[v].as_dvec3()).y > 1.0
-            })
+        let corners = |t: usize| {
+            (scene.statics.triangles[t])
+                .map(|v| n.to_scene(scene.statics.positions[v as usize].as_dvec3()))
         };
+        let mut on_square = vec![false; scene.patches.len()];
+        for (t, face) in scene.statics.faces.iter().enumerate() {
+            on_square[face.front as usize] = corners(t)[0].y > 1.0;
+        }
         let (mut sum, mut count) = (0.0, 0usize);
         for (t, face) in scene.statics.faces.iter().enumerate() {
-            let corners = (scene.statics.triangles[t])
-                .map(|v| n.to_scene(scene.statics.positions[v as usize].as_dvec3()));
-            if corners[0].y > 1.0 {
+            let i = face.front as usize;
+            if on_square[i] {
                 continue;
             }
-            let i = face.front as usize;
             let seen: u64 = (tally.offsets[i]..tally.offsets[i + 1])
-                .filter(|&k| on_square(tally.columns[k]))
+                .filter(|&k| on_square.get(tally.columns[k] as usize) == Some(&true))
                 .map(|k| u64::from(tally.counts[k]))
                 .sum();
             let estimate = seen as f64 / tally.crossings[i] as f64;
-            let exact = triangle_to_parallel_rectangle(corners, (-h, h), (-h, h), height);
+            let exact = triangle_to_parallel_rectangle(corners(t), (-h, h), (-h, h), height);
             sum += ((estimate - exact) / exact).powi(2);
             count += 1;
         }
