@@ -536,10 +536,7 @@ fn bake_scene(
 /// sampled emitters' light at, from the start: the first alone when its patches are split into
 /// pieces (solved whole at frame 0 alone), every one for `auto`'s rounds.
 pub(crate) fn poses_for(settings: &BakeSettings, scene: &crate::scene::Scene) -> Poses {
-    match settings.adaptive(scene.patches.len()) {
-        Some(_) => Poses::All,
-        None => Poses::First,
-    }
+    Poses::for_bake(settings.adaptive(scene.patches.len()).is_some())
 }
 
 /// [`bake_scene`] from its traced `bake` on (`timings` of the stages before it): its patches

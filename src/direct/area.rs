@@ -142,6 +142,16 @@ pub enum Poses {
     First,
 }
 
+impl Poses {
+    /// The poses a new bake needs its patches' light at: every one if `auto`'s rounds will
+    /// solve the patches at every frame, else the first (the patches are split into pieces
+    /// next, and solved whole at frame 0 alone).
+    #[must_use]
+    pub fn for_bake(auto: bool) -> Self {
+        if auto { Self::All } else { Self::First }
+    }
+}
+
 /// A patch's form factor to one cluster.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 struct Pair {

@@ -975,12 +975,7 @@ impl Job {
         // A job read back from disk has its request's, for the scene as loaded.
         let auto = (self.auto)
             .or_else(|| (self.source.as_ref()).and_then(|s| s.adaptive(scene.patches.len())));
-        // The patches are solved at other frames than the first by `auto`'s rounds alone.
-        let poses = if auto.is_some() {
-            Poses::All
-        } else {
-            Poses::First
-        };
+        let poses = Poses::for_bake(auto.is_some());
         let mut bake = Bake::trace_with(scene, (&self.lines, poses), &self.control)?;
         if let Some(auto) = &auto {
             adaptive::adapt(&mut bake, auto, &self.solve, &self.control)?;
