@@ -81,9 +81,103 @@ struct Pieces {
     map: crate::direct::points::PieceMap,
     /// The pieces' visible shares kept across frames.
     shares: crate::direct::KeptShares,
+    /// The pieces one level coarser, for the error bars' shape term.
+    coarse: Coarse,
+}
+
+/// A split bake's pieces one level coarser: each pair of sibling pieces (the two halves of a
+/// cut that no later cut split again, [`crate::scene::refine::Chain::siblings`]) merged back
+/// into the piece they were cut from. Solved at a run's first frame beside the pieces, on the
+/// same lines: how far the last level of cuts moved each patch's answer is Richardson's
+/// estimate of how far the pieces still are from the light's shape ([`SHAPE_ERROR`]).
+struct Coarse {
+    scene: Scene,
+    /// What the tallies read of its triangles (the pieces', with their faces merged): its
+    /// shadow rays are the pieces' tracer's, over the same triangles.
+    table: SurfaceTable,
+    tallies: Tallies,
+    /// Each piece's coarse piece (with the pieces' areas): the coarse pieces' direct light is
+    /// their pieces' area-weighted mean.
+    of_pieces: Groups,
+    /// Each coarse piece's patch (with the coarse pieces' areas).
+    groups: Groups,
+    shares: crate::direct::KeptShares,
+}
+
+impl Coarse {
+    /// The coarse level of `pieces` (piece `k` of patch `of[k]`, of `patches` patches), whose
+    /// sibling triangles are `siblings`; its tallies taken from `like`'s (the same lines).
+    fn new(
+        pieces: &Scene,
+        (of, patches): (&[u32], usize),
+        siblings: &[[u32; 2]],
+        (list, like): (&IntersectionList, &Tallies),
+    ) -> Self {
+        use crate::scene::refine;
+        // Merge the faces of each pair of sibling triangles, side by side, into the first's.
+        let mut into: Vec<u32> = (0..pieces.patches.len() as u32).collect();
+        let corners = refine::Corners::new(pieces);
+        for &[a, b] in siblings {
+            let (fa, fb) = (corners.faces(a), corners.faces(b));
+            for (p, q) in [(Some(fa.front), Some(fb.front)), (fa.back, fb.back)] {
+                if let (Some(p), Some(q)) = (p, q)
+                    && p != q
+                    && into[p as usize] == p
+                    && into[q as usize] == q
+                {
+                    into[q as usize] = p;
+                }
+            }
+        }
+        // Dense ids, in the pieces' order.
+        let mut dense = vec![u32::MAX; into.len()];
+        let mut count = 0u32;
+        for k in 0..into.len() {
+            let first = into[k] as usize;
+            if dense[first] == u32::MAX {
+                dense[first] = count;
+                count += 1;
+            }
+            dense[k] = dense[first];
+        }
+        let scene = refine::merge(pieces, &dense);
+        let table = SurfaceTable::new(&scene);
+        let mut tallies = Tallies::default();
+        let count = count as usize;
+        tallies.update_like(list, &table.surfaces(), count, Some(like));
+        let mut coarse_of = vec![0u32; count];
+        for (k, &c) in dense.iter().enumerate() {
+            coarse_of[c as usize] = of[k];
+        }
+        let areas: Vec<f64> = scene.patches.iter().map(|p| p.area).collect();
+        let piece_areas = pieces.patches.iter().map(|p| p.area).collect();
+        Self {
+            of_pieces: Groups::new(dense, piece_areas, count),
+            groups: Groups::new(coarse_of, areas, patches),
+            scene,
+            table,
+            tallies,
+            shares: Default::default(),
+        }
+    }
+
+    fn bytes(&self) -> usize {
+        self.tallies.bytes() + self.of_pieces.bytes() + self.groups.bytes()
+    }
 }
 
 impl Pieces {
+    /// Tallies the lines `list` holds beyond those the pieces' and their coarse level's
+    /// tallies hold ([`Tallies::update_like`]), `like` the patches' (the same lines).
+    fn update_tallies(&mut self, list: &IntersectionList, like: &Tallies) {
+        let count = self.scene.patches.len();
+        (self.tallies).update_like(list, &self.tracer.surfaces(), count, Some(like));
+        let count = self.coarse.scene.patches.len();
+        let coarse = &mut self.coarse;
+        let like = Some(&self.tallies);
+        (coarse.tallies).update_like(list, &coarse.table.surfaces(), count, like);
+    }
+
     /// What the pieces are solved with ([`Bake::state`]'s for the pieces).
     fn state(&self) -> State<'_> {
         (
@@ -96,9 +190,12 @@ impl Pieces {
     }
 }
 
-/// How much of the move from the patches solved whole to their pieces' mean the error bar of a
-/// split bake takes as the pieces' own error from the light's shape ([`Bake::split`]).
-pub const SHAPE_ERROR: f64 = 0.5;
+/// How much of the move from the pieces one level coarser ([`Coarse`]) to the pieces the error
+/// bar of a split bake takes as the pieces' own error from the light's shape
+/// ([`Bake::split`]): Richardson's estimate for an error of the first order in a piece's size,
+/// `1 / (√2 − 1)` (a cut halves a piece's area, so its size by √2). Measured against the path
+/// tracer (`docs/engine.md`, "The error bars' shape term").
+pub const SHAPE_ERROR: f64 = 1.0 + std::f64::consts::SQRT_2;
 
 /// Levels of bisection [`Bake::split`] cuts a face into at most (2^3 = 8 pieces).
 pub const SPLIT_DEPTH: u32 = 3;
@@ -238,9 +335,7 @@ impl Bake {
         self.warnings = overlap_warnings(&self.scene, &self.tracer, &self.list);
         let lines = (before, self.list.lines(), self.seed);
         if let Some(pieces) = &mut self.pieces {
-            let count = pieces.scene.patches.len();
-            let like = Some(&self.tallies);
-            (pieces.tallies).update_like(&self.list, &pieces.tracer.surfaces(), count, like);
+            pieces.update_tallies(&self.list, &self.tallies);
             resample(
                 &mut pieces.area,
                 &pieces.scene,
@@ -272,9 +367,7 @@ impl Bake {
         let patches = self.scene.patches.len();
         (self.tallies).update(&self.list, &self.tracer.surfaces(), patches);
         if let Some(pieces) = &mut self.pieces {
-            let count = pieces.scene.patches.len();
-            let like = Some(&self.tallies);
-            (pieces.tallies).update_like(&self.list, &pieces.tracer.surfaces(), count, like);
+            pieces.update_tallies(&self.list, &self.tallies);
         }
         Ok(())
     }
@@ -548,6 +641,7 @@ impl Bake {
             scene = next;
             last = Some((walked, refinement));
         }
+        let siblings = chain.siblings();
         if self.scene.frames.count > 1 {
             (self.list).relabel(
                 (&self.scene, Some(&bundles)),
@@ -577,6 +671,12 @@ impl Bake {
         tallies.update_like(&self.list, &tracer.surfaces(), scene.patches.len(), like);
         let areas = scene.patches.iter().map(|p| p.area).collect();
         let map = crate::direct::points::PieceMap::new(&scene, &of);
+        let coarse = Coarse::new(
+            &scene,
+            (&of, self.scene.patches.len()),
+            &siblings,
+            (&self.list, &tallies),
+        );
         let groups = Groups::new(of, areas, self.scene.patches.len());
         let count = scene.patches.len();
         self.pieces = Some(Pieces {
@@ -588,6 +688,7 @@ impl Bake {
             groups,
             map,
             shares: Default::default(),
+            coarse,
         });
         Ok(count)
     }
@@ -781,7 +882,11 @@ impl Bake {
     #[must_use]
     pub fn bytes(&self) -> usize {
         let pieces = self.pieces.as_ref().map_or(0, |p| {
-            p.tallies.bytes() + p.direct.memory() + p.area.memory() + p.groups.bytes()
+            p.tallies.bytes()
+                + p.direct.memory()
+                + p.area.memory()
+                + p.groups.bytes()
+                + p.coarse.bytes()
         });
         self.list.memory().bytes
             + self.tallies.bytes()
@@ -945,12 +1050,13 @@ impl Bake {
     ) -> FrameSolution {
         match &self.pieces {
             Some(pieces) => {
-                let surfaces = (&pieces.tracer.surfaces(), &self.tracer.surfaces());
+                let coarse = &pieces.coarse;
+                let surfaces = (&pieces.tracer.surfaces(), &coarse.table.surfaces());
                 let state = pieces.state();
                 let solve = (frame, materials, power, params);
-                // The shape term of the frame the patches were last solved whole at (a run's
-                // first), carried along the run: a second whole solve at every frame cost
-                // as much as the pieces' own.
+                // The shape term of the frame the coarse pieces were last solved at (a run's
+                // first), carried along the run: a second solve at every frame cost as much
+                // as the pieces' own.
                 let carried =
                     start
                         .map(|(_, s)| (&s.shape, &s.spread))
@@ -958,15 +1064,19 @@ impl Bake {
                             let patches = self.scene.patches.len();
                             shape.len() == patches && spread.len() == patches
                         });
-                let (tally, whole_tally, spread) = match carried {
+                let (tally, coarse_tally, spread) = match carried {
                     Some((_, spread)) => {
                         let tally = (pieces.tallies).frame(&self.list, surfaces.0, frame);
                         (tally, None, Spread::Carried(spread))
                     }
                     None => {
-                        let (tally, whole_tally) =
-                            (pieces.tallies).frame_with(&self.tallies, &self.list, surfaces, frame);
-                        (tally, Some(whole_tally), Spread::Replicas)
+                        let (tally, coarse_tally) = (pieces.tallies).frame_with(
+                            &coarse.tallies,
+                            &self.list,
+                            surfaces,
+                            frame,
+                        );
+                        (tally, Some(coarse_tally), Spread::Replicas)
                     }
                 };
                 let groups = Some(&pieces.groups);
@@ -978,14 +1088,14 @@ impl Bake {
                     start,
                     Some(spread),
                 );
-                match (whole_tally, carried) {
-                    // The patches solved whole as well (the answer alone): how far the pieces
-                    // moved it says how far the pieces themselves may still be from the light's
-                    // shape.
-                    (Some(whole_tally), _) => {
-                        let whole = self.whole_answer_of(&whole_tally, solve, start);
+                match (coarse_tally, carried) {
+                    // The pieces one level coarser solved as well (the answer alone): how far
+                    // the last level of cuts moved it says how far the pieces themselves may
+                    // still be from the light's shape.
+                    (Some(coarse_tally), _) => {
+                        let coarse = Self::coarse_answer(pieces, &coarse_tally, solve);
                         solution.shape = (solution.radiance.iter())
-                            .zip(&whole.radiance)
+                            .zip(&coarse.radiance)
                             .map(|(l, w)| [l.map(|x| x as f32), w.map(|x| x as f32)])
                             .collect();
                     }
@@ -1069,39 +1179,46 @@ impl Bake {
     }
 
     /// The answer alone (no replicas) for the bake's patches solved whole at a frame (`solve`:
-    /// frame, materials, the lights' power, parameters), from `start` if given.
+    /// frame, materials, the lights' power, parameters), from `start` if given: before the
+    /// split, its scores' light.
     fn whole_answer(
         &self,
         solve: (usize, &[Material], &[[f64; 3]], &SolveParams),
         start: Option<(usize, &FrameSolution)>,
     ) -> FrameSolution {
-        self.whole_answer_of(&self.frame_tally(solve.0), solve, start)
+        let tally = self.frame_tally(solve.0);
+        Self::solve_state_from(&tally, self.state(), (None, None), solve, start, None)
     }
 
-    /// [`Bake::whole_answer`] from `tally`, the patches' tallies at the frame.
-    ///
-    /// A split bake's patches take their direct light from their pieces' (the area-weighted
-    /// mean of the pieces', sampled at every frame: the patches' own is sampled at frame 0
-    /// alone, [`Poses::First`]).
-    fn whole_answer_of(
-        &self,
+    /// The answer alone (per patch: the first bounce's spread its only error bar) of
+    /// `pieces`' coarse level ([`Coarse`]) from `tally`, its tallies at the frame (`solve`:
+    /// frame, materials, the lights' power, parameters). Its direct light is the pieces'
+    /// (each coarse piece's, its pieces' area-weighted mean): the move from it to the pieces
+    /// is what the last cuts do to the transport, not a second sampling of the light.
+    fn coarse_answer(
+        pieces: &Pieces,
         tally: &FrameTally,
         solve: (usize, &[Material], &[[f64; 3]], &SolveParams),
-        start: Option<(usize, &FrameSolution)>,
     ) -> FrameSolution {
-        let state = self.state();
         let (_, materials, power, _) = solve;
-        let of_pieces = (self.pieces.as_ref()).map(|pieces| {
-            move |frame: usize| {
-                let (e, v) = direct_light(&pieces.direct, &pieces.area, frame, materials, power);
-                if e.is_empty() {
-                    return (e, v);
-                }
-                pieces.groups.area_mean(&e, &v)
+        let coarse = &pieces.coarse;
+        let light_of = |frame: usize| {
+            let (e, v) = direct_light(&pieces.direct, &pieces.area, frame, materials, power);
+            if e.is_empty() {
+                return (e, v);
             }
-        });
-        let light_of = of_pieces.as_ref().map(|f| f as &LightOf<'_>);
-        Self::solve_state_from(tally, state, (None, light_of), solve, start, None)
+            coarse.of_pieces.area_mean(&e, &v)
+        };
+        let state = (
+            &coarse.scene,
+            &pieces.tracer,
+            &pieces.direct,
+            &pieces.area,
+            &coarse.shares,
+        );
+        let levels = (Some(&coarse.groups), Some(&light_of as &LightOf<'_>));
+        let spread = Some(Spread::FirstBounce);
+        Self::solve_state_from(tally, state, levels, solve, None, spread)
     }
 
     /// Solves `tally`, the tallies of `state`'s patches (the bake's, or its pieces' with their

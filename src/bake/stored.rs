@@ -8,7 +8,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::{Bake, Pieces};
+use super::{Bake, Coarse, Pieces};
 use crate::direct::DirectLight;
 use crate::direct::area::AreaLights;
 use crate::scene::Scene;
@@ -40,6 +40,16 @@ struct WrittenPieces<'a> {
     direct: &'a DirectLight,
     area: &'a AreaLights,
     groups: &'a Groups,
+    coarse: WrittenCoarse<'a>,
+}
+
+/// [`Coarse`] without its tracer, borrowed to be written.
+#[derive(Serialize)]
+struct WrittenCoarse<'a> {
+    scene: &'a Scene,
+    tallies: &'a Tallies,
+    of_pieces: &'a Groups,
+    groups: &'a Groups,
 }
 
 /// [`Written`] read back: the same fields in the same order.
@@ -65,6 +75,16 @@ struct ReadPieces {
     direct: DirectLight,
     area: AreaLights,
     groups: Groups,
+    coarse: ReadCoarse,
+}
+
+/// [`WrittenCoarse`] read back.
+#[derive(Deserialize)]
+struct ReadCoarse {
+    scene: Scene,
+    tallies: Tallies,
+    of_pieces: Groups,
+    groups: Groups,
 }
 
 impl Bake {
@@ -79,6 +99,12 @@ impl Bake {
             direct: &p.direct,
             area: &p.area,
             groups: &p.groups,
+            coarse: WrittenCoarse {
+                scene: &p.coarse.scene,
+                tallies: &p.coarse.tallies,
+                of_pieces: &p.coarse.of_pieces,
+                groups: &p.coarse.groups,
+            },
         });
         let written = Written {
             scene: &self.scene,
@@ -111,6 +137,14 @@ impl Bake {
             area: p.area,
             groups: p.groups,
             shares: Default::default(),
+            coarse: Coarse {
+                table: crate::trace::SurfaceTable::new(&p.coarse.scene),
+                scene: p.coarse.scene,
+                tallies: p.coarse.tallies,
+                of_pieces: p.coarse.of_pieces,
+                groups: p.coarse.groups,
+                shares: Default::default(),
+            },
         });
         Ok(Self {
             tracer: SceneTracer::new(&read.scene),

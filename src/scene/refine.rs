@@ -58,6 +58,18 @@ impl Refinement {
         })
     }
 
+    /// The pairs of new triangles that are the two halves of one cut and not cut further
+    /// (siblings that are both leaves of the cut trees), by their new global indices.
+    fn sibling_leaves(&self) -> impl Iterator<Item = [u32; 2]> + '_ {
+        self.nodes.iter().filter_map(|node| match *node {
+            Node::Cut { children, .. } => match children.map(|c| self.nodes[c as usize]) {
+                [Node::Leaf(a), Node::Leaf(b)] => Some([a, b]),
+                _ => None,
+            },
+            Node::Leaf(_) => None,
+        })
+    }
+
     /// Whether old triangle `old` was cut.
     #[must_use]
     pub fn is_cut(&self, old: u32) -> bool {
@@ -732,6 +744,13 @@ impl<'a> Corners<'a> {
         mesh.triangles[t].map(|v| mesh.positions[v as usize])
     }
 
+    /// The faces (patches) of triangle `global`.
+    #[must_use]
+    pub fn faces(&self, global: u32) -> Faces {
+        let (_, mesh, t) = self.find(global);
+        mesh.faces[t]
+    }
+
     /// Triangle `global`'s corners in normalised space at `frame` (`None`: a static triangle),
     /// or `None` for a deforming object's (posing one costs the whole mesh).
     #[must_use]
@@ -815,6 +834,32 @@ impl Chain {
         }
         out.reverse();
         out
+    }
+
+    /// The finest cuts of the chain: the pairs of triangles, after every refinement, that are
+    /// the two halves of one cut (made by any step) that no later step cut again. Each
+    /// triangle is in at most one pair. Merging each pair back into its cut triangle undoes
+    /// one level of bisection where the cuts end: the pieces one level coarser.
+    #[must_use]
+    pub fn siblings(&self) -> Vec<[u32; 2]> {
+        let through = self.through.get_or_init(|| self.through());
+        let mut pairs = Vec::new();
+        for (k, step) in self.steps.iter().enumerate() {
+            // A step's new triangles are the next step's old ones.
+            let after = through.get(k + 1);
+            pairs.extend(
+                step.refinement
+                    .sibling_leaves()
+                    .filter_map(|pair| match after {
+                        None => Some(pair),
+                        Some(after) => {
+                            let pair = pair.map(|t| after[t as usize]);
+                            (!pair.contains(&u32::MAX)).then_some(pair)
+                        }
+                    }),
+            );
+        }
+        pairs
     }
 
     /// The triangle, after every refinement, holding `point` (in normalised space) of moving

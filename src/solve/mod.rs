@@ -110,10 +110,10 @@ pub struct FrameSolution {
     /// the pieces' shape term, which a reading of the pieces does not have).
     #[serde(skip)]
     pub pieces_stderr: Vec<[f32; 3]>,
-    /// With [`FrameSolution::pieces`], per patch its pieces' mean and its answer solved whole
-    /// at the frame where both were last solved (this one, or the first of its run's): the
-    /// shape term of its error bar ([`crate::bake::SHAPE_ERROR`]), which the run's later
-    /// frames carry.
+    /// With [`FrameSolution::pieces`], per patch its pieces' mean and the mean of its pieces
+    /// one level coarser at the frame where both were last solved (this one, or the first of
+    /// its run's): the shape term of its error bar ([`crate::bake::SHAPE_ERROR`]), which the
+    /// run's later frames carry.
     #[serde(skip)]
     pub shape: Vec<[[f32; 3]; 2]>,
     /// Per patch and channel, how its error from the lines (the replicas' spread) stood to the

@@ -483,7 +483,8 @@ impl Tallies {
 
     /// [`Tallies::frame`] of these tallies and of `other`'s, tallied from the same list over
     /// the same triangles with other patches (`surfaces` and `other_surfaces`: a split bake's
-    /// pieces and its patches), each line's crossings at the frame gathered once for both.
+    /// pieces and their coarse level), each line's crossings at the frame gathered once for
+    /// both.
     #[must_use]
     pub fn frame_with(
         &self,
