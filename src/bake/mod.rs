@@ -91,13 +91,12 @@ struct Pieces {
 /// same lines: how far the last level of cuts moved each patch's answer is Richardson's
 /// estimate of how far the pieces still are from the light's shape ([`SHAPE_ERROR`]).
 struct Coarse {
+    /// The pieces' triangles with their faces merged: its shadow rays are the pieces'
+    /// tracer's, over the same triangles.
     scene: Scene,
-    /// What the tallies read of its triangles (the pieces', with their faces merged): its
-    /// shadow rays are the pieces' tracer's, over the same triangles.
-    table: SurfaceTable,
-    tallies: Tallies,
-    /// Each piece's coarse piece (with the pieces' areas): the coarse pieces' direct light is
-    /// their pieces' area-weighted mean.
+    /// Each piece's coarse piece (with the pieces' areas): the coarse pieces' tallies are
+    /// their pieces' merged ([`FrameTally::merged`]), their direct light their pieces'
+    /// area-weighted mean.
     of_pieces: Groups,
     /// Each coarse piece's patch (with the coarse pieces' areas).
     groups: Groups,
@@ -106,13 +105,8 @@ struct Coarse {
 
 impl Coarse {
     /// The coarse level of `pieces` (piece `k` of patch `of[k]`, of `patches` patches), whose
-    /// sibling triangles are `siblings`; its tallies taken from `like`'s (the same lines).
-    fn new(
-        pieces: &Scene,
-        (of, patches): (&[u32], usize),
-        siblings: &[[u32; 2]],
-        (list, like): (&IntersectionList, &Tallies),
-    ) -> Self {
+    /// sibling triangles are `siblings`.
+    fn new(pieces: &Scene, (of, patches): (&[u32], usize), siblings: &[[u32; 2]]) -> Self {
         use crate::scene::refine;
         // Merge the faces of each pair of sibling triangles, side by side, into the first's.
         let mut into: Vec<u32> = (0..pieces.patches.len() as u32).collect();
@@ -141,10 +135,7 @@ impl Coarse {
             dense[k] = dense[first];
         }
         let scene = refine::merge(pieces, &dense);
-        let table = SurfaceTable::new(&scene);
-        let mut tallies = Tallies::default();
         let count = count as usize;
-        tallies.update_like(list, &table.surfaces(), count, Some(like));
         let mut coarse_of = vec![0u32; count];
         for (k, &c) in dense.iter().enumerate() {
             coarse_of[c as usize] = of[k];
@@ -155,27 +146,21 @@ impl Coarse {
             of_pieces: Groups::new(dense, piece_areas, count),
             groups: Groups::new(coarse_of, areas, patches),
             scene,
-            table,
-            tallies,
             shares: Default::default(),
         }
     }
 
     fn bytes(&self) -> usize {
-        self.tallies.bytes() + self.of_pieces.bytes() + self.groups.bytes()
+        self.of_pieces.bytes() + self.groups.bytes()
     }
 }
 
 impl Pieces {
-    /// Tallies the lines `list` holds beyond those the pieces' and their coarse level's
-    /// tallies hold ([`Tallies::update_like`]), `like` the patches' (the same lines).
+    /// Tallies the lines `list` holds beyond those the pieces' tallies hold
+    /// ([`Tallies::update_like`]), `like` the patches' (the same lines).
     fn update_tallies(&mut self, list: &IntersectionList, like: &Tallies) {
         let count = self.scene.patches.len();
         (self.tallies).update_like(list, &self.tracer.surfaces(), count, Some(like));
-        let count = self.coarse.scene.patches.len();
-        let coarse = &mut self.coarse;
-        let like = Some(&self.tallies);
-        (coarse.tallies).update_like(list, &coarse.table.surfaces(), count, like);
     }
 
     /// What the pieces are solved with ([`Bake::state`]'s for the pieces).
@@ -671,12 +656,7 @@ impl Bake {
         tallies.update_like(&self.list, &tracer.surfaces(), scene.patches.len(), like);
         let areas = scene.patches.iter().map(|p| p.area).collect();
         let map = crate::direct::points::PieceMap::new(&scene, &of);
-        let coarse = Coarse::new(
-            &scene,
-            (&of, self.scene.patches.len()),
-            &siblings,
-            (&self.list, &tallies),
-        );
+        let coarse = Coarse::new(&scene, (&of, self.scene.patches.len()), &siblings);
         let groups = Groups::new(of, areas, self.scene.patches.len());
         let count = scene.patches.len();
         self.pieces = Some(Pieces {
@@ -1050,8 +1030,7 @@ impl Bake {
     ) -> FrameSolution {
         match &self.pieces {
             Some(pieces) => {
-                let coarse = &pieces.coarse;
-                let surfaces = (&pieces.tracer.surfaces(), &coarse.table.surfaces());
+                let surfaces = pieces.tracer.surfaces();
                 let state = pieces.state();
                 let solve = (frame, materials, power, params);
                 // The shape term of the frame the coarse pieces were last solved at (a run's
@@ -1064,19 +1043,15 @@ impl Bake {
                             let patches = self.scene.patches.len();
                             shape.len() == patches && spread.len() == patches
                         });
-                let (tally, coarse_tally, spread) = match carried {
-                    Some((_, spread)) => {
-                        let tally = (pieces.tallies).frame(&self.list, surfaces.0, frame);
-                        (tally, None, Spread::Carried(spread))
-                    }
+                let tally = (pieces.tallies).frame(&self.list, &surfaces, frame);
+                let (coarse_tally, spread) = match carried {
+                    Some((_, spread)) => (None, Spread::Carried(spread)),
                     None => {
-                        let (tally, coarse_tally) = (pieces.tallies).frame_with(
-                            &coarse.tallies,
-                            &self.list,
-                            surfaces,
-                            frame,
-                        );
-                        (tally, Some(coarse_tally), Spread::Replicas)
+                        let coarse = &pieces.coarse.of_pieces;
+                        (
+                            Some(tally.merged(coarse.of(), coarse.len())),
+                            Spread::Replicas,
+                        )
                     }
                 };
                 let groups = Some(&pieces.groups);

@@ -47,7 +47,6 @@ struct WrittenPieces<'a> {
 #[derive(Serialize)]
 struct WrittenCoarse<'a> {
     scene: &'a Scene,
-    tallies: &'a Tallies,
     of_pieces: &'a Groups,
     groups: &'a Groups,
 }
@@ -82,7 +81,6 @@ struct ReadPieces {
 #[derive(Deserialize)]
 struct ReadCoarse {
     scene: Scene,
-    tallies: Tallies,
     of_pieces: Groups,
     groups: Groups,
 }
@@ -101,7 +99,6 @@ impl Bake {
             groups: &p.groups,
             coarse: WrittenCoarse {
                 scene: &p.coarse.scene,
-                tallies: &p.coarse.tallies,
                 of_pieces: &p.coarse.of_pieces,
                 groups: &p.coarse.groups,
             },
@@ -138,9 +135,7 @@ impl Bake {
             groups: p.groups,
             shares: Default::default(),
             coarse: Coarse {
-                table: crate::trace::SurfaceTable::new(&p.coarse.scene),
                 scene: p.coarse.scene,
-                tallies: p.coarse.tallies,
                 of_pieces: p.coarse.of_pieces,
                 groups: p.coarse.groups,
                 shares: Default::default(),

@@ -481,25 +481,6 @@ impl Tallies {
         Self::with(&self.statics, &self.changes(list, surfaces, frame))
     }
 
-    /// [`Tallies::frame`] of these tallies and of `other`'s, tallied from the same list over
-    /// the same triangles with other patches (`surfaces` and `other_surfaces`: a split bake's
-    /// pieces and their coarse level), each line's crossings at the frame gathered once for
-    /// both.
-    #[must_use]
-    pub fn frame_with(
-        &self,
-        other: &Self,
-        list: &IntersectionList,
-        (surfaces, other_surfaces): (&Surfaces<'_>, &Surfaces<'_>),
-        frame: usize,
-    ) -> (FrameTally, FrameTally) {
-        let [own, others] = self.changes_of(list, [surfaces, other_surfaces], frame);
-        (
-            Self::with(&self.statics, &own),
-            Self::with(&other.statics, &others),
-        )
-    }
-
     /// `statics` with `changes`.
     fn with(statics: &FrameTally, changes: &[(u64, i64)]) -> FrameTally {
         if changes.is_empty() {
@@ -620,6 +601,59 @@ impl FrameTally {
         } else {
             self.crossings[row] += u64::from(count);
         }
+    }
+
+    /// These tallies over merged patches: patch `k` becomes `into[k]` (of `count`), as a walk
+    /// of the same lines over the merged patches tallies them (it reads a crossing's patch and
+    /// nothing else of it, so each segment's ends are only renamed).
+    #[must_use]
+    pub fn merged(&self, into: &[u32], count: usize) -> Self {
+        let rename = |j: u32| if j >= HIDDEN { j } else { into[j as usize] };
+        // Each merged row's rows, in order.
+        let mut starts = vec![0usize; count + 1];
+        for &r in into {
+            starts[r as usize + 1] += 1;
+        }
+        for r in 0..count {
+            starts[r + 1] += starts[r];
+        }
+        let mut next = starts.clone();
+        let mut members = vec![0usize; into.len()];
+        for (k, &r) in into.iter().enumerate() {
+            members[next[r as usize]] = k;
+            next[r as usize] += 1;
+        }
+        let mut t = Self {
+            crossings: vec![0; count],
+            hidden: vec![0; count],
+            offsets: Vec::with_capacity(count + 1),
+            columns: Vec::with_capacity(self.columns.len()),
+            counts: Vec::with_capacity(self.columns.len()),
+            group_offsets: Vec::with_capacity(count + 1),
+            group_entries: Vec::with_capacity(self.group_entries.len()),
+            unit: self.unit,
+        };
+        let mut row: Vec<(u32, u8, u32)> = Vec::new();
+        for r in 0..count {
+            row.clear();
+            for &k in &members[starts[r]..starts[r + 1]] {
+                let range = self.group_offsets[k]..self.group_offsets[k + 1];
+                let renamed = self.group_entries[range]
+                    .iter()
+                    .map(|&(j, g, c)| (rename(j), g, c));
+                row.extend(renamed);
+            }
+            row.sort_unstable_by_key(|&(j, g, _)| (j, g));
+            t.offsets.push(t.columns.len());
+            t.group_offsets.push(t.group_entries.len());
+            for same in row.chunk_by(|a, b| (a.0, a.1) == (b.0, b.1)) {
+                let (j, g, _) = same[0];
+                t.push(r, j, g, same.iter().map(|e| e.2).sum());
+            }
+        }
+        t.offsets.push(t.columns.len());
+        t.group_offsets.push(t.group_entries.len());
+        t
     }
 
     /// The sorted entries these tallies were assembled from.
@@ -948,6 +982,54 @@ mod tests {
             tally.with_changes(&changes),
             assemble(merge(&statics, &changes), patches as usize)
         );
+    }
+
+    /// Tallies over merged patches are those of the same segments with their ends renamed:
+    /// rows and columns merged (into a patch of their own, into one another), the sky, the
+    /// absorbed and the hidden columns kept, counts of the same (column, group) added.
+    #[test]
+    fn merged_tallies_are_the_segments_with_their_ends_renamed() {
+        use rand::{RngExt, SeedableRng};
+        let mut rng = rand::rngs::Xoshiro256PlusPlus::seed_from_u64(13);
+        let patches = 60u32;
+        let columns = [SKY, ABSORBED, HIDDEN];
+        let segments: Vec<(u32, u32, u8, i64)> = (0..2_000)
+            .map(|_| {
+                let to = if rng.random_bool(0.2) {
+                    columns[rng.random_range(0..3)]
+                } else {
+                    rng.random_range(0..patches)
+                };
+                let group = rng.random_range(0..GROUPS) as u8;
+                (
+                    rng.random_range(0..patches),
+                    to,
+                    group,
+                    rng.random_range(1..4),
+                )
+            })
+            .collect();
+        // Pairs merged (0 and 1 into 0, …), every fifth patch alone; dense new ids.
+        let mut into: Vec<u32> = Vec::new();
+        let mut count = 0;
+        for p in 0..patches {
+            // Patches 5k and 5k + 1 together, 5k + 2 and 5k + 3, 5k + 4 alone.
+            if p % 5 != 1 && p % 5 != 3 {
+                count += 1;
+            }
+            into.push(count as u32 - 1);
+        }
+        let rename = |j: u32| if j >= HIDDEN { j } else { into[j as usize] };
+        let tally = |f: &dyn Fn(u32) -> u32, n: usize| {
+            let raw = segments
+                .iter()
+                .map(|&(a, b, g, c)| (key(f(a), f(b), g), c))
+                .collect();
+            assemble(aggregate(raw), n)
+        };
+        let fine = tally(&|j| j, patches as usize);
+        assert!(count < patches as usize);
+        assert_eq!(fine.merged(&into, count), tally(&rename, count));
     }
 
     /// The counting sort by row adds what a sort of all the entries adds: chunks in any order,
