@@ -1047,11 +1047,8 @@ impl Bake {
                 let (coarse_tally, spread) = match carried {
                     Some((_, spread)) => (None, Spread::Carried(spread)),
                     None => {
-                        let coarse = &pieces.coarse.of_pieces;
-                        (
-                            Some(tally.merged(coarse.of(), coarse.len())),
-                            Spread::Replicas,
-                        )
+                        let coarse = tally.merged(&pieces.coarse.of_pieces);
+                        (Some(coarse), Spread::Replicas)
                     }
                 };
                 let groups = Some(&pieces.groups);

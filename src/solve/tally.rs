@@ -603,26 +603,20 @@ impl FrameTally {
         }
     }
 
-    /// These tallies over merged patches: patch `k` becomes `into[k]` (of `count`), as a walk
-    /// of the same lines over the merged patches tallies them (it reads a crossing's patch and
-    /// nothing else of it, so each segment's ends are only renamed).
+    /// These tallies over merged patches: patch `k` becomes `into.of()[k]` (one of
+    /// `into.len()`), as a walk of the same lines over the merged patches tallies them (it
+    /// reads a crossing's patch and nothing else of it, so each segment's ends are only
+    /// renamed).
     #[must_use]
-    pub fn merged(&self, into: &[u32], count: usize) -> Self {
-        let rename = |j: u32| if j >= HIDDEN { j } else { into[j as usize] };
-        // Each merged row's rows, in order.
-        let mut starts = vec![0usize; count + 1];
-        for &r in into {
-            starts[r as usize + 1] += 1;
-        }
-        for r in 0..count {
-            starts[r + 1] += starts[r];
-        }
-        let mut next = starts.clone();
-        let mut members = vec![0usize; into.len()];
-        for (k, &r) in into.iter().enumerate() {
-            members[next[r as usize]] = k;
-            next[r as usize] += 1;
-        }
+    pub fn merged(&self, into: &super::Groups) -> Self {
+        let rename = |j: u32| {
+            if j >= HIDDEN {
+                j
+            } else {
+                into.of()[j as usize]
+            }
+        };
+        let count = into.len();
         let mut t = Self {
             crossings: vec![0; count],
             hidden: vec![0; count],
@@ -636,8 +630,8 @@ impl FrameTally {
         let mut row: Vec<(u32, u8, u32)> = Vec::new();
         for r in 0..count {
             row.clear();
-            for &k in &members[starts[r]..starts[r + 1]] {
-                let range = self.group_offsets[k]..self.group_offsets[k + 1];
+            for &k in into.members(r) {
+                let range = self.group_offsets[k as usize]..self.group_offsets[k as usize + 1];
                 let renamed = self.group_entries[range]
                     .iter()
                     .map(|&(j, g, c)| (rename(j), g, c));
@@ -1029,7 +1023,8 @@ mod tests {
         };
         let fine = tally(&|j| j, patches as usize);
         assert!(count < patches as usize);
-        assert_eq!(fine.merged(&into, count), tally(&rename, count));
+        let groups = super::super::Groups::new(into.clone(), vec![1.0; into.len()], count);
+        assert_eq!(fine.merged(&groups), tally(&rename, count));
     }
 
     /// The counting sort by row adds what a sort of all the entries adds: chunks in any order,
