@@ -134,8 +134,14 @@ impl Coarse {
             }
             dense[k] = dense[first];
         }
-        let scene = refine::merge(pieces, &dense);
-        let count = count as usize;
+        Self::with_map(pieces, (of, patches), dense)
+    }
+
+    /// The coarse level of `pieces` (piece `k` of patch `of[k]`, of `patches` patches) in
+    /// which piece `k` is coarse piece `dense[k]` (dense ids from 0, each within one patch).
+    fn with_map(pieces: &Scene, (of, patches): (&[u32], usize), dense: Vec<u32>) -> Self {
+        let scene = crate::scene::refine::merge(pieces, &dense);
+        let count = dense.iter().map(|&c| c as usize + 1).max().unwrap_or(0);
         let mut coarse_of = vec![0u32; count];
         for (k, &c) in dense.iter().enumerate() {
             coarse_of[c as usize] = of[k];

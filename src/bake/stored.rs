@@ -40,15 +40,8 @@ struct WrittenPieces<'a> {
     direct: &'a DirectLight,
     area: &'a AreaLights,
     groups: &'a Groups,
-    coarse: WrittenCoarse<'a>,
-}
-
-/// [`Coarse`] without its tracer, borrowed to be written.
-#[derive(Serialize)]
-struct WrittenCoarse<'a> {
-    scene: &'a Scene,
-    of_pieces: &'a Groups,
-    groups: &'a Groups,
+    /// Each piece's coarse piece: the rest of [`Coarse`] follows from it and the pieces.
+    coarse: &'a [u32],
 }
 
 /// [`Written`] read back: the same fields in the same order.
@@ -74,15 +67,7 @@ struct ReadPieces {
     direct: DirectLight,
     area: AreaLights,
     groups: Groups,
-    coarse: ReadCoarse,
-}
-
-/// [`WrittenCoarse`] read back.
-#[derive(Deserialize)]
-struct ReadCoarse {
-    scene: Scene,
-    of_pieces: Groups,
-    groups: Groups,
+    coarse: Vec<u32>,
 }
 
 impl Bake {
@@ -97,11 +82,7 @@ impl Bake {
             direct: &p.direct,
             area: &p.area,
             groups: &p.groups,
-            coarse: WrittenCoarse {
-                scene: &p.coarse.scene,
-                of_pieces: &p.coarse.of_pieces,
-                groups: &p.coarse.groups,
-            },
+            coarse: p.coarse.of_pieces.of(),
         });
         let written = Written {
             scene: &self.scene,
@@ -127,6 +108,7 @@ impl Bake {
         let read: Read = postcard::from_bytes(bytes)?;
         let pieces = read.pieces.map(|p| Pieces {
             map: crate::direct::points::PieceMap::new(&p.scene, p.groups.of()),
+            coarse: Coarse::with_map(&p.scene, (p.groups.of(), p.groups.len()), p.coarse),
             tracer: SceneTracer::new(&p.scene),
             scene: p.scene,
             tallies: p.tallies,
@@ -134,12 +116,6 @@ impl Bake {
             area: p.area,
             groups: p.groups,
             shares: Default::default(),
-            coarse: Coarse {
-                scene: p.coarse.scene,
-                of_pieces: p.coarse.of_pieces,
-                groups: p.coarse.groups,
-                shares: Default::default(),
-            },
         });
         Ok(Self {
             tracer: SceneTracer::new(&read.scene),

@@ -392,26 +392,13 @@ impl Tallies {
     /// What the moving objects change at `frame`: minus the static segments of the lines they
     /// touch, plus those lines' frame segments.
     fn changes(&self, list: &IntersectionList, surfaces: &Surfaces<'_>, frame: usize) -> Entries {
-        let [changes] = self.changes_of(list, [surfaces], frame);
-        changes
-    }
-
-    /// [`Tallies::changes`] for each of `surfaces` (the same triangles, each with its own
-    /// patches), each line's crossings at the frame gathered once for all of them.
-    fn changes_of<const N: usize>(
-        &self,
-        list: &IntersectionList,
-        surfaces: [&Surfaces<'_>; N],
-        frame: usize,
-    ) -> [Entries; N] {
         let touched = &self.touched
             [self.touched_offsets[frame] as usize..self.touched_offsets[frame + 1] as usize];
         // In chunks on every core; sums of integers, so the same whatever the split.
-        let chunks: Vec<[Entries; N]> = touched
+        let chunks: Vec<Entries> = touched
             .par_chunks(4096)
             .map(|chunk| {
-                let mut raw: [Vec<(u64, i64)>; N] = std::array::from_fn(|_| Vec::new());
-                let (mut merged, mut line) = (Vec::new(), Vec::new());
+                let (mut raw, mut merged, mut line) = (Vec::new(), Vec::new(), Vec::new());
                 for &(l, start) in chunk {
                     let l = l as usize;
                     let (g, w) = (self.groups[l], i64::from(self.weights[l]));
@@ -419,30 +406,21 @@ impl Tallies {
                         continue;
                     }
                     list.frame_hits_from(l, frame, start as usize, &mut merged);
-                    for (raw, surfaces) in raw.iter_mut().zip(surfaces) {
-                        let surfaces = surfaces.along(list.direction(l));
-                        line.clear();
-                        walk(list.static_hits(l), &surfaces, |a, b| {
-                            line.push((key(a, b, g), -w));
-                        });
-                        walk(&merged, &surfaces, |a, b| line.push((key(a, b, g), w)));
-                        // The line's segments away from the moving crossings are the same in
-                        // both walks: they cancel here, where the line's few entries sort in
-                        // cache, rather than in the frame's sort.
-                        add_sorted(&mut line, raw);
-                    }
+                    let surfaces = surfaces.along(list.direction(l));
+                    line.clear();
+                    walk(list.static_hits(l), &surfaces, |a, b| {
+                        line.push((key(a, b, g), -w));
+                    });
+                    walk(&merged, &surfaces, |a, b| line.push((key(a, b, g), w)));
+                    // The line's segments away from the moving crossings are the same in both
+                    // walks: they cancel here, where the line's few entries sort in cache,
+                    // rather than in the frame's sort.
+                    add_sorted(&mut line, &mut raw);
                 }
                 raw
             })
             .collect();
-        let mut lists: [Vec<Vec<(u64, i64)>>; N] =
-            std::array::from_fn(|_| Vec::with_capacity(chunks.len()));
-        for chunk in chunks {
-            for (list, entries) in lists.iter_mut().zip(chunk) {
-                list.push(entries);
-            }
-        }
-        lists.map(by_rows)
+        by_rows(chunks)
     }
 
     /// Frames whose tallies equal an earlier frame's: `representative[f]` is the first frame
