@@ -37,9 +37,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             })
             .count();
         let t = bake.frame_tally(0);
-        let lost: u64 = (0..t.columns.len())
-            .filter(|&k| t.columns[k] >= ABSORBED)
-            .map(|k| u64::from(t.counts[k]))
+        let lost: u64 = (0..t.patches())
+            .flat_map(|i| {
+                let (columns, counts) = t.row(i);
+                columns.iter().zip(counts)
+            })
+            .filter(|&(&j, _)| j >= ABSORBED)
+            .map(|(_, &c)| u64::from(c))
             .sum();
         println!(
             "{name}: {} lines, {odd} odd, {unordered} not alternating, {lost} segments to the sky, absorbed or at a contact",

@@ -380,9 +380,10 @@ fn a_dense_region_sees_far_surfaces_at_least_as_well_as_the_global_lines() {
             if on_square[i] {
                 continue;
             }
-            let seen: u64 = (tally.offsets[i]..tally.offsets[i + 1])
-                .filter(|&k| on_square.get(tally.columns[k] as usize) == Some(&true))
-                .map(|k| u64::from(tally.counts[k]))
+            let (columns, counts) = tally.row(i);
+            let seen: u64 = (columns.iter().zip(counts))
+                .filter(|&(&j, _)| on_square.get(j as usize) == Some(&true))
+                .map(|(_, &c)| u64::from(c))
                 .sum();
             let estimate = seen as f64 / tally.crossings[i] as f64;
             let exact = triangle_to_parallel_rectangle(corners(t), (-h, h), (-h, h), height);

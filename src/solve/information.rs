@@ -281,13 +281,11 @@ const LAW_TOLERANCE: f64 = 0.5;
 /// Each patch's share of the plug-in estimate of `I_d`, `Σ_j (S_ij / N) ln(N S_ij / (N_i N_j))`,
 /// from the segments of the line groups `keep` takes; and the pairs of patches they join.
 fn plugin_shares(tally: &FrameTally, keep: impl Fn(u8) -> bool + Sync) -> (Vec<f64>, u64) {
-    let patches = tally.group_offsets.len() - 1;
+    let patches = tally.patches();
     let rows: Vec<Vec<(u32, u64)>> = (0..patches)
         .into_par_iter()
         .map(|i| {
-            let mut row: Vec<(u32, u64)> = tally.group_entries
-                [tally.group_offsets[i]..tally.group_offsets[i + 1]]
-                .iter()
+            let mut row: Vec<(u32, u64)> = (tally.group_row(i).iter())
                 .filter(|&&(j, g, _)| (j as usize) < MAX_PATCHES && keep(g))
                 .map(|&(j, _, s)| (j, u64::from(s)))
                 .collect();

@@ -940,11 +940,8 @@ impl<'a> System<'a> {
     }
 
     fn row_of(tally: &FrameTally, i: usize) -> impl Iterator<Item = (u32, f64)> + '_ {
-        let range = tally.offsets[i]..tally.offsets[i + 1];
-        tally.columns[range.clone()]
-            .iter()
-            .copied()
-            .zip(tally.counts[range].iter().map(|&c| f64::from(c)))
+        let (columns, counts) = tally.row(i);
+        (columns.iter().copied()).zip(counts.iter().map(|&c| f64::from(c)))
     }
 
     /// [`System::apply`], returning `x·y` per channel (summed per chunk of rows, the chunks in
@@ -1279,8 +1276,7 @@ impl<'a> System<'a> {
                 }
                 (0..3).for_each(|c| solved[c] |= d[c] > 0.0);
                 rho = self.rho[i];
-                let range = self.tally.group_offsets[i]..self.tally.group_offsets[i + 1];
-                for &(j, g, count) in &self.tally.group_entries[range] {
+                for &(j, g, count) in self.tally.group_row(i) {
                     let v = match j {
                         SKY => sky,
                         ABSORBED => [0.0; 3],

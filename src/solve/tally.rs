@@ -21,6 +21,7 @@
 
 use std::collections::HashMap;
 use std::ops::Range;
+use std::sync::Arc;
 
 use rayon::prelude::*;
 
@@ -284,29 +285,203 @@ pub struct Tallies {
     lines: usize,
 }
 
-/// One frame's tallies, assembled.
-#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+/// One frame's tallies, assembled: `S` row by row, with each row's per-group entries.
+///
+/// A frame's rows are its timeline's static rows where its moving objects change nothing,
+/// shared with them rather than copied ([`Tallies::frame`]: the moving Cornell box's 10,000
+/// pieces have 1.3 million static entries, a frame's moving block changes a tenth of them).
+#[derive(Clone, Debug, Default)]
 pub struct FrameTally {
     /// Crossings of each patch's visible part (the row sums of `S` without [`HIDDEN`]): its
     /// `N_i`.
     pub crossings: Vec<u64>,
     /// Crossings of each patch where a surface touches it (the [`HIDDEN`] column).
     pub hidden: Vec<u64>,
-    /// Row starts of `S` in `columns` / `counts` (length patches + 1).
-    pub offsets: Vec<usize>,
-    /// Column of each entry: a patch, [`SKY`], [`ABSORBED`] or [`HIDDEN`].
-    pub columns: Vec<u32>,
-    /// Segment count of each entry, each segment its line's weight (> 0; below 2^32: the dense
-    /// factor is chosen so by [`crate::bake::Bake::split`]).
-    pub counts: Vec<u32>,
-    /// Row starts of the per-group entries (length patches + 1).
-    pub group_offsets: Vec<usize>,
-    /// Per-group entries of each row: (column, group, count), for the error estimate.
-    pub group_entries: Vec<(u32, u8, u32)>,
+    /// The rows (every one, or those `changed` does not replace).
+    rows: Arc<Rows>,
+    /// The rows a frame's moving objects change: row `r` is `changed.1`'s row `changed.0[r]`
+    /// where that is not [`UNCHANGED`].
+    changed: Option<(Vec<u32>, Rows)>,
     /// What one global line's segment counts (the dense factor of the list's regions,
     /// [`IntersectionList::line_weights`]; 1 without them): counts over it are in global
     /// lines.
     pub unit: u64,
+}
+
+/// A row of a [`FrameTally`] that its static rows hold.
+const UNCHANGED: u32 = u32::MAX;
+
+/// Rows of `S` in compressed form, each with its per-group entries.
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
+struct Rows {
+    /// Row starts in `columns` / `counts` (one per row, and the end).
+    offsets: Vec<usize>,
+    /// Column of each entry: a patch, [`SKY`], [`ABSORBED`] or [`HIDDEN`].
+    columns: Vec<u32>,
+    /// Segment count of each entry, each segment its line's weight (> 0; below 2^32: the dense
+    /// factor is chosen so by [`crate::bake::Bake::split`]).
+    counts: Vec<u32>,
+    /// Row starts of the per-group entries.
+    group_offsets: Vec<usize>,
+    /// Per-group entries of each row: (column, group, count), for the error estimate.
+    group_entries: Vec<(u32, u8, u32)>,
+}
+
+impl Default for Rows {
+    fn default() -> Self {
+        Self::with_capacity(0)
+    }
+}
+
+impl Rows {
+    /// No rows yet, room for `entries`.
+    fn with_capacity(entries: usize) -> Self {
+        Self {
+            offsets: vec![0],
+            columns: Vec::with_capacity(entries),
+            counts: Vec::with_capacity(entries),
+            group_offsets: vec![0],
+            group_entries: Vec::with_capacity(entries),
+        }
+    }
+
+    /// Row `r`'s columns and counts.
+    fn row(&self, r: usize) -> (&[u32], &[u32]) {
+        let range = self.offsets[r]..self.offsets[r + 1];
+        (&self.columns[range.clone()], &self.counts[range])
+    }
+
+    /// Row `r`'s per-group entries.
+    fn group_row(&self, r: usize) -> &[(u32, u8, u32)] {
+        &self.group_entries[self.group_offsets[r]..self.group_offsets[r + 1]]
+    }
+
+    /// Appends `count` segments of group `group` to `column` in the open row, keys in
+    /// increasing order.
+    fn push(&mut self, column: u32, group: u8, count: u32) {
+        self.push_column(column, count);
+        self.group_entries.push((column, group, count));
+    }
+
+    /// Appends `count` segments to `column` in the open row, without per-group entries.
+    fn push_column(&mut self, column: u32, count: u32) {
+        let open = self.offsets.last().copied().unwrap_or_default();
+        match self.counts.last_mut() {
+            Some(last) if self.columns.len() > open && self.columns.last() == Some(&column) => {
+                *last += count;
+            }
+            _ => {
+                self.columns.push(column);
+                self.counts.push(count);
+            }
+        }
+    }
+
+    /// Closes the open row (the next entries go to the next row).
+    fn close(&mut self) {
+        self.offsets.push(self.columns.len());
+        self.group_offsets.push(self.group_entries.len());
+    }
+
+    fn bytes(&self) -> usize {
+        (self.offsets.len() + self.group_offsets.len()) * size_of::<usize>()
+            + (self.columns.len() + self.counts.len()) * size_of::<u32>()
+            + self.group_entries.len() * size_of::<(u32, u8, u32)>()
+    }
+}
+
+/// [`FrameTally`] as it is stored: every row in place.
+#[derive(serde::Deserialize)]
+struct StoredTally {
+    crossings: Vec<u64>,
+    hidden: Vec<u64>,
+    offsets: Vec<usize>,
+    columns: Vec<u32>,
+    counts: Vec<u32>,
+    group_offsets: Vec<usize>,
+    group_entries: Vec<(u32, u8, u32)>,
+    unit: u64,
+}
+
+/// [`StoredTally`], borrowed: the same fields in the same order.
+#[derive(serde::Serialize)]
+struct StoredTallyRef<'a> {
+    crossings: &'a [u64],
+    hidden: &'a [u64],
+    offsets: &'a [usize],
+    columns: &'a [u32],
+    counts: &'a [u32],
+    group_offsets: &'a [usize],
+    group_entries: &'a [(u32, u8, u32)],
+    unit: u64,
+}
+
+impl serde::Serialize for FrameTally {
+    fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        let whole;
+        let rows = match self.changed {
+            None => &*self.rows,
+            Some(_) => {
+                whole = self.whole_rows();
+                &whole
+            }
+        };
+        StoredTallyRef {
+            crossings: &self.crossings,
+            hidden: &self.hidden,
+            offsets: &rows.offsets,
+            columns: &rows.columns,
+            counts: &rows.counts,
+            group_offsets: &rows.group_offsets,
+            group_entries: &rows.group_entries,
+            unit: self.unit,
+        }
+        .serialize(serializer)
+    }
+}
+
+impl<'de> serde::Deserialize<'de> for FrameTally {
+    fn deserialize<D: serde::Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        let t = StoredTally::deserialize(deserializer)?;
+        let patches = t.crossings.len();
+        if t.hidden.len() != patches
+            || t.offsets.len() != patches + 1
+            || t.group_offsets.len() != patches + 1
+            || t.offsets.last() != Some(&t.columns.len())
+            || t.counts.len() != t.columns.len()
+            || t.group_offsets.last() != Some(&t.group_entries.len())
+            || !t.offsets.is_sorted()
+            || !t.group_offsets.is_sorted()
+        {
+            return Err(serde::de::Error::custom(
+                "a frame tally's rows do not fit together",
+            ));
+        }
+        Ok(Self {
+            crossings: t.crossings,
+            hidden: t.hidden,
+            rows: Arc::new(Rows {
+                offsets: t.offsets,
+                columns: t.columns,
+                counts: t.counts,
+                group_offsets: t.group_offsets,
+                group_entries: t.group_entries,
+            }),
+            changed: None,
+            unit: t.unit,
+        })
+    }
+}
+
+/// Two tallies are equal when every row is, however they hold them.
+impl PartialEq for FrameTally {
+    fn eq(&self, other: &Self) -> bool {
+        self.crossings == other.crossings
+            && self.hidden == other.hidden
+            && self.unit == other.unit
+            && (0..self.patches())
+                .all(|i| self.row(i) == other.row(i) && self.group_row(i) == other.group_row(i))
+    }
 }
 
 impl Tallies {
@@ -399,14 +574,25 @@ impl Tallies {
             .par_chunks(4096)
             .map(|chunk| {
                 let (mut raw, mut merged, mut line) = (Vec::new(), Vec::new(), Vec::new());
-                for &(l, start) in chunk {
+                let mut directions = list.directions();
+                for (k, &(l, start)) in chunk.iter().enumerate() {
+                    // The lines are scattered over the list: their places asked for two
+                    // lines' work ahead of their crossings, and those one ahead.
+                    if let Some(&(l, _)) = chunk.get(k + 2 * AHEAD) {
+                        list.prefetch_offsets(l as usize);
+                        crate::prefetch(&self.weights[l as usize], 1);
+                        crate::prefetch(&self.groups[l as usize], 1);
+                    }
+                    if let Some(&(l, start)) = chunk.get(k + AHEAD) {
+                        list.prefetch_hits(l as usize, start as usize);
+                    }
                     let l = l as usize;
                     let (g, w) = (self.groups[l], i64::from(self.weights[l]));
                     if w == 0 {
                         continue;
                     }
                     list.frame_hits_from(l, frame, start as usize, &mut merged);
-                    let surfaces = surfaces.along(list.direction(l));
+                    let surfaces = surfaces.along(directions.of(l));
                     line.clear();
                     walk(list.static_hits(l), &surfaces, |a, b| {
                         line.push((key(a, b, g), -w));
@@ -468,6 +654,9 @@ impl Tallies {
     }
 }
 
+/// How many touched lines ahead of the one walked [`Tallies::changes`] asks memory for.
+const AHEAD: usize = 8;
+
 /// Lines per chunk of [`moving_fingerprints`].
 const FINGERPRINT_LINES: usize = 1 << 16;
 
@@ -528,57 +717,110 @@ fn moving_fingerprints(list: &IntersectionList) -> Vec<u128> {
 
 /// A frame's CSR from its sorted entries.
 fn assemble(entries: Entries, patches: usize) -> FrameTally {
-    let mut t = FrameTally {
-        crossings: vec![0; patches],
-        hidden: vec![0; patches],
-        offsets: Vec::with_capacity(patches + 1),
-        columns: Vec::with_capacity(entries.len()),
-        counts: Vec::with_capacity(entries.len()),
-        group_offsets: Vec::with_capacity(patches + 1),
-        group_entries: Vec::with_capacity(entries.len()),
-        unit: 1,
-    };
+    let mut t = Builder::new(patches, entries.len());
     let mut row = 0;
-    t.offsets.push(0);
-    t.group_offsets.push(0);
     for (k, c) in entries {
         let (r, col, group) = unkey(k);
         debug_assert!(c > 0, "a frame's segment count went negative");
         while row < r as usize {
-            t.offsets.push(t.columns.len());
-            t.group_offsets.push(t.group_entries.len());
+            t.rows.close();
             row += 1;
         }
         t.push(r as usize, col, group, c as u32);
     }
-    while t.offsets.len() <= patches {
-        t.offsets.push(t.columns.len());
-        t.group_offsets.push(t.group_entries.len());
+    while row < patches {
+        t.rows.close();
+        row += 1;
     }
-    t
+    t.finish(1)
+}
+
+/// A [`FrameTally`] being written row after row.
+struct Builder {
+    crossings: Vec<u64>,
+    hidden: Vec<u64>,
+    rows: Rows,
+}
+
+impl Builder {
+    /// `patches` rows to come, with room for `entries`.
+    fn new(patches: usize, entries: usize) -> Self {
+        Self {
+            crossings: vec![0; patches],
+            hidden: vec![0; patches],
+            rows: Rows::with_capacity(entries),
+        }
+    }
+
+    /// Appends `count` segments of group `group` from `row` (the open row) to `column`, keys
+    /// in increasing order.
+    fn push(&mut self, row: usize, column: u32, group: u8, count: u32) {
+        self.rows.push(column, group, count);
+        count_into((&mut self.crossings, &mut self.hidden), row, column, count);
+    }
+
+    fn finish(self, unit: u64) -> FrameTally {
+        FrameTally {
+            crossings: self.crossings,
+            hidden: self.hidden,
+            rows: Arc::new(self.rows),
+            changed: None,
+            unit,
+        }
+    }
+}
+
+/// Counts `count` crossings of `row` whose segment goes to `column` into its crossings or
+/// (for [`HIDDEN`]) its hidden ones.
+fn count_into((crossings, hidden): (&mut [u64], &mut [u64]), row: usize, column: u32, count: u32) {
+    if column == HIDDEN {
+        hidden[row] += u64::from(count);
+    } else {
+        crossings[row] += u64::from(count);
+    }
 }
 
 impl FrameTally {
-    /// Appends `count` segments of group `group` from `row` (the last row, or a new one after
-    /// it) to `column`, keys in increasing order; the caller closes the rows.
-    fn push(&mut self, row: usize, column: u32, group: u8, count: u32) {
-        if self.columns.len() > self.offsets[row] && self.columns.last() == Some(&column) {
-            *self.counts.last_mut().unwrap_or(&mut 0) += count;
-        } else {
-            self.columns.push(column);
-            self.counts.push(count);
-        }
-        self.group_entries.push((column, group, count));
-        self.count(row, column, count);
+    /// Rows (patches) tallied.
+    #[must_use]
+    pub fn patches(&self) -> usize {
+        self.crossings.len()
     }
 
-    /// Counts `count` crossings of `row` whose segment goes to `column`: [`HIDDEN`] apart.
-    fn count(&mut self, row: usize, column: u32, count: u32) {
-        if column == HIDDEN {
-            self.hidden[row] += u64::from(count);
-        } else {
-            self.crossings[row] += u64::from(count);
+    /// The rows holding row `i`, and its index there.
+    fn rows_of(&self, i: usize) -> (&Rows, usize) {
+        match &self.changed {
+            Some((slots, rows)) if slots[i] != UNCHANGED => (rows, slots[i] as usize),
+            _ => (&self.rows, i),
         }
+    }
+
+    /// Row `i` of `S`: its columns (a patch, [`SKY`], [`ABSORBED`] or [`HIDDEN`]), in
+    /// increasing order, and their segment counts (each segment its line's weight).
+    #[must_use]
+    pub fn row(&self, i: usize) -> (&[u32], &[u32]) {
+        let (rows, r) = self.rows_of(i);
+        rows.row(r)
+    }
+
+    /// Row `i`'s per-group entries: (column, group, count), in increasing (column, group).
+    #[must_use]
+    pub fn group_row(&self, i: usize) -> &[(u32, u8, u32)] {
+        let (rows, r) = self.rows_of(i);
+        rows.group_row(r)
+    }
+
+    /// Every row in place, whether or not some are a frame's changes to static ones.
+    fn whole_rows(&self) -> Rows {
+        let mut rows = Rows::with_capacity(self.rows.columns.len());
+        for i in 0..self.patches() {
+            let (columns, counts) = self.row(i);
+            rows.columns.extend_from_slice(columns);
+            rows.counts.extend_from_slice(counts);
+            rows.group_entries.extend_from_slice(self.group_row(i));
+            rows.close();
+        }
+        rows
     }
 
     /// These tallies over merged patches: patch `k` becomes `into.of()[k]` (one of
@@ -595,118 +837,74 @@ impl FrameTally {
             }
         };
         let count = into.len();
-        let mut t = Self {
-            crossings: vec![0; count],
-            hidden: vec![0; count],
-            offsets: Vec::with_capacity(count + 1),
-            columns: Vec::with_capacity(self.columns.len()),
-            counts: Vec::with_capacity(self.columns.len()),
-            group_offsets: Vec::with_capacity(count + 1),
-            group_entries: Vec::with_capacity(self.group_entries.len()),
-            unit: self.unit,
-        };
+        let mut t = Builder::new(count, self.rows.columns.len());
         let mut row: Vec<(u32, u8, u32)> = Vec::new();
         for r in 0..count {
             row.clear();
             for &k in into.members(r) {
-                let range = self.group_offsets[k as usize]..self.group_offsets[k as usize + 1];
-                let renamed = self.group_entries[range]
-                    .iter()
-                    .map(|&(j, g, c)| (rename(j), g, c));
+                let renamed =
+                    (self.group_row(k as usize).iter()).map(|&(j, g, c)| (rename(j), g, c));
                 row.extend(renamed);
             }
             row.sort_unstable_by_key(|&(j, g, _)| (j, g));
-            t.offsets.push(t.columns.len());
-            t.group_offsets.push(t.group_entries.len());
             for same in row.chunk_by(|a, b| (a.0, a.1) == (b.0, b.1)) {
                 let (j, g, _) = same[0];
                 t.push(r, j, g, same.iter().map(|e| e.2).sum());
             }
+            t.rows.close();
         }
-        t.offsets.push(t.columns.len());
-        t.group_offsets.push(t.group_entries.len());
-        t
+        t.finish(self.unit)
     }
 
     /// The sorted entries these tallies were assembled from.
     fn entries(&self) -> Entries {
-        let mut out = Vec::with_capacity(self.group_entries.len());
-        for row in 0..self.crossings.len() {
-            let range = self.group_offsets[row]..self.group_offsets[row + 1];
-            for &(column, group, count) in &self.group_entries[range] {
+        let mut out = Vec::with_capacity(self.rows.group_entries.len());
+        for row in 0..self.patches() {
+            for &(column, group, count) in self.group_row(row) {
                 out.push((key(row as u32, column, group), i64::from(count)));
             }
         }
         out
     }
 
-    /// Bytes held.
+    /// Bytes held (the static rows a frame shares with its timeline's counted once, there).
     #[must_use]
     pub fn bytes(&self) -> usize {
-        (self.crossings.len() + self.hidden.len()) * size_of::<u64>()
-            + (self.offsets.len() + self.group_offsets.len()) * size_of::<usize>()
-            + self.columns.len() * size_of::<u32>()
-            + self.counts.len() * size_of::<u32>()
-            + self.group_entries.len() * size_of::<(u32, u8, u32)>()
+        let own = match &self.changed {
+            None => self.rows.bytes(),
+            Some((slots, rows)) => slots.len() * size_of::<u32>() + rows.bytes(),
+        };
+        (self.crossings.len() + self.hidden.len()) * size_of::<u64>() + own
     }
 
-    /// These tallies plus `changes` (sorted keys, counts that never take an entry below 0): the
-    /// rows without changes are copied whole, the others merged.
+    /// These tallies plus `changes` (sorted keys, counts that never take an entry below 0):
+    /// the rows without changes shared, the others merged with their changes.
     fn with_changes(&self, changes: &[(u64, i64)]) -> Self {
-        let patches = self.crossings.len();
-        let mut t = Self {
-            crossings: self.crossings.clone(),
-            hidden: self.hidden.clone(),
-            offsets: Vec::with_capacity(patches + 1),
-            columns: Vec::with_capacity(self.columns.len() + changes.len()),
-            counts: Vec::with_capacity(self.columns.len() + changes.len()),
-            group_offsets: Vec::with_capacity(patches + 1),
-            group_entries: Vec::with_capacity(self.group_entries.len() + changes.len()),
-            unit: self.unit,
+        let patches = self.patches();
+        let rows = match self.changed {
+            None => Arc::clone(&self.rows),
+            Some(_) => Arc::new(self.whole_rows()),
         };
+        let mut slots = vec![UNCHANGED; patches];
+        let mut own = Rows::with_capacity(2 * changes.len());
+        let (mut crossings, mut hidden) = (self.crossings.clone(), self.hidden.clone());
         let mut next = 0;
-        let mut row = 0;
-        while row < patches {
-            let changed = changes
-                .get(next)
-                .map_or(patches, |&(k, _)| unkey(k).0 as usize);
-            // The rows before the next change, as they are.
-            let (a, b) = (self.offsets[row], self.offsets[changed]);
-            let (ga, gb) = (self.group_offsets[row], self.group_offsets[changed]);
-            // Their starts move by what the changed rows before them gained or lost.
-            let (base, group_base) = (t.columns.len(), t.group_entries.len());
-            t.offsets
-                .extend(self.offsets[row..changed].iter().map(|&o| o - a + base));
-            t.group_offsets.extend(
-                self.group_offsets[row..changed]
-                    .iter()
-                    .map(|&o| o - ga + group_base),
-            );
-            t.columns.extend_from_slice(&self.columns[a..b]);
-            t.counts.extend_from_slice(&self.counts[a..b]);
-            t.group_entries
-                .extend_from_slice(&self.group_entries[ga..gb]);
-            row = changed;
-            if row == patches {
-                break;
-            }
+        while next < changes.len() {
+            let row = unkey(changes[next].0).0 as usize;
             // The changed row: its per-group entries merged with its changes, in key order.
             // A row's changes are few: a scan, not a binary search over the rest.
             let end = next
                 + (changes[next..].iter())
                     .position(|&(k, _)| unkey(k).0 as usize != row)
                     .unwrap_or(changes.len() - next);
-            t.offsets.push(t.columns.len());
-            t.group_offsets.push(t.group_entries.len());
-            t.crossings[row] = 0;
-            t.hidden[row] = 0;
-            let old = &self.group_entries[self.group_offsets[row]..self.group_offsets[row + 1]];
+            slots[row] = (own.offsets.len() - 1) as u32;
+            crossings[row] = 0;
+            hidden[row] = 0;
             let new = changes[next..end].iter().map(|&(k, c)| {
                 let (_, column, group) = unkey(k);
                 (column, group, c)
             });
-            let mut old = old
-                .iter()
+            let mut old = (rows.group_row(row).iter())
                 .map(|&(column, group, c)| (column, group, i64::from(c)))
                 .peekable();
             let mut new = new.peekable();
@@ -730,15 +928,20 @@ impl FrameTally {
                 .unwrap_or_default();
                 debug_assert!(count >= 0, "a frame's segment count went negative");
                 if count > 0 {
-                    t.push(row, column, group, count as u32);
+                    own.push(column, group, count as u32);
+                    count_into((&mut crossings, &mut hidden), row, column, count as u32);
                 }
             }
+            own.close();
             next = end;
-            row += 1;
         }
-        t.offsets.push(t.columns.len());
-        t.group_offsets.push(t.group_entries.len());
-        t
+        Self {
+            crossings,
+            hidden,
+            rows,
+            changed: Some((slots, own)),
+            unit: self.unit,
+        }
     }
 
     /// The tallies of arbitrary per-line crossing lists (each sorted along its line, with the
@@ -760,42 +963,25 @@ impl FrameTally {
     /// the per-group entries.
     #[must_use]
     pub fn replicas(&self) -> Vec<Self> {
-        let patches = self.crossings.len();
+        let patches = self.patches();
         let mut sizes = [0usize; GROUPS as usize];
-        self.group_entries
-            .iter()
-            .for_each(|&(_, g, _)| sizes[g as usize] += 1);
-        let mut replicas: Vec<Self> = sizes
-            .iter()
-            .map(|&size| {
-                let mut offsets = Vec::with_capacity(patches + 1);
-                offsets.push(0);
-                Self {
-                    crossings: vec![0; patches],
-                    hidden: vec![0; patches],
-                    offsets,
-                    columns: Vec::with_capacity(size),
-                    counts: Vec::with_capacity(size),
-                    group_offsets: vec![0; patches + 1],
-                    group_entries: Vec::new(),
-                    unit: self.unit,
-                }
-            })
+        for i in 0..patches {
+            (self.group_row(i).iter()).for_each(|&(_, g, _)| sizes[g as usize] += 1);
+        }
+        let mut replicas: Vec<Builder> = (sizes.iter())
+            .map(|&size| Builder::new(patches, size))
             .collect();
         for i in 0..patches {
-            for &(column, g, count) in
-                &self.group_entries[self.group_offsets[i]..self.group_offsets[i + 1]]
-            {
+            for &(column, g, count) in self.group_row(i) {
                 let t = &mut replicas[g as usize];
-                t.columns.push(column);
-                t.counts.push(count);
-                t.count(i, column, count);
+                t.rows.push_column(column, count);
+                count_into((&mut t.crossings, &mut t.hidden), i, column, count);
             }
-            for t in &mut replicas {
-                t.offsets.push(t.columns.len());
-            }
+            replicas.iter_mut().for_each(|t| t.rows.close());
         }
-        replicas
+        (replicas.into_iter())
+            .map(|t| t.finish(self.unit))
+            .collect()
     }
 
     /// Whether `S` is symmetric between patches (reciprocity, `A_i F_ij = A_j F_ji`): true by
@@ -803,16 +989,14 @@ impl FrameTally {
     #[must_use]
     pub fn is_symmetric(&self) -> bool {
         let count = |i: usize, j: u32| {
-            let range = self.offsets[i]..self.offsets[i + 1];
-            self.columns[range.clone()]
-                .iter()
-                .position(|&c| c == j)
-                .map(|k| self.counts[range.start + k])
+            let (columns, counts) = self.row(i);
+            columns.iter().position(|&c| c == j).map(|k| counts[k])
         };
-        (0..self.crossings.len()).all(|i| {
-            (self.offsets[i]..self.offsets[i + 1])
-                .filter(|&k| (self.columns[k] as usize) < MAX_PATCHES)
-                .all(|k| count(self.columns[k] as usize, i as u32) == Some(self.counts[k]))
+        (0..self.patches()).all(|i| {
+            let (columns, counts) = self.row(i);
+            (columns.iter().zip(counts))
+                .filter(|&(&j, _)| (j as usize) < MAX_PATCHES)
+                .all(|(&j, &c)| count(j as usize, i as u32) == Some(c))
         })
     }
 }
@@ -950,10 +1134,19 @@ mod tests {
         let changes = aggregate(raw);
         let tally = assemble(statics.clone(), patches as usize);
         assert_eq!(tally.entries(), statics);
-        assert_eq!(
-            tally.with_changes(&changes),
-            assemble(merge(&statics, &changes), patches as usize)
-        );
+        let frame = tally.with_changes(&changes);
+        let whole = assemble(merge(&statics, &changes), patches as usize);
+        assert_eq!(frame, whole);
+        assert_eq!(frame.entries(), whole.entries());
+        // The changed rows held apart from the shared static ones, stored as every row in
+        // place: the same bytes, and read back equal.
+        assert!(frame.changed.is_some() && Arc::ptr_eq(&frame.rows, &tally.rows));
+        let stored = postcard::to_stdvec(&frame).unwrap();
+        assert_eq!(stored, postcard::to_stdvec(&whole).unwrap());
+        assert_eq!(postcard::from_bytes::<FrameTally>(&stored).unwrap(), whole);
+        // A frame's changes on top of another frame's: the rows in place first.
+        let again = frame.with_changes(&[]);
+        assert_eq!(again, whole);
     }
 
     /// Tallies over merged patches are those of the same segments with their ends renamed:

@@ -705,6 +705,35 @@ impl IntersectionList {
         self.bundle_starts[k.saturating_sub(1)].1
     }
 
+    /// The directions of lines asked for in increasing order ([`Directions::of`]): a cursor
+    /// over the bundles, where [`IntersectionList::direction`] searches them for every line.
+    #[must_use]
+    pub fn directions(&self) -> Directions<'_> {
+        Directions {
+            starts: &self.bundle_starts,
+            at: 0,
+        }
+    }
+
+    /// Hints that `line`'s place in the list will be read soon (its crossings' offsets): the
+    /// lines a frame's moving objects touch are scattered over the list, each a cache miss.
+    pub fn prefetch_offsets(&self, line: usize) {
+        crate::prefetch(&self.static_offsets[line], 2 * size_of::<u32>());
+        crate::prefetch(&self.dynamic_offsets[line], 2 * size_of::<u32>());
+    }
+
+    /// Hints that [`IntersectionList::frame_hits_from`] will soon read `line` from `start`.
+    pub fn prefetch_hits(&self, line: usize, start: usize) {
+        let (s, d) = (self.static_offsets[line], self.dynamic_offsets[line]);
+        let statics = self.static_offsets[line + 1] - s;
+        if let Some(h) = self.static_hits.get(s as usize) {
+            crate::prefetch(h, statics as usize * size_of::<Hit>());
+        }
+        if let Some(h) = self.dynamic_hits.get(d as usize + start) {
+            crate::prefetch(h, 2 * size_of::<FrameHit>());
+        }
+    }
+
     /// Number of frames of the timeline.
     #[must_use]
     pub fn frames(&self) -> usize {
@@ -992,6 +1021,38 @@ fn append_csr(offsets: &mut Vec<u32>, counts: &[u32]) -> Result<(), TraceError> 
         offsets.push(last);
     }
     Ok(())
+}
+
+/// The directions of lines in increasing order ([`IntersectionList::directions`]).
+pub struct Directions<'a> {
+    starts: &'a [(u32, glam::Vec3)],
+    at: usize,
+}
+
+impl Directions<'_> {
+    /// The direction of `line` (unit), no earlier a line than the last one asked for.
+    pub fn of(&mut self, line: usize) -> glam::Vec3 {
+        let next = |at: usize| {
+            self.starts
+                .get(at + 1)
+                .is_some_and(|&(s, _)| s as usize <= line)
+        };
+        // A few bundles on, a step at a time; further, a search of what is left.
+        let mut steps = 0;
+        while next(self.at) {
+            self.at += 1;
+            steps += 1;
+            if steps == 8 {
+                self.at += self.starts[self.at..].partition_point(|&(s, _)| s as usize <= line) - 1;
+                break;
+            }
+        }
+        debug_assert!(
+            self.starts[self.at].0 as usize <= line,
+            "lines asked out of order"
+        );
+        self.starts[self.at].1
+    }
 }
 
 #[cfg(test)]

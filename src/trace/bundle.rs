@@ -227,25 +227,6 @@ fn wide_instructions() -> bool {
 /// How many nodes or triangles ahead of the one being tested the walk asks memory for.
 const PREFETCH_AHEAD: usize = 16;
 
-/// Asks for the `bytes` from `at` to be brought into cache: a hint, no effect on results.
-#[inline]
-fn prefetch<T>(at: &T, bytes: usize) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
-        // Every cache line the bytes touch: an object may straddle two.
-        let base = std::ptr::from_ref(at).cast::<i8>();
-        let mut offset = 0;
-        while offset < bytes {
-            // SAFETY: SSE is part of x86_64; a prefetch never faults, whatever the address.
-            unsafe { _mm_prefetch::<_MM_HINT_T0>(base.wrapping_add(offset)) };
-            offset += 64;
-        }
-        // SAFETY: as above; the last line, when the bytes straddle one more than they fill.
-        unsafe { _mm_prefetch::<_MM_HINT_T0>(base.wrapping_add(bytes.saturating_sub(1))) };
-    }
-}
-
 /// A rounding margin for coordinates up to `scale`: of a box moved into another space (a rigid
 /// object's), whose lines moved with it are within a few units in the last place of the
 /// largest coordinate (about 6e-8 relative), and of a box's diagonal band
@@ -458,7 +439,7 @@ impl TraceMesh {
             blocks.clear();
             for (n, &(node, start, end)) in nodes.iter().enumerate() {
                 if let Some(&(ahead, _, _)) = nodes.get(n + PREFETCH_AHEAD) {
-                    prefetch(&self.wide[ahead as usize], size_of::<wide::Node>());
+                    crate::prefetch(&self.wide[ahead as usize], size_of::<wide::Node>());
                 }
                 let node = &self.wide[node as usize];
                 let rects = rects_of::<AVX>(shear, node, diagonal_margin);
@@ -494,14 +475,14 @@ impl TraceMesh {
             }
             for (n, &(k, from, to)) in leaves.iter().enumerate() {
                 if let Some(&(ahead, _, _)) = leaves.get(n + PREFETCH_AHEAD) {
-                    prefetch(&self.triangles[ahead as usize], size_of::<Triangle>());
+                    crate::prefetch(&self.triangles[ahead as usize], size_of::<Triangle>());
                 }
                 let list = &next_points.as_slice()[from as usize..to as usize];
                 self.cross_triangle(k as usize, lines, list, out);
             }
             for (n, &(b, lanes, from, to)) in blocks.iter().enumerate() {
                 if let Some(&(ahead, _, _, _)) = blocks.get(n + PREFETCH_AHEAD) {
-                    prefetch(&self.blocks[ahead as usize], size_of::<wide::Block>());
+                    crate::prefetch(&self.blocks[ahead as usize], size_of::<wide::Block>());
                 }
                 let list = &next_points.as_slice()[from as usize..to as usize];
                 self.cross_block::<AVX>(b as usize, lanes, lines, list, out);
