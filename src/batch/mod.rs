@@ -26,7 +26,7 @@ pub mod shard;
 use std::collections::HashMap;
 use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::Instant;
 
 use rayon::prelude::*;
@@ -329,7 +329,7 @@ fn write_outputs(
     for &f in &wanted {
         last_use.insert(representatives[f], f);
     }
-    let lit: Mutex<HashMap<usize, Arc<Vec<output::NodeMesh>>>> = Mutex::default();
+    let mut lit: HashMap<usize, Arc<Vec<output::NodeMesh>>> = HashMap::new();
     let (width, height) = outputs.preview_size;
     let small = ((width / 2).max(1), (height / 2).max(1));
     // Frames at once: each render holds its sample buffers, so large previews take turns.
@@ -341,24 +341,36 @@ fn write_outputs(
     // first batch at the same time.
     let (first, rest) = wanted.split_at(wanted.len().min(1));
     for batch in std::iter::once(first).chain(rest.chunks(at_once)) {
+        // Each distinct frame's light at the vertices once, before the frames that show it: a
+        // still stretch of the timeline is one distinct frame, however many frames of a batch
+        // show it.
+        let mut needed: Vec<usize> = (batch.iter())
+            .map(|&f| representatives[f])
+            .filter(|r| !lit.contains_key(r))
+            .collect();
+        needed.sort_unstable();
+        needed.dedup();
+        let computed: Vec<(usize, Arc<Vec<output::NodeMesh>>)> = (needed.par_iter())
+            .filter(|_| !control.is_cancelled())
+            .map(|&r| {
+                let meshes = output::lit_geometry(bake, r, &frames[r], lighting);
+                (r, Arc::new(meshes))
+            })
+            .collect();
+        if control.is_cancelled() {
+            return Err("cancelled".to_string());
+        }
+        lit.extend(computed);
         let made: Vec<Result<Option<image::RgbImage>, String>> = batch
             .par_iter()
             .map(|&f| {
                 if control.is_cancelled() {
                     return Err("cancelled".to_string());
                 }
-                let r = representatives[f];
-                let known = lit.lock().map(|l| l.get(&r).cloned()).unwrap_or_default();
-                let meshes = known.unwrap_or_else(|| {
-                    let meshes = Arc::new(output::lit_geometry(bake, r, &frames[r], lighting));
-                    if let Ok(mut l) = lit.lock() {
-                        l.insert(r, meshes.clone());
-                    }
-                    meshes
-                });
+                let meshes = &lit[&representatives[f]];
                 if glbs.binary_search(&f).is_ok() {
                     let bytes =
-                        output::frame_glb(scene, f, &meshes, tone).map_err(|e| e.to_string())?;
+                        output::frame_glb(scene, f, meshes, tone).map_err(|e| e.to_string())?;
                     let name = frame_name(f, count, "glb");
                     std::fs::write(dir.join("baked").join(name), bytes).map_err(io)?;
                 }
@@ -380,9 +392,7 @@ fn write_outputs(
             gif_images.extend(image?);
         }
         let done = batch.last().copied().unwrap_or_default();
-        if let Ok(mut l) = lit.lock() {
-            l.retain(|r, _| last_use.get(r).is_some_and(|&last| last > done));
-        }
+        lit.retain(|r, _| last_use.get(r).is_some_and(|&last| last > done));
     }
     if !gif.is_empty() {
         if control.is_cancelled() {
