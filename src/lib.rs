@@ -64,7 +64,7 @@ pub mod trace;
 
 /// Asks for the `bytes` from `at` to be brought into cache: a hint, no effect on results.
 #[inline]
-pub fn prefetch<T>(at: &T, bytes: usize) {
+pub(crate) fn prefetch<T>(at: &T, bytes: usize) {
     #[cfg(target_arch = "x86_64")]
     {
         use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};

@@ -717,13 +717,13 @@ impl IntersectionList {
 
     /// Hints that `line`'s place in the list will be read soon (its crossings' offsets): the
     /// lines a frame's moving objects touch are scattered over the list, each a cache miss.
-    pub fn prefetch_offsets(&self, line: usize) {
+    pub(crate) fn prefetch_offsets(&self, line: usize) {
         crate::prefetch(&self.static_offsets[line], 2 * size_of::<u32>());
         crate::prefetch(&self.dynamic_offsets[line], 2 * size_of::<u32>());
     }
 
     /// Hints that [`IntersectionList::frame_hits_from`] will soon read `line` from `start`.
-    pub fn prefetch_hits(&self, line: usize, start: usize) {
+    pub(crate) fn prefetch_hits(&self, line: usize, start: usize) {
         let (s, d) = (self.static_offsets[line], self.dynamic_offsets[line]);
         let statics = self.static_offsets[line + 1] - s;
         if let Some(h) = self.static_hits.get(s as usize) {
