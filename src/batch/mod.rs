@@ -341,15 +341,7 @@ fn write_outputs(
     // first batch at the same time.
     let (first, rest) = wanted.split_at(wanted.len().min(1));
     for batch in std::iter::once(first).chain(rest.chunks(at_once)) {
-        // Each distinct frame's light at the vertices once, before the frames that show it: a
-        // still stretch of the timeline is one distinct frame, however many frames of a batch
-        // show it.
-        let mut needed: Vec<usize> = (batch.iter())
-            .map(|&f| representatives[f])
-            .filter(|r| !lit.contains_key(r))
-            .collect();
-        needed.sort_unstable();
-        needed.dedup();
+        let needed = unlit(batch, &representatives, |r| lit.contains_key(&r));
         let computed: Vec<(usize, Arc<Vec<output::NodeMesh>>)> = (needed.par_iter())
             .filter(|_| !control.is_cancelled())
             .map(|&r| {
@@ -402,6 +394,19 @@ fn write_outputs(
         std::fs::write(dir.join("preview.gif"), bytes).map_err(io)?;
     }
     Ok(gif)
+}
+
+/// The distinct frames whose light at the vertices `batch` (frames to write) needs and `lit`
+/// does not hold, each once, in order: a still stretch of the timeline is one distinct frame
+/// ([`Bake::representatives`]), however many frames of a batch show it.
+fn unlit(batch: &[usize], representatives: &[usize], lit: impl Fn(usize) -> bool) -> Vec<usize> {
+    let mut needed: Vec<usize> = (batch.iter())
+        .map(|&f| representatives[f])
+        .filter(|&r| !lit(r))
+        .collect();
+    needed.sort_unstable();
+    needed.dedup();
+    needed
 }
 
 /// Replaces `dir` with the complete `staging` directory: the old outputs are moved aside, the
@@ -835,6 +840,22 @@ fn panicked(payload: &(dyn std::any::Any + Send)) -> String {
 mod tests {
     use super::*;
     use crate::params::{BakeRequest, Limits};
+
+    #[test]
+    fn a_batch_lights_each_distinct_frame_it_shows_once() {
+        // Frames 0–2 still (frame 0's light), 3–5 still (frame 3's), 6 its own.
+        let representatives = [0, 0, 0, 3, 3, 3, 6];
+        assert_eq!(
+            unlit(&[1, 2, 3, 4, 5], &representatives, |_| false),
+            vec![0, 3]
+        );
+        // What an earlier batch lit is not lit again.
+        assert_eq!(
+            unlit(&[2, 3, 4, 5, 6], &representatives, |r| r == 3),
+            vec![0, 6]
+        );
+        assert!(unlit(&[4, 5], &representatives, |r| r == 3).is_empty());
+    }
 
     #[test]
     fn the_gif_keeps_at_most_its_frame_budget_at_a_delay_browsers_honour() {
