@@ -1081,6 +1081,37 @@ mod tests {
     }
 
     #[test]
+    fn the_directions_cursor_reads_each_line_s_bundle() {
+        let (_, parts) = parts(1);
+        let list = &parts[0].1;
+        assert!(list.bundle_starts.len() > 20, "lines in many bundles");
+        // Every line in order, and lines far apart (past the cursor's steps, into a search).
+        for stride in [1, 3, 97, 1_001] {
+            let mut directions = list.directions();
+            for l in (0..list.lines()).step_by(stride) {
+                assert_eq!(
+                    directions.of(l),
+                    list.direction(l),
+                    "line {l}, stride {stride}"
+                );
+            }
+        }
+        // The first line of a bundle whose direction is not the one before's, at least ten
+        // bundles on from the last line asked: past the cursor's steps, into its search.
+        let starts = &list.bundle_starts;
+        let mut directions = list.directions();
+        let (mut asked, mut last) = (0, 0);
+        for k in 1..starts.len() {
+            if starts[k].1 != starts[k - 1].1 && k >= last + 10 {
+                let l = starts[k].0 as usize;
+                assert_eq!(directions.of(l), list.direction(l), "line {l}");
+                (asked, last) = (asked + 1, k);
+            }
+        }
+        assert!(asked > 0, "no turn ten bundles apart to ask at");
+    }
+
+    #[test]
     fn a_part_whose_arrays_disagree_is_refused_not_read_out_of_bounds() {
         let (_, whole) = parts(2);
         assert!(IntersectionList::merge(whole.clone()).is_ok());
