@@ -901,32 +901,39 @@ impl FrameTally {
             slots[row] = (own.offsets.len() - 1) as u32;
             crossings[row] = 0;
             hidden[row] = 0;
-            let new = changes[next..end].iter().map(|&(k, c)| {
-                let (_, column, group) = unkey(k);
-                (column, group, c)
-            });
-            let mut old = (rows.group_row(row).iter())
-                .map(|&(column, group, c)| (column, group, i64::from(c)))
-                .peekable();
-            let mut new = new.peekable();
-            loop {
-                let (column, group, count) = match (old.peek(), new.peek()) {
-                    (None, None) => break,
-                    (Some(_), None) => old.next(),
-                    (None, Some(_)) => new.next(),
-                    (Some(o), Some(n)) => match (o.0, o.1).cmp(&(n.0, n.1)) {
-                        std::cmp::Ordering::Less => old.next(),
-                        std::cmp::Ordering::Greater => new.next(),
-                        std::cmp::Ordering::Equal => {
-                            let c = o.2 + n.2;
-                            let e = (o.0, o.1, c);
-                            old.next();
-                            new.next();
-                            Some(e)
+            // Both sides sorted by (column, group): a merge, equal keys added.
+            let (old, new) = (rows.group_row(row), &changes[next..end]);
+            let (mut i, mut j) = (0, 0);
+            while i < old.len() || j < new.len() {
+                let (column, group, count) = match (old.get(i), new.get(j)) {
+                    (Some(&(c, g, n)), Some(&(k, d))) => {
+                        let (_, column, group) = unkey(k);
+                        match (c, g).cmp(&(column, group)) {
+                            std::cmp::Ordering::Less => {
+                                i += 1;
+                                (c, g, i64::from(n))
+                            }
+                            std::cmp::Ordering::Greater => {
+                                j += 1;
+                                (column, group, d)
+                            }
+                            std::cmp::Ordering::Equal => {
+                                (i, j) = (i + 1, j + 1);
+                                (c, g, i64::from(n) + d)
+                            }
                         }
-                    },
-                }
-                .unwrap_or_default();
+                    }
+                    (Some(&(c, g, n)), None) => {
+                        i += 1;
+                        (c, g, i64::from(n))
+                    }
+                    (None, Some(&(k, d))) => {
+                        j += 1;
+                        let (_, column, group) = unkey(k);
+                        (column, group, d)
+                    }
+                    (None, None) => break,
+                };
                 debug_assert!(count >= 0, "a frame's segment count went negative");
                 if count > 0 {
                     own.push(column, group, count as u32);
