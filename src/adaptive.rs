@@ -422,18 +422,8 @@ fn merges(bake: &Bake, auto: &Adaptive, solve: &SolveParams) -> Vec<u32> {
         }
     }
     // Dense new ids, in the order of each merged patch's first member.
-    let mut id = vec![u32::MAX; patches];
-    let mut next = 0;
-    (0..patches as u32)
-        .map(|p| {
-            let r = find(&mut root, p) as usize;
-            if id[r] == u32::MAX {
-                id[r] = next;
-                next += 1;
-            }
-            id[r]
-        })
-        .collect()
+    let roots: Vec<u32> = (0..patches as u32).map(|p| find(&mut root, p)).collect();
+    crate::scene::refine::dense_ids(roots)
 }
 
 /// Most patches merged into one: each merge tests every member (a floor of a dense export,

@@ -123,18 +123,7 @@ impl Coarse {
                 }
             }
         }
-        // Dense ids, in the pieces' order.
-        let mut dense = vec![u32::MAX; into.len()];
-        let mut count = 0u32;
-        for k in 0..into.len() {
-            let first = into[k] as usize;
-            if dense[first] == u32::MAX {
-                dense[first] = count;
-                count += 1;
-            }
-            dense[k] = dense[first];
-        }
-        Self::with_map(pieces, (of, patches), dense)
+        Self::with_map(pieces, (of, patches), refine::dense_ids(into))
     }
 
     /// The coarse level of `pieces` (piece `k` of patch `of[k]`, of `patches` patches) in

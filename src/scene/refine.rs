@@ -458,6 +458,23 @@ pub fn members(scene: &Scene) -> Vec<u32> {
     count
 }
 
+/// Dense ids from 0 for groups given by a representative per item (`root[p]`, an item of the
+/// group): each group numbered in the order of its first item, as [`merge`] takes them.
+#[must_use]
+pub fn dense_ids(root: Vec<u32>) -> Vec<u32> {
+    let mut id = vec![u32::MAX; root.iter().map(|&r| r as usize + 1).max().unwrap_or(0)];
+    let mut next = 0;
+    (root.into_iter())
+        .map(|r| {
+            if id[r as usize] == u32::MAX {
+                id[r as usize] = next;
+                next += 1;
+            }
+            id[r as usize]
+        })
+        .collect()
+}
+
 /// Merges `scene`'s patches: old patch `p` becomes new patch `into[p]` (the new ids dense
 /// from 0). The patches merged into one must be faces of coplanar traced triangles of one
 /// source primitive (one node, mesh and primitive) with one material and side, which the

@@ -1021,12 +1021,13 @@ fn tally_static(
         .par_chunks(4096)
         .map(|chunk| {
             let mut raw = Vec::new();
+            let mut directions = list.directions();
             for &l in chunk {
                 let w = i64::from(weights[l]);
                 if w == 0 {
                     continue;
                 }
-                let surfaces = surfaces.along(list.direction(l));
+                let surfaces = surfaces.along(directions.of(l));
                 walk(list.static_hits(l), &surfaces, |a, b| {
                     raw.push((key(a, b, groups[l]), w))
                 });
