@@ -170,6 +170,13 @@ struct OutputArgs {
     /// Do not write preview.gif.
     #[arg(long)]
     no_gif: bool,
+    /// Also write lightmaps (lightmaps/: the geometry with its lightmap coordinates, one
+    /// linear half-float EXR per lighting state, manifest.json)
+    #[arg(long)]
+    lightmaps: bool,
+    /// The lightmaps' texel density, texels per scene unit (with --lightmaps)
+    #[arg(long, default_value_t = radiosity::output::lightmap::TEXELS_PER_UNIT, requires = "lightmaps")]
+    texels_per_unit: f64,
     /// Exposure of the previews and of the baked glTF's vertex colours (radiance is
     /// multiplied by it before the tone curve); by default the one that maps the lit
     /// surfaces' log-average to middle grey (summary.json records it).
@@ -535,6 +542,8 @@ impl OutputArgs {
             no_gif,
             exposure,
             preview_shading,
+            lightmaps,
+            texels_per_unit,
         } = self;
         radiosity::batch::Outputs {
             glb_frames,
@@ -543,6 +552,7 @@ impl OutputArgs {
             gif: !no_gif,
             exposure,
             shading: preview_shading,
+            lightmaps: lightmaps.then_some(texels_per_unit),
         }
     }
 }

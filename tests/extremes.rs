@@ -121,6 +121,7 @@ fn batch(load: LoadOptions, n: u64) -> BatchParams {
             gif: false,
             exposure: None,
             shading: radiosity::output::Shading::Flat,
+            lightmaps: None,
         },
         force: true,
         max_iterations: SolveParams::default().max_iterations,

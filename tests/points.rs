@@ -478,3 +478,138 @@ fn a_solution_read_back_without_its_pieces_lights_the_vertices_as_before() {
     };
     assert_eq!(radiance(&read_back), radiance(&solution));
 }
+
+/// A lightmap's texels are evaluated at their own points: on the lamp's floor, each texel
+/// reads the closed form at its point (the lamp alone lights the floor), with the box's shadow
+/// as sharp as the texels, none under the box; texels interpolated from the vertices (the
+/// light evaluated a grid step apart) miss the shadow's edge. Every texel belongs to one
+/// triangle's interior at most (no two charts overlap).
+#[test]
+fn lightmap_texels_read_the_lamp_s_closed_form_at_their_points_with_a_texel_sharp_shadow() {
+    use radiosity::output::lightmap::Lightmap;
+    let bake = Bake::trace(
+        lamp_over_a_box(),
+        &LineParams {
+            lines: 20_000,
+            seed: 5,
+        },
+    )
+    .unwrap();
+    let solution = bake.solve_frame(0, &bake.scene.materials, &SolveParams::default());
+    let power = bake.light_power();
+    let lighting = Lighting {
+        materials: &bake.scene.materials,
+        power: &power,
+        sky: [0.0; 3],
+    };
+    let lightmap = Lightmap::new(&bake, 16.0).unwrap();
+    let texels = lightmap.texels(&bake, 0, None, (&solution, lighting));
+    let shown = bake.shown();
+    let (h, c) = BOX;
+    let under = |p: DVec3| (p.x - c[0]).abs() < h[0] && (p.z - c[2]).abs() < h[2];
+    let meshes = radiosity::output::lit_geometry(&bake, 0, &solution, lighting);
+    let (_, vertices) = vertices(&bake);
+    let (mut floor, mut edge, mut interpolated_off) = (0, 0, 0);
+    let mut spots = Vec::new();
+    for (at, x) in lightmap.texel_points() {
+        let p = shown.normalisation.to_scene(x);
+        if p.y.abs() > 1e-6 || p.x.abs() > 2.0 || p.z.abs() > 2.0 {
+            continue;
+        }
+        spots.push(p);
+        assert!(texels.covered[at]);
+        let l = f64::from(texels.radiance[at][0]);
+        if under(p) {
+            assert!(l <= 1e-6, "under the box at {p}: {l}");
+            continue;
+        }
+        floor += 1;
+        let expected = closed_form(p);
+        // Half floats: 3 significant digits.
+        assert!(
+            (l - expected).abs() <= 2e-3 * expected + 1e-6,
+            "texel at {p}: {l} against {expected}"
+        );
+        // Within a texel of the shadow's edge (the texel's width is 1/16 m).
+        let step = 1.0 / 16.0;
+        let near_edge = [[step, 0.0], [-step, 0.0], [0.0, step], [0.0, -step]]
+            .iter()
+            .any(|s| shadowed(p + DVec3::new(s[0], 0.0, s[1])) != shadowed(p));
+        if near_edge {
+            edge += 1;
+            // What the vertices a grid step apart say there, interpolated: the nearest
+            // floor vertices' mean.
+            let mut near: Vec<&Vertex> = (vertices.iter())
+                .filter(|v| v.at.y.abs() < 1e-6 && v.normal.y > 0.99)
+                .collect();
+            near.sort_by(|a, b| (a.at - p).length().total_cmp(&(b.at - p).length()));
+            let mean = near[..3].iter().map(|v| v.evaluated[0]).sum::<f64>() / 3.0;
+            if (mean - expected).abs() > 0.1 * closed_form(DVec3::ZERO) {
+                interpolated_off += 1;
+            }
+        }
+    }
+    assert!(floor >= 60 * 60, "{floor} floor texels at 16 a metre");
+    // Each texel at its own point: no two share one, and each is about a texel's width
+    // (1/16 m) from its nearest neighbour.
+    let mut sorted: Vec<[f64; 2]> = spots.iter().map(|p| [p.x, p.z]).collect();
+    sorted.sort_by(|a, b| a[0].total_cmp(&b[0]).then(a[1].total_cmp(&b[1])));
+    let shared = sorted.windows(2).filter(|w| w[0] == w[1]).count();
+    assert_eq!(shared, 0, "{shared} texels share their point with another");
+    let spacing: f64 = (spots.iter())
+        .map(|p| {
+            (spots.iter())
+                .map(|q| (*q - *p).length())
+                .filter(|&d| d > 0.0)
+                .fold(f64::INFINITY, f64::min)
+        })
+        .sum::<f64>()
+        / spots.len() as f64;
+    assert!(
+        (0.7 / 16.0..1.3 / 16.0).contains(&spacing),
+        "texels {spacing} m apart"
+    );
+    assert!(edge >= 20, "{edge} texels along the shadow's edge");
+    assert!(
+        interpolated_off * 3 >= edge,
+        "the vertices interpolated miss only {interpolated_off} of {edge} edge texels"
+    );
+    assert_eq!(meshes.len(), lightmap.meshes.len());
+    // No texel centre inside two triangles' interiors (charts never overlap).
+    let (w, hgt) = (lightmap.width as usize, lightmap.height as usize);
+    let mut owners = vec![0u8; w * hgt];
+    for mesh in &lightmap.meshes {
+        for t in &mesh.triangles {
+            let q = t.map(|v| {
+                let [u, v] = mesh.uv[v as usize];
+                [f64::from(u) * w as f64, f64::from(v) * hgt as f64]
+            });
+            let cross = |a: [f64; 2], b: [f64; 2], c: [f64; 2]| {
+                (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
+            };
+            let area = cross(q[0], q[1], q[2]);
+            if area.abs() < 1e-9 {
+                continue;
+            }
+            for y in 0..hgt {
+                for x in 0..w {
+                    let c = [x as f64 + 0.5, y as f64 + 0.5];
+                    let inside = [
+                        cross(c, q[1], q[2]) / area,
+                        cross(q[0], c, q[2]) / area,
+                        cross(q[0], q[1], c) / area,
+                    ]
+                    .iter()
+                    .all(|&b| b > 1e-9);
+                    if inside {
+                        owners[y * w + x] += 1;
+                    }
+                }
+            }
+        }
+    }
+    assert!(owners.iter().all(|&n| n <= 1), "overlapping charts");
+    // The file engines load: a half-float EXR of the atlas's size.
+    let exr = texels.exr(1.0).unwrap();
+    assert_eq!(&exr[..4], &[0x76, 0x2f, 0x31, 0x01]);
+}

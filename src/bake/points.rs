@@ -19,45 +19,31 @@ impl Bake {
         &self,
         vertices: impl IntoIterator<Item = &'a [Corner]>,
     ) -> Points {
-        let shown = self.shown().triangles_at(0);
-        let traced = self.scene.triangles_at(0);
-        let corners = |t: usize, list: &[([glam::Vec3; 3], _)]| list[t].0.map(|c| c.as_dvec3());
-        // The traced faces of each patch, when the drawn triangles are not the traced ones.
-        let mut by_patch: Vec<Vec<(u32, bool)>> = Vec::new();
-        if self.shown.is_some() {
-            by_patch = vec![Vec::new(); self.scene.patches.len()];
-            for (t, (_, faces)) in traced.iter().enumerate() {
-                by_patch[faces.front as usize].push((t as u32, false));
-                if let Some(back) = faces.back {
-                    by_patch[back as usize].push((t as u32, true));
-                }
-            }
-        }
+        let faces = Faces::new(self);
         let mut points = Points::default();
         for vertex in vertices {
             points.push(vertex.iter().filter_map(|c| {
-                let (t, k) = (c.triangle as usize, usize::from(c.corner));
-                let triangle = corners(t, &shown);
+                let triangle = faces.drawn(c.triangle);
                 let centre = (triangle[0] + triangle[1] + triangle[2]) / 3.0;
+                let k = usize::from(c.corner);
                 let x = triangle[k] + (centre - triangle[k]) * NEAR_CORNER;
-                let site = |triangle: u32, back: bool, bary: [f64; 3]| Site {
-                    triangle,
-                    back,
-                    bary,
-                    weight: c.angle,
-                };
-                if by_patch.is_empty() {
-                    return Some(site(c.triangle, c.back, barycentric(x, &triangle)));
-                }
-                let faces = shown[t].1;
-                let patch = if c.back { faces.back? } else { faces.front };
-                // The face of the patch that holds x (the nearest, for rounding).
-                let (best, bary) = (by_patch[patch as usize].iter())
-                    .filter(|&&(_, back)| back == c.back)
-                    .map(|&(u, _)| (u, barycentric(x, &corners(u as usize, &traced))))
-                    .max_by(|a, b| min3(a.1).total_cmp(&min3(b.1)))?;
-                Some(site(best, c.back, clamped(bary)))
+                faces.site((c.triangle, c.back), x, c.angle)
             }));
+        }
+        points
+    }
+
+    /// One point per entry of `at`, each a point `x` (normalised space, frame 0) on a face of
+    /// the scene as drawn (its drawn triangle, global index, and whether the back face), placed
+    /// on the traced triangle of the same patch and side that holds it, as
+    /// [`Bake::points_at_corners`] places a corner; a point on no patch (a side that is not
+    /// one) has no site, and reads dark.
+    #[must_use]
+    pub fn points_on_faces(&self, at: impl IntoIterator<Item = ((u32, bool), DVec3)>) -> Points {
+        let faces = Faces::new(self);
+        let mut points = Points::default();
+        for (face, x) in at {
+            points.push(faces.site(face, x, 1.0));
         }
         points
     }
@@ -81,6 +67,67 @@ impl Bake {
             v.radiance = v.radiance.map(|c| c.max(0.0));
         }
         values
+    }
+}
+
+/// The faces of a bake's scene as drawn and as traced, at frame 0: where a point on a drawn face
+/// lies on the traced triangles (which [`Bake::split`] may have cut finer).
+struct Faces {
+    shown: Vec<([glam::Vec3; 3], crate::scene::Faces)>,
+    traced: Vec<([glam::Vec3; 3], crate::scene::Faces)>,
+    /// The traced faces of each patch, when the drawn triangles are not the traced ones
+    /// (empty when they are).
+    by_patch: Vec<Vec<(u32, bool)>>,
+}
+
+impl Faces {
+    fn new(bake: &Bake) -> Self {
+        let shown = bake.shown().triangles_at(0);
+        let traced = bake.scene.triangles_at(0);
+        let mut by_patch: Vec<Vec<(u32, bool)>> = Vec::new();
+        if bake.shown.is_some() {
+            by_patch = vec![Vec::new(); bake.scene.patches.len()];
+            for (t, (_, faces)) in traced.iter().enumerate() {
+                by_patch[faces.front as usize].push((t as u32, false));
+                if let Some(back) = faces.back {
+                    by_patch[back as usize].push((t as u32, true));
+                }
+            }
+        }
+        Self {
+            shown,
+            traced,
+            by_patch,
+        }
+    }
+
+    /// The corners of drawn triangle `t`.
+    fn drawn(&self, t: u32) -> [DVec3; 3] {
+        self.shown[t as usize].0.map(|c| c.as_dvec3())
+    }
+
+    /// The site of point `x` on drawn face `(t, back)`, weighing `weight`.
+    fn site(&self, (t, back): (u32, bool), x: DVec3, weight: f64) -> Option<Site> {
+        let site = |triangle: u32, bary: [f64; 3]| Site {
+            triangle,
+            back,
+            bary,
+            weight,
+        };
+        if self.by_patch.is_empty() {
+            return Some(site(t, barycentric(x, &self.drawn(t))));
+        }
+        let faces = self.shown.get(t as usize)?.1;
+        let patch = if back { faces.back? } else { faces.front };
+        // The face of the patch that holds x (the nearest, for rounding).
+        let (best, bary) = (self.by_patch[patch as usize].iter())
+            .filter(|&&(_, b)| b == back)
+            .map(|&(u, _)| {
+                let corners = self.traced[u as usize].0.map(|c| c.as_dvec3());
+                (u, barycentric(x, &corners))
+            })
+            .max_by(|a, b| min3(a.1).total_cmp(&min3(b.1)))?;
+        Some(site(best, clamped(bary)))
     }
 }
 

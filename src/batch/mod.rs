@@ -74,6 +74,9 @@ pub struct Outputs {
     pub exposure: Option<f64>,
     /// How the previews shade the patches.
     pub shading: output::Shading,
+    /// Lightmaps at this many texels per scene unit, if any (`lightmaps/`,
+    /// [`output::lightmap`]).
+    pub lightmaps: Option<f64>,
 }
 
 impl Default for Outputs {
@@ -90,6 +93,7 @@ impl Default for Outputs {
             gif: true,
             exposure: None,
             shading: output::Shading::Smooth,
+            lightmaps: None,
         }
     }
 }
@@ -306,7 +310,22 @@ fn write_outputs(
     } else {
         (Vec::new(), 0)
     };
+    let representatives = bake.representatives();
     let mut wanted: Vec<usize> = glbs.iter().chain(&pngs).chain(&gif).copied().collect();
+    // Lightmaps: one per lighting state (each distinct frame), the geometry once.
+    let lightmap = match outputs.lightmaps {
+        Some(density) => {
+            let lightmap = output::lightmap::Lightmap::new(bake, density)?;
+            std::fs::create_dir_all(dir.join("lightmaps"))
+                .map_err(|e| format!("writing {}: {e}", dir.display()))?;
+            let bytes = output::lightmap_glb(scene, &lightmap).map_err(|e| e.to_string())?;
+            std::fs::write(dir.join("lightmaps").join("scene.glb"), bytes)
+                .map_err(|e| format!("writing {}: {e}", dir.display()))?;
+            wanted.extend((0..count).filter(|&f| representatives[f] == f));
+            Some(lightmap)
+        }
+        None => None,
+    };
     wanted.sort_unstable();
     wanted.dedup();
     control.start_stage(wanted.len() as u64);
@@ -323,7 +342,6 @@ fn write_outputs(
         power: &power,
         sky,
     };
-    let representatives = bake.representatives();
     // The frames after which each distinct frame's light is needed no more.
     let mut last_use: HashMap<usize, usize> = HashMap::new();
     for &f in &wanted {
@@ -342,17 +360,26 @@ fn write_outputs(
     let (first, rest) = wanted.split_at(wanted.len().min(1));
     for batch in std::iter::once(first).chain(rest.chunks(at_once)) {
         let needed = unlit(batch, &representatives, |r| lit.contains_key(&r));
-        let computed: Vec<(usize, Arc<Vec<output::NodeMesh>>)> = (needed.par_iter())
+        let computed: Vec<Result<LitFrame, String>> = (needed.par_iter())
             .filter(|_| !control.is_cancelled())
             .map(|&r| {
                 let meshes = output::lit_geometry(bake, r, &frames[r], lighting);
-                (r, Arc::new(meshes))
+                if let Some(lightmap) = &lightmap {
+                    let texels = lightmap.texels(bake, r, Some(&meshes), (&frames[r], lighting));
+                    let bytes = texels.exr(1.0)?;
+                    let name = frame_name(r, count, "exr");
+                    std::fs::write(dir.join("lightmaps").join(name), bytes).map_err(io)?;
+                }
+                Ok((r, Arc::new(meshes)))
             })
             .collect();
         if control.is_cancelled() {
             return Err("cancelled".to_string());
         }
-        lit.extend(computed);
+        for one in computed {
+            let (r, meshes) = one?;
+            lit.insert(r, meshes);
+        }
         let made: Vec<Result<Option<image::RgbImage>, String>> = batch
             .par_iter()
             .map(|&f| {
@@ -386,6 +413,28 @@ fn write_outputs(
         let done = batch.last().copied().unwrap_or_default();
         lit.retain(|r, _| last_use.get(r).is_some_and(|&last| last > done));
     }
+    if let Some(lightmap) = &lightmap {
+        let manifest = serde_json::json!({
+            "geometry": "scene.glb",
+            "uv_set": 1,
+            "width": lightmap.width,
+            "height": lightmap.height,
+            "texels_per_unit": lightmap.texels_per_unit,
+            "charts": lightmap.charts,
+            "covered_texels": lightmap.covered(),
+            "format": "OpenEXR, half float, linear RGB radiance in the scene's emission units; row 0 at the top (glTF's texture coordinates)",
+            "frames": (0..count).map(|f| serde_json::json!({
+                "frame": f,
+                "time": scene.frames.time(f),
+                "lightmap": frame_name(representatives[f], count, "exr"),
+            })).collect::<Vec<_>>(),
+        });
+        std::fs::write(
+            dir.join("lightmaps").join("manifest.json"),
+            serde_json::to_vec_pretty(&manifest).map_err(|e| e.to_string())?,
+        )
+        .map_err(io)?;
+    }
     if !gif.is_empty() {
         if control.is_cancelled() {
             return Err("cancelled".to_string());
@@ -395,6 +444,9 @@ fn write_outputs(
     }
     Ok(gif)
 }
+
+/// A distinct frame and its drawn geometry, lit.
+type LitFrame = (usize, Arc<Vec<output::NodeMesh>>);
 
 /// The distinct frames whose light at the vertices `batch` (frames to write) needs and `lit`
 /// does not hold, each once, in order: a still stretch of the timeline is one distinct frame

@@ -157,15 +157,18 @@ pub fn vertex_points(
             let at = Vertices::of(bake, f, meshes, &run.solved[f].radiance);
             let values: Vec<PointRadiance> = (meshes.iter())
                 .flat_map(|m| {
-                    (m.radiance.iter().zip(&m.stderr))
-                        .map(|(&radiance, &stderr)| PointRadiance { radiance, stderr })
+                    (m.radiance.iter().zip(&m.stderr)).map(|(&radiance, &stderr)| PointRadiance {
+                        radiance,
+                        stderr,
+                        ..PointRadiance::default()
+                    })
                 })
                 .collect();
             evaluated.add(&at, &values, &halves);
             let old: Vec<PointRadiance> = (at.averaged.iter())
                 .map(|&radiance| PointRadiance {
                     radiance,
-                    stderr: [0.0; 3],
+                    ..PointRadiance::default()
                 })
                 .collect();
             averaged.add(&at, &old, &halves);

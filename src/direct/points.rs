@@ -231,6 +231,10 @@ pub struct PointRadiance {
     pub radiance: [f64; 3],
     /// Its standard error.
     pub stderr: [f64; 3],
+    /// The irradiance its gather read from the solution (the light that is not the emitters'
+    /// and lamps' directly), its sites' weighted mean: what a lightmap's texels interpolate
+    /// between vertices ([`crate::output::lightmap`]). 0 with no gather rays.
+    pub gathered: [f64; 3],
 }
 
 /// The point of `site` on `place` (its face at the frame), a hair inside the face's edges.
@@ -373,23 +377,26 @@ impl Gatherer<'_> {
     /// The weighted mean of `sites`' radiance.
     fn point(&self, sites: &[Site], hits: &mut Vec<Hit>) -> PointRadiance {
         let (mut radiance, mut variance, mut read) = ([0.0; 3], [0.0; 3], [0.0; 3]);
+        let mut gathered = [0.0; 3];
         for site in sites {
-            let (l, v, r) = self.site(site, hits);
+            let (l, v, r, g) = self.site(site, hits);
             for c in 0..3 {
                 radiance[c] += site.weight * l[c];
                 variance[c] += site.weight * site.weight * v[c];
                 read[c] += site.weight * r[c];
+                gathered[c] += site.weight * g[c];
             }
         }
         PointRadiance {
             radiance,
             stderr: std::array::from_fn(|c| (variance[c] + read[c] * read[c]).sqrt()),
+            gathered,
         }
     }
 
-    /// The radiance at `site`, the variance of its sampling, and the error of the patches its
-    /// gather read (a standard error, correlated between sites).
-    fn site(&self, site: &Site, hits: &mut Vec<Hit>) -> ([f64; 3], [f64; 3], [f64; 3]) {
+    /// The radiance at `site`, the variance of its sampling, the error of the patches its
+    /// gather read (a standard error, correlated between sites), and the irradiance gathered.
+    fn site(&self, site: &Site, hits: &mut Vec<Hit>) -> ([f64; 3], [f64; 3], [f64; 3], [f64; 3]) {
         let place = &self.places[2 * site.triangle as usize + usize::from(site.back)];
         let faces = self.sight.view.triangles[site.triangle as usize].1;
         let patch = if site.back {
@@ -401,13 +408,13 @@ impl Gatherer<'_> {
             .and_then(|p| self.scene.patches.get(p as usize))
             .and_then(|p| self.lighting.materials.get(p.material as usize))
         else {
-            return ([0.0; 3], [0.0; 3], [0.0; 3]);
+            return ([0.0; 3], [0.0; 3], [0.0; 3], [0.0; 3]);
         };
         let (le, rho) = (material.emission, material.reflectance);
         let x = site_point(site, place);
         let (n, own) = (place.normal, (place.triangle, place.back));
         if rho == [0.0; 3] || n == DVec3::ZERO || self.sight.view.covered(x, n, own) {
-            return (le, [0.0; 3], [0.0; 3]);
+            return (le, [0.0; 3], [0.0; 3], [0.0; 3]);
         }
         let seed = site_seed(self.gather.seed, site);
         let pi = std::f64::consts::PI;
@@ -418,7 +425,13 @@ impl Gatherer<'_> {
         // each batch with its own strata; the batches' means pooled.
         let (mut gathered, mut spread, mut read, mut count) = ([0.0; 3], [0.0; 3], [0.0; 3], 0.0);
         let mut batches = 0;
-        while batches < GATHER_BATCHES {
+        // No gather rays: the direct light alone.
+        let most = if self.gather.rays == 0 {
+            0
+        } else {
+            GATHER_BATCHES
+        };
+        while batches < most {
             let batch_seed = if batches == 0 {
                 seed
             } else {
@@ -444,7 +457,7 @@ impl Gatherer<'_> {
                 break;
             }
         }
-        let b = batches as f64;
+        let b = (batches as f64).max(1.0);
         for c in 0..3 {
             e[c] += gathered[c];
             variance[c] += spread[c] / (b * b);
@@ -453,7 +466,8 @@ impl Gatherer<'_> {
         (
             std::array::from_fn(|c| le[c] + to_radiance(c) * e[c]),
             std::array::from_fn(|c| to_radiance(c).powi(2) * variance[c]),
-            std::array::from_fn(|c| to_radiance(c) * read[c] / count),
+            std::array::from_fn(|c| to_radiance(c) * read[c] / count.max(1.0)),
+            gathered,
         )
     }
 

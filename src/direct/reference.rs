@@ -167,6 +167,7 @@ pub fn path_traced_points(
                 PointRadiance {
                     radiance,
                     stderr: variance.map(f64::sqrt),
+                    ..PointRadiance::default()
                 }
             })
             .collect()

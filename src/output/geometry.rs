@@ -36,6 +36,9 @@ pub struct NodeMesh {
     pub radiance: Vec<[f64; 3]>,
     /// Its standard error.
     pub stderr: Vec<[f64; 3]>,
+    /// The irradiance each vertex's gather read from the solution
+    /// ([`crate::direct::points::PointRadiance::gathered`]; empty until [`light_vertices`]).
+    pub gathered: Vec<[f64; 3]>,
     /// The face corners each vertex stands for (where its light is evaluated): vertex `v`'s are
     /// `corners[corner_offsets[v]..corner_offsets[v + 1]]`.
     pub corners: Vec<Corner>,
@@ -45,6 +48,9 @@ pub struct NodeMesh {
     pub triangles: Vec<[u32; 3]>,
     /// The patch each triangle draws.
     pub patches: Vec<u32>,
+    /// The face each triangle draws: its drawn triangle (global index in the scene drawn) and
+    /// whether it is the triangle's back face.
+    pub faces: Vec<(u32, bool)>,
 }
 
 /// One face to place: which mesh vertices, which patch, and its geometry at the frame.
@@ -167,6 +173,7 @@ fn place(out: &mut NodeMesh, positions: &[DVec3], faces: &[Face]) {
         }
         out.triangles.push(tri);
         out.patches.push(face.patch);
+        out.faces.push((face.triangle, face.back));
     }
     if out.corner_offsets.is_empty() {
         out.corner_offsets.push(0);
@@ -209,14 +216,40 @@ pub fn light_vertices(
     gather: Gather,
 ) {
     let points = vertex_points(bake, meshes);
+    let values = light_points(bake, frame, &points, (solution, lighting), gather);
+    let mut values = values.into_iter();
+    for mesh in meshes {
+        mesh.gathered.clear();
+        for (l, e) in mesh.radiance.iter_mut().zip(&mut mesh.stderr) {
+            let PointRadiance {
+                radiance,
+                stderr,
+                gathered,
+            } = values.next().unwrap_or_default();
+            (*l, *e) = (radiance, stderr);
+            mesh.gathered.push(gathered);
+        }
+    }
+}
+
+/// The light at `points` (of `bake`'s scene as traced, frame `frame`) from `solution`, solved
+/// with `lighting`, sampled as `gather` says ([`Bake::radiance_at`]).
+#[must_use]
+pub fn light_points(
+    bake: &Bake,
+    frame: usize,
+    points: &Points,
+    (solution, lighting): (&FrameSolution, Lighting<'_>),
+    gather: Gather,
+) -> Vec<PointRadiance> {
     let has_pieces = |s: &FrameSolution, map: &crate::direct::points::PieceMap| {
         map.patch.len() == s.pieces.len() && s.pieces_stderr.len() == s.radiance.len()
     };
     // A split bake's solution without its pieces (read back from disk: they are not stored) is
     // solved again for them, with the lighting it was solved with; its patches keep their
-    // answer.
+    // answer. Not needed without gather rays: the direct light reads no solution.
     let again = (bake.piece_map())
-        .filter(|map| !has_pieces(solution, map))
+        .filter(|map| gather.rays > 0 && !has_pieces(solution, map))
         .map(|_| {
             let params = crate::solve::SolveParams {
                 sky: lighting.sky,
@@ -233,14 +266,7 @@ pub fn light_vertices(
         stderr: &solution.stderr,
         pieces,
     };
-    let values = bake.radiance_at(frame, &points, (solved, lighting), gather);
-    let mut values = values.into_iter();
-    for mesh in meshes {
-        for (l, e) in mesh.radiance.iter_mut().zip(&mut mesh.stderr) {
-            let PointRadiance { radiance, stderr } = values.next().unwrap_or_default();
-            (*l, *e) = (radiance, stderr);
-        }
-    }
+    bake.radiance_at(frame, points, (solved, lighting), gather)
 }
 
 /// A unit normal in `f32` (glTF requires unit length), +Y for a vertex with no area around it.

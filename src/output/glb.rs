@@ -104,6 +104,13 @@ impl Buffers {
         self.push(words, Some(ARRAY_BUFFER), shape, extra)
     }
 
+    /// Appends `values` as a VEC2 float accessor, returning its index.
+    fn vec2(&mut self, values: &[[f32; 2]]) -> usize {
+        let words = values.iter().flatten().map(|c| c.to_le_bytes());
+        let shape = (FLOAT, "VEC2", values.len());
+        self.push(words, Some(ARRAY_BUFFER), shape, json!({}))
+    }
+
     /// Appends triangle indices, returning the accessor's index.
     fn indices(&mut self, triangles: &[[u32; 3]]) -> usize {
         let words = triangles.iter().flatten().map(|i| i.to_le_bytes());
@@ -221,6 +228,97 @@ pub fn frame_glb(
             .map(|(_, projection)| projection)
             .collect();
     }
+    if !buffers.bin.is_empty() {
+        document["buffers"] = json!([{ "byteLength": buffers.bin.len() }]);
+        document["bufferViews"] = Value::Array(buffers.views);
+        document["accessors"] = Value::Array(buffers.accessors);
+    }
+    glb(&document, &buffers.bin)
+}
+
+/// The `.glb` of a timeline's lightmapped geometry: the scene as drawn at frame 0 on the
+/// lightmap's vertices (seams split them), `TEXCOORD_1` its coordinates in the atlas (and
+/// `TEXCOORD_0` the same, glTF's sets counting from 0), each node's source node in `extras`;
+/// the states' lightmaps are the EXR files beside it (`manifest.json`).
+///
+/// # Errors
+/// [`OutputError::TooLarge`] if the file would pass GLB's 4 GiB limit.
+pub fn lightmap_glb(
+    scene: &Scene,
+    lightmap: &super::lightmap::Lightmap,
+) -> Result<Vec<u8>, OutputError> {
+    let radius = scene.normalisation.radius;
+    let centre = scene.normalisation.center;
+    let mut buffers = Buffers::default();
+    let mut nodes = Vec::new();
+    let mut gltf_meshes = Vec::new();
+    for (uv, mesh) in lightmap.meshes.iter().zip(lightmap.rest()) {
+        if uv.triangles.is_empty() {
+            continue;
+        }
+        let positions: Vec<[f32; 3]> = (uv.xref.iter())
+            .map(|&v| (mesh.positions[v as usize] * radius).as_vec3().to_array())
+            .collect();
+        let normals: Vec<[f32; 3]> = (uv.xref.iter())
+            .map(|&v| mesh.normals[v as usize].to_array())
+            .collect();
+        let position = buffers.vec3(&positions, true);
+        let normal = buffers.vec3(&normals, false);
+        let texcoord = buffers.vec2(&uv.uv);
+        let indices = buffers.indices(&uv.triangles);
+        let patches = buffers.per_triangle(&mesh.patches);
+        let name = (scene.node_names.get(mesh.node as usize))
+            .and_then(Option::as_deref)
+            .map_or_else(|| format!("node {}", mesh.node), str::to_owned);
+        gltf_meshes.push(json!({
+            "name": format!("{name} lightmapped"),
+            "primitives": [{
+                "attributes": {
+                    "POSITION": position,
+                    "NORMAL": normal,
+                    "TEXCOORD_0": texcoord,
+                    "TEXCOORD_1": texcoord,
+                },
+                "indices": indices,
+                "material": 0,
+                "extras": { "patches": patches },
+            }],
+        }));
+        nodes.push(json!({
+            "name": name,
+            "mesh": gltf_meshes.len() - 1,
+            "translation": centre.to_array(),
+            "extras": { "source_node": mesh.node },
+        }));
+    }
+    while !buffers.bin.len().is_multiple_of(4) {
+        buffers.bin.push(0);
+    }
+    let mut document = json!({
+        "asset": {
+            "version": "2.0",
+            "generator": concat!("radiosity ", env!("CARGO_PKG_VERSION")),
+        },
+        "scene": 0,
+        "scenes": [{
+            "nodes": (0..nodes.len()).collect::<Vec<_>>(),
+            "extras": {
+                "lightmap": {
+                    "width": lightmap.width,
+                    "height": lightmap.height,
+                    "texels_per_unit": lightmap.texels_per_unit,
+                    "uv_set": 1,
+                    "manifest": "manifest.json",
+                },
+            },
+        }],
+        "nodes": nodes,
+        "meshes": gltf_meshes,
+        "materials": [{
+            "name": "lightmapped",
+            "pbrMetallicRoughness": { "baseColorFactor": [1.0, 1.0, 1.0, 1.0], "metallicFactor": 0.0 },
+        }],
+    });
     if !buffers.bin.is_empty() {
         document["buffers"] = json!([{ "byteLength": buffers.bin.len() }]);
         document["bufferViews"] = Value::Array(buffers.views);

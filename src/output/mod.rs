@@ -8,13 +8,14 @@
 
 pub mod geometry;
 pub mod glb;
+pub mod lightmap;
 pub mod preview;
 pub mod tonemap;
 
 use std::str::FromStr;
 
 pub use geometry::{NodeMesh, frame_geometry, light_vertices};
-pub use glb::frame_glb;
+pub use glb::{frame_glb, lightmap_glb};
 pub use preview::Camera;
 pub use tonemap::ToneMap;
 use tonemap::luminance;

@@ -1,0 +1,484 @@
+//! Lightmaps (issue 49, its first part): the scene as drawn unwrapped once onto one texture
+//! atlas, and each lighting state's radiance evaluated at every texel's own point.
+//!
+//! - **The atlas.** The drawn scene at frame 0 (the rest pose: [`frame_geometry`], each side
+//!   of a double-sided face its own triangles) is unwrapped and packed by `uvunwrap` at a fixed
+//!   density (`texels_per_unit` texels per scene unit), charts at least
+//!   2 × [`PADDING`] texels apart, never overlapping. Every texel a triangle covers belongs to
+//!   that triangle: its centre's, or (at a chart's rim, where bilinear filtering reads it) the
+//!   nearest triangle's nearest point, so that a chart's edge texels hold its own light; the
+//!   texels no triangle touches (the gutters) take their covered neighbours' mean when written.
+//! - **Texels at their own points.** A texel's radiance is `Le + (ρ/π)(E_direct + E_gathered)`:
+//!   the direct light of the lamps and the sampled emitters evaluated at the texel's point, by
+//!   shadow rays from it ([`crate::direct::points`], no gather rays: sharp shadows and penumbrae
+//!   at texel scale, the static part kept across frames as the vertices' is), and the light
+//!   gathered from the solution interpolated across its triangle from the triangle's vertices'
+//!   final gathers ([`crate::direct::points::PointRadiance::gathered`]), where it is smooth.
+//!   Each texel's standard error is its direct light's in quadrature with the interpolated
+//!   vertices' error bars (which hold their own direct light's too: an upper estimate); the
+//!   interpolation's own error is not in it.
+//! - **States.** Frames that share a solution ([`Bake::representatives`]) share one lightmap,
+//!   written once.
+
+use glam::DVec3;
+
+use super::NodeMesh;
+use super::geometry::{frame_geometry, light_points, vertex_points};
+use crate::bake::Bake;
+use crate::direct::points::{Gather, Lighting, PointRadiance, Points};
+use crate::solve::FrameSolution;
+
+/// Texels per scene unit of `bake --lightmaps` unless told (8 per metre: the level's 16,000
+/// texels add about a quarter to its bake; 32 per metre took it from 7 s to 159 s).
+pub const TEXELS_PER_UNIT: f64 = 8.0;
+
+/// Empty texels around each chart (charts are at least twice this apart).
+pub const PADDING: u32 = 2;
+
+/// Most texels an atlas may have (a 4096 × 4096 map): past it, a bake asks for a lower density.
+pub const MAX_TEXELS: f64 = 16_777_216.0;
+
+/// The drawn scene unwrapped onto one atlas, and where each covered texel lies on it.
+#[derive(Clone, Debug)]
+pub struct Lightmap {
+    /// Atlas width, texels.
+    pub width: u32,
+    /// Atlas height, texels.
+    pub height: u32,
+    /// Texels per scene unit.
+    pub texels_per_unit: f64,
+    /// Charts packed.
+    pub charts: u32,
+    /// The lightmap's copy of each node mesh of [`frame_geometry`] at frame 0, in its order.
+    pub meshes: Vec<UvMesh>,
+    /// The drawn geometry at frame 0 the atlas was made from (its vertices' corners say where
+    /// their gathers are evaluated at any frame).
+    rest: Vec<NodeMesh>,
+    /// The covered texels, row after row.
+    texels: Vec<Texel>,
+    /// Where each texel is evaluated, one point per covered texel.
+    points: Points,
+}
+
+/// One node mesh's vertices in the atlas: seams split vertices, so a mesh vertex may have
+/// several.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct UvMesh {
+    /// The glTF node.
+    pub node: u32,
+    /// The node mesh's vertex each lightmap vertex copies.
+    pub xref: Vec<u32>,
+    /// Each lightmap vertex's coordinates in the atlas, in [0, 1]: (0, 0) the top left corner of
+    /// texel row 0, v growing down the rows (glTF's convention for texture coordinates).
+    pub uv: Vec<[f32; 2]>,
+    /// The node mesh's triangles, on the lightmap's vertices.
+    pub triangles: Vec<[u32; 3]>,
+}
+
+/// A covered texel: where on which triangle it is evaluated.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Texel {
+    /// `row × width + column`.
+    at: u32,
+    /// The node mesh and its triangle.
+    mesh: u32,
+    triangle: u32,
+    /// The point, in barycentric coordinates of the triangle's corners (its own order).
+    bary: [f64; 3],
+}
+
+/// Per vertex, RGB.
+type Rgb = Vec<[f64; 3]>;
+
+/// A node mesh's vertices' gathered irradiance and their radiance's error bars.
+type VertexLight<'a> = (&'a [[f64; 3]], &'a [[f64; 3]]);
+
+/// A texel's best triangle so far: its distance, the node mesh, the triangle, the point.
+type Claim = (f64, u32, u32, [f64; 3]);
+
+/// One lighting state's lightmap: linear radiance per texel (RGB, the scene's emission units)
+/// and its standard error, gutters filled.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Texels {
+    pub width: u32,
+    pub height: u32,
+    /// Row after row from the top.
+    pub radiance: Vec<[f32; 3]>,
+    pub stderr: Vec<[f32; 3]>,
+    /// Whether a triangle covers each texel (the others are gutters).
+    pub covered: Vec<bool>,
+}
+
+impl Lightmap {
+    /// Unwraps `bake`'s scene as drawn at frame 0 at `texels_per_unit` texels per scene unit.
+    ///
+    /// # Errors
+    /// A message naming the problem: a density that is not a positive number, an atlas over
+    /// [`MAX_TEXELS`] at that density, or the unwrapper's own failure.
+    pub fn new(bake: &Bake, texels_per_unit: f64) -> Result<Self, String> {
+        if !(texels_per_unit.is_finite() && texels_per_unit > 0.0) {
+            return Err(format!(
+                "texels_per_unit must be a positive number, not {texels_per_unit}"
+            ));
+        }
+        let scene = bake.shown();
+        let scale = scene.normalisation.radius;
+        let rest = frame_geometry(scene, 0);
+        // The texels the surface needs at this density, before packing.
+        let area: f64 = (rest.iter())
+            .flat_map(|m| {
+                m.triangles
+                    .iter()
+                    .map(move |t| t.map(|v| m.positions[v as usize]))
+            })
+            .map(|[a, b, c]| 0.5 * (b - a).cross(c - a).length() * scale * scale)
+            .sum();
+        let needed = area * texels_per_unit * texels_per_unit;
+        if needed > MAX_TEXELS {
+            return Err(format!(
+                "a lightmap at {texels_per_unit} texels per unit needs about {needed:.0} texels \
+                 for {area:.1} square units of surface, over the {MAX_TEXELS} allowed: lower \
+                 texels_per_unit"
+            ));
+        }
+        let positions: Vec<Vec<[f32; 3]>> = (rest.iter())
+            .map(|m| m.positions.iter().map(|p| p.as_vec3().to_array()).collect())
+            .collect();
+        let indices: Vec<Vec<u32>> = (rest.iter())
+            .map(|m| m.triangles.iter().flatten().copied().collect())
+            .collect();
+        let inputs: Vec<uvunwrap::MeshInput<'_>> = (positions.iter().zip(&indices))
+            .map(|(p, i)| uvunwrap::MeshInput {
+                scale: scale as f32,
+                ..uvunwrap::MeshInput::new(p, i)
+            })
+            .collect();
+        let options = uvunwrap::Options {
+            density: uvunwrap::Density::Fixed {
+                texels_per_unit: texels_per_unit as f32,
+                page_size: None,
+            },
+            padding: PADDING,
+            ..uvunwrap::Options::default()
+        };
+        let atlas = uvunwrap::generate(&inputs, &options)
+            .map_err(|e| format!("the lightmap's unwrap failed: {e}"))?;
+        let meshes: Vec<UvMesh> = (atlas.meshes.iter().zip(&rest))
+            .map(|(out, mesh)| UvMesh {
+                node: mesh.node,
+                xref: out.vertices.iter().map(|v| v.xref).collect(),
+                uv: out.vertices.iter().map(|v| v.uv).collect(),
+                triangles: (out.indices.chunks_exact(3))
+                    .map(|t| [t[0], t[1], t[2]])
+                    .collect(),
+            })
+            .collect();
+        let (width, height) = (atlas.width.max(1), atlas.height.max(1));
+        let texels = raster(&meshes, width, height);
+        let mut lightmap = Self {
+            width,
+            height,
+            texels_per_unit,
+            charts: atlas.chart_count,
+            meshes,
+            rest,
+            texels,
+            points: Points::default(),
+        };
+        let faces: Vec<(u32, bool)> = (lightmap.texels.iter())
+            .map(|t| lightmap.rest[t.mesh as usize].faces[t.triangle as usize])
+            .collect();
+        let at: Vec<DVec3> = lightmap.texel_points().map(|(_, x)| x).collect();
+        lightmap.points = bake.points_on_faces(faces.into_iter().zip(at));
+        Ok(lightmap)
+    }
+
+    /// The drawn geometry at frame 0 the atlas was made from, node mesh by node mesh.
+    #[must_use]
+    pub fn rest(&self) -> &[NodeMesh] {
+        &self.rest
+    }
+
+    /// Each covered texel (`row × width + column`) and its point at frame 0 (normalised
+    /// space), row after row.
+    pub fn texel_points(&self) -> impl Iterator<Item = (usize, DVec3)> + '_ {
+        self.texels.iter().map(|t| {
+            let mesh = &self.rest[t.mesh as usize];
+            let corners = mesh.triangles[t.triangle as usize];
+            let x = (0..3).fold(DVec3::ZERO, |x, k| {
+                x + mesh.positions[corners[k] as usize] * t.bary[k]
+            });
+            (t.at as usize, x)
+        })
+    }
+
+    /// Covered texels.
+    #[must_use]
+    pub fn covered(&self) -> usize {
+        self.texels.len()
+    }
+
+    /// The lightmap of `frame` (a lighting state: a distinct frame), from its `solution`
+    /// solved with `lighting`: each texel's direct light at its point, and the light gathered
+    /// at its triangle's vertices interpolated. `lit` is the frame's drawn geometry with its
+    /// vertices lit ([`super::lit_geometry`]) if the caller has it; otherwise (or if the frame's
+    /// creases split its vertices unlike the rest pose's) the vertices are lit here.
+    #[must_use]
+    pub fn texels(
+        &self,
+        bake: &Bake,
+        frame: usize,
+        lit: Option<&[NodeMesh]>,
+        (solution, lighting): (&FrameSolution, Lighting<'_>),
+    ) -> Texels {
+        let seed = bake.seed();
+        let same = |lit: &[NodeMesh]| {
+            lit.len() == self.rest.len()
+                && (lit.iter().zip(&self.rest)).all(|(a, b)| {
+                    a.triangles == b.triangles && a.gathered.len() == a.positions.len()
+                })
+        };
+        let owned: Vec<(Rgb, Rgb)>;
+        // Per node mesh, per vertex: the irradiance gathered and its radiance's error bar.
+        let vertices: Vec<VertexLight<'_>> = match lit.filter(|l| same(l)) {
+            Some(lit) => (lit.iter())
+                .map(|m| (&m.gathered[..], &m.stderr[..]))
+                .collect(),
+            None => {
+                let points = vertex_points(bake, &self.rest);
+                let gather = Gather::standard(seed);
+                let values = light_points(bake, frame, &points, (solution, lighting), gather);
+                let mut values = values.into_iter();
+                owned = (self.rest.iter())
+                    .map(|m| {
+                        let v: Vec<PointRadiance> =
+                            values.by_ref().take(m.positions.len()).collect();
+                        (
+                            v.iter().map(|p| p.gathered).collect(),
+                            v.iter().map(|p| p.stderr).collect(),
+                        )
+                    })
+                    .collect();
+                owned.iter().map(|(g, e)| (&g[..], &e[..])).collect()
+            }
+        };
+        self.assemble(bake, frame, (solution, lighting), &vertices)
+    }
+
+    /// [`Lightmap::texels`] from the vertices' gathered irradiance and error bars.
+    fn assemble(
+        &self,
+        bake: &Bake,
+        frame: usize,
+        (solution, lighting): (&FrameSolution, Lighting<'_>),
+        vertices: &[VertexLight<'_>],
+    ) -> Texels {
+        let direct_only = Gather {
+            rays: 0,
+            ..Gather::standard(bake.seed())
+        };
+        let direct = light_points(bake, frame, &self.points, (solution, lighting), direct_only);
+        let size = self.width as usize * self.height as usize;
+        let mut out = Texels {
+            width: self.width,
+            height: self.height,
+            radiance: vec![[0.0; 3]; size],
+            stderr: vec![[0.0; 3]; size],
+            covered: vec![false; size],
+        };
+        let patches = &bake.shown().patches;
+        for (texel, d) in self.texels.iter().zip(&direct) {
+            let mesh = &self.rest[texel.mesh as usize];
+            let (gathered, errors) = vertices[texel.mesh as usize];
+            let corners = mesh.triangles[texel.triangle as usize];
+            let patch = mesh.patches[texel.triangle as usize];
+            let rho = (patches.get(patch as usize))
+                .and_then(|p| lighting.materials.get(p.material as usize))
+                .map_or([0.0; 3], |m| m.reflectance);
+            let at = texel.at as usize;
+            for c in 0..3 {
+                let (mut g, mut e) = (0.0, 0.0);
+                for (&v, b) in corners.iter().zip(texel.bary) {
+                    g += b * gathered.get(v as usize).map_or(0.0, |x| x[c]);
+                    e += b * errors.get(v as usize).map_or(0.0, |x| x[c]);
+                }
+                let l = d.radiance[c] + rho[c] * std::f64::consts::FRAC_1_PI * g;
+                out.radiance[at][c] = l.max(0.0) as f32;
+                out.stderr[at][c] = d.stderr[c].hypot(e) as f32;
+            }
+            out.covered[at] = true;
+        }
+        dilate(&mut out, 2 * PADDING as usize);
+        out
+    }
+}
+
+/// Every covered texel of `meshes`' triangles in an atlas of `width × height`, row after row:
+/// a texel whose centre a triangle holds is that triangle's, at its centre; a texel no centre
+/// claims but a triangle touches (within half a texel's diagonal) is the nearest triangle's, at
+/// its nearest point.
+fn raster(meshes: &[UvMesh], width: u32, height: u32) -> Vec<Texel> {
+    let (w, h) = (width as usize, height as usize);
+    // Per texel: (distance, mesh, triangle, bary) of its best triangle so far.
+    let mut best: Vec<Option<Claim>> = vec![None; w * h];
+    let reach = std::f64::consts::FRAC_1_SQRT_2;
+    for (m, mesh) in meshes.iter().enumerate() {
+        for (k, t) in mesh.triangles.iter().enumerate() {
+            let p = t.map(|v| {
+                let [u, v] = mesh.uv[v as usize];
+                [f64::from(u) * w as f64, f64::from(v) * h as f64]
+            });
+            let area = cross(p[0], p[1], p[2]);
+            if area.abs() < 1e-12 || !area.is_finite() {
+                continue;
+            }
+            let lo = |a: usize| p.iter().map(|q| q[a]).fold(f64::INFINITY, f64::min) - 1.0;
+            let hi = |a: usize| p.iter().map(|q| q[a]).fold(f64::NEG_INFINITY, f64::max) + 1.0;
+            let (x0, x1) = (lo(0).max(0.0) as usize, (hi(0).max(0.0) as usize).min(w));
+            let (y0, y1) = (lo(1).max(0.0) as usize, (hi(1).max(0.0) as usize).min(h));
+            for y in y0..y1 {
+                for x in x0..x1 {
+                    let c = [x as f64 + 0.5, y as f64 + 0.5];
+                    let (distance, bary) = nearest(c, &p, area);
+                    if distance > reach {
+                        continue;
+                    }
+                    let slot = &mut best[y * w + x];
+                    if slot.is_none_or(|(d, ..)| distance < d) {
+                        *slot = Some((distance, m as u32, k as u32, bary));
+                    }
+                }
+            }
+        }
+    }
+    (best.iter().enumerate())
+        .filter_map(|(at, b)| {
+            b.map(|(_, mesh, triangle, bary)| Texel {
+                at: at as u32,
+                mesh,
+                triangle,
+                bary,
+            })
+        })
+        .collect()
+}
+
+/// Twice the signed area of triangle `a b c`.
+fn cross(a: [f64; 2], b: [f64; 2], c: [f64; 2]) -> f64 {
+    (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
+}
+
+/// The distance from `c` to triangle `p` (0 inside) and the barycentric coordinates of the
+/// triangle's point nearest it, a hair inside.
+fn nearest(c: [f64; 2], p: &[[f64; 2]; 3], area: f64) -> (f64, [f64; 3]) {
+    let b = [
+        cross(c, p[1], p[2]) / area,
+        cross(p[0], c, p[2]) / area,
+        cross(p[0], p[1], c) / area,
+    ];
+    if b.iter().all(|&x| x >= 0.0) {
+        return (0.0, b);
+    }
+    // Outside: the nearest point on the nearest edge.
+    let mut found = (f64::INFINITY, b);
+    for k in 0..3 {
+        let (a, e) = (p[k], p[(k + 1) % 3]);
+        let d = [e[0] - a[0], e[1] - a[1]];
+        let len2 = d[0] * d[0] + d[1] * d[1];
+        let s = if len2 > 0.0 {
+            (((c[0] - a[0]) * d[0] + (c[1] - a[1]) * d[1]) / len2).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
+        let q = [a[0] + s * d[0], a[1] + s * d[1]];
+        let distance = (c[0] - q[0]).hypot(c[1] - q[1]);
+        if distance < found.0 {
+            let mut bary = [0.0; 3];
+            bary[k] = 1.0 - s;
+            bary[(k + 1) % 3] = s;
+            found = (distance, bary);
+        }
+    }
+    // A hair towards the centroid, so that the point is on the face, not its edge.
+    let inset = 1e-4;
+    (found.0, found.1.map(|x| x * (1.0 - inset) + inset / 3.0))
+}
+
+/// Fills the gutters within `steps` texels of a covered texel with the mean of their filled
+/// neighbours, a ring at a time, so that filtering and mipmaps near a chart's rim read its light.
+fn dilate(texels: &mut Texels, steps: usize) {
+    let (w, h) = (texels.width as usize, texels.height as usize);
+    let mut filled = texels.covered.clone();
+    for _ in 0..steps {
+        let mut next = Vec::new();
+        for y in 0..h {
+            for x in 0..w {
+                if filled[y * w + x] {
+                    continue;
+                }
+                let (mut sum, mut err, mut n) = ([0.0f32; 3], [0.0f32; 3], 0.0f32);
+                for (dx, dy) in [
+                    (-1i64, 0i64),
+                    (1, 0),
+                    (0, -1),
+                    (0, 1),
+                    (-1, -1),
+                    (1, 1),
+                    (-1, 1),
+                    (1, -1),
+                ] {
+                    let (nx, ny) = (x as i64 + dx, y as i64 + dy);
+                    if nx < 0 || ny < 0 || nx >= w as i64 || ny >= h as i64 {
+                        continue;
+                    }
+                    let at = ny as usize * w + nx as usize;
+                    if filled[at] {
+                        (0..3).for_each(|c| {
+                            sum[c] += texels.radiance[at][c];
+                            err[c] += texels.stderr[at][c];
+                        });
+                        n += 1.0;
+                    }
+                }
+                if n > 0.0 {
+                    next.push((y * w + x, sum.map(|s| s / n), err.map(|e| e / n)));
+                }
+            }
+        }
+        if next.is_empty() {
+            break;
+        }
+        for (at, l, e) in next {
+            texels.radiance[at] = l;
+            texels.stderr[at] = e;
+            filled[at] = true;
+        }
+    }
+}
+
+impl Texels {
+    /// The radiance as a linear half-float RGB OpenEXR image, scaled by `scale` (1: the
+    /// scene's emission units).
+    ///
+    /// # Errors
+    /// The encoder's, as text.
+    pub fn exr(&self, scale: f32) -> Result<Vec<u8>, String> {
+        use exr::prelude::*;
+        let w = self.width as usize;
+        let channels = SpecificChannels::rgb(|Vec2(x, y): Vec2<usize>| {
+            let l = self.radiance[y * w + x];
+            (
+                f16::from_f32(l[0] * scale),
+                f16::from_f32(l[1] * scale),
+                f16::from_f32(l[2] * scale),
+            )
+        });
+        let image = Image::from_channels((w, self.height as usize), channels);
+        let mut bytes = std::io::Cursor::new(Vec::new());
+        image
+            .write()
+            .to_buffered(&mut bytes)
+            .map_err(|e| format!("encoding the lightmap: {e}"))?;
+        Ok(bytes.into_inner())
+    }
+}
