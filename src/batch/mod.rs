@@ -213,7 +213,7 @@ fn content_hash(bytes: &[u8], params: &BatchParams) -> String {
     let settings = &params.settings;
     let load = &settings.load;
     let outputs = &params.outputs;
-    let described = serde_json::json!({
+    let mut described = serde_json::json!({
         "version": env!("CARGO_PKG_VERSION"),
         "load": {
             "fps": load.fps,
@@ -242,6 +242,10 @@ fn content_hash(bytes: &[u8], params: &BatchParams) -> String {
             "shading": outputs.shading,
         },
     });
+    // Only when asked for: the bakes made before lightmaps keep their hash.
+    if let Some(density) = outputs.lightmaps {
+        described["outputs"]["lightmaps"] = density.into();
+    }
     let mut h = Sha256::new();
     h.update(b"radiosity content hash 2\0");
     h.update((bytes.len() as u64).to_le_bytes());
@@ -990,6 +994,7 @@ mod tests {
             |p| p.outputs.gif = false,
             |p| p.outputs.exposure = Some(2.0),
             |p| p.outputs.shading = output::Shading::Flat,
+            |p| p.outputs.lightmaps = Some(8.0),
         ];
         let mut seen = std::collections::HashSet::from([base.clone()]);
         for (k, change) in changed.iter().enumerate() {
