@@ -175,16 +175,18 @@ fn closed_form(p: DVec3) -> f64 {
     RHO / std::f64::consts::PI * LAMP.0 * (to_lamp.y / d2.sqrt()) / d2
 }
 
+/// [`lamp_over_a_box`] traced with 20,000 lines.
+fn lamp_bake() -> Bake {
+    let lines = LineParams {
+        lines: 20_000,
+        seed: 5,
+    };
+    Bake::trace(lamp_over_a_box(), &lines).unwrap()
+}
+
 #[test]
 fn a_lamp_lights_each_vertex_by_its_closed_form_with_a_sharp_shadow_and_none_under_the_box() {
-    let bake = Bake::trace(
-        lamp_over_a_box(),
-        &LineParams {
-            lines: 20_000,
-            seed: 5,
-        },
-    )
-    .unwrap();
+    let bake = lamp_bake();
     let (_, vertices) = vertices(&bake);
     let floor: Vec<&Vertex> = (vertices.iter())
         .filter(|v| v.at.y.abs() < 1e-6 && v.normal.y > 0.99)
@@ -487,14 +489,7 @@ fn a_solution_read_back_without_its_pieces_lights_the_vertices_as_before() {
 #[test]
 fn lightmap_texels_read_the_lamp_s_closed_form_at_their_points_with_a_texel_sharp_shadow() {
     use radiosity::output::lightmap::Lightmap;
-    let bake = Bake::trace(
-        lamp_over_a_box(),
-        &LineParams {
-            lines: 20_000,
-            seed: 5,
-        },
-    )
-    .unwrap();
+    let bake = lamp_bake();
     let solution = bake.solve_frame(0, &bake.scene.materials, &SolveParams::default());
     let power = bake.light_power();
     let lighting = Lighting {

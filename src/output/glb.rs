@@ -104,6 +104,19 @@ impl Buffers {
         self.push(words, Some(ARRAY_BUFFER), shape, extra)
     }
 
+    /// The GLB of `document` with these buffers (padded to 4 bytes) as its binary chunk.
+    fn finish(mut self, mut document: Value) -> Result<Vec<u8>, OutputError> {
+        while !self.bin.len().is_multiple_of(4) {
+            self.bin.push(0);
+        }
+        if !self.bin.is_empty() {
+            document["buffers"] = json!([{ "byteLength": self.bin.len() }]);
+            document["bufferViews"] = Value::Array(self.views);
+            document["accessors"] = Value::Array(self.accessors);
+        }
+        glb(&document, &self.bin)
+    }
+
     /// Appends `values` as a VEC2 float accessor, returning its index.
     fn vec2(&mut self, values: &[[f32; 2]]) -> usize {
         let words = values.iter().flatten().map(|c| c.to_le_bytes());
@@ -124,6 +137,24 @@ impl Buffers {
         let shape = (UNSIGNED_INT, "SCALAR", values.len());
         self.push(words, None, shape, json!({}))
     }
+}
+
+/// Source node `node`'s name, or its index.
+fn node_name(scene: &Scene, node: u32) -> String {
+    (scene.node_names.get(node as usize))
+        .and_then(Option::as_deref)
+        .map_or_else(|| format!("node {node}"), str::to_owned)
+}
+
+/// The node drawing glTF mesh `mesh`, source node `source`'s, at the normalisation's `centre`
+/// (the meshes' positions are scaled about it).
+fn mesh_node(name: String, mesh: usize, centre: glam::DVec3, source: u32) -> Value {
+    json!({
+        "name": name,
+        "mesh": mesh,
+        "translation": centre.to_array(),
+        "extras": { "source_node": source },
+    })
 }
 
 /// An `f32` that glTF accepts (finite): radiance beyond `f32`'s range is clamped.
@@ -163,10 +194,7 @@ pub fn frame_glb(
         let hdr_error = buffers.vec3(&stderr, false);
         let indices = buffers.indices(&mesh.triangles);
         let patches = buffers.per_triangle(&mesh.patches);
-        // The source node's name, or its index.
-        let name = (scene.node_names.get(mesh.node as usize))
-            .and_then(Option::as_deref)
-            .map_or_else(|| format!("node {}", mesh.node), str::to_owned);
+        let name = node_name(scene, mesh.node);
         gltf_meshes.push(json!({
             "name": format!("{name} baked"),
             "primitives": [{
@@ -182,12 +210,7 @@ pub fn frame_glb(
                 "extras": { "patches": patches },
             }],
         }));
-        nodes.push(json!({
-            "name": name,
-            "mesh": gltf_meshes.len() - 1,
-            "translation": centre.to_array(),
-            "extras": { "source_node": mesh.node },
-        }));
+        nodes.push(mesh_node(name, gltf_meshes.len() - 1, centre, mesh.node));
     }
     // The previews' camera first, then the scene's others.
     let cameras: Vec<(Value, Value)> = (scene.camera.iter().chain(&scene.other_cameras))
@@ -195,9 +218,6 @@ pub fn frame_glb(
         .map(|(i, c)| camera(scene, c, frame, i))
         .collect();
     nodes.extend(cameras.iter().map(|(node, _)| node.clone()));
-    while !buffers.bin.len().is_multiple_of(4) {
-        buffers.bin.push(0);
-    }
     let mut document = json!({
         "asset": {
             "version": "2.0",
@@ -228,12 +248,7 @@ pub fn frame_glb(
             .map(|(_, projection)| projection)
             .collect();
     }
-    if !buffers.bin.is_empty() {
-        document["buffers"] = json!([{ "byteLength": buffers.bin.len() }]);
-        document["bufferViews"] = Value::Array(buffers.views);
-        document["accessors"] = Value::Array(buffers.accessors);
-    }
-    glb(&document, &buffers.bin)
+    buffers.finish(document)
 }
 
 /// The `.glb` of a timeline's lightmapped geometry: the scene as drawn at frame 0 on the
@@ -267,9 +282,7 @@ pub fn lightmap_glb(
         let texcoord = buffers.vec2(&uv.uv);
         let indices = buffers.indices(&uv.triangles);
         let patches = buffers.per_triangle(&mesh.patches);
-        let name = (scene.node_names.get(mesh.node as usize))
-            .and_then(Option::as_deref)
-            .map_or_else(|| format!("node {}", mesh.node), str::to_owned);
+        let name = node_name(scene, mesh.node);
         gltf_meshes.push(json!({
             "name": format!("{name} lightmapped"),
             "primitives": [{
@@ -284,17 +297,9 @@ pub fn lightmap_glb(
                 "extras": { "patches": patches },
             }],
         }));
-        nodes.push(json!({
-            "name": name,
-            "mesh": gltf_meshes.len() - 1,
-            "translation": centre.to_array(),
-            "extras": { "source_node": mesh.node },
-        }));
+        nodes.push(mesh_node(name, gltf_meshes.len() - 1, centre, mesh.node));
     }
-    while !buffers.bin.len().is_multiple_of(4) {
-        buffers.bin.push(0);
-    }
-    let mut document = json!({
+    let document = json!({
         "asset": {
             "version": "2.0",
             "generator": concat!("radiosity ", env!("CARGO_PKG_VERSION")),
@@ -319,12 +324,7 @@ pub fn lightmap_glb(
             "pbrMetallicRoughness": { "baseColorFactor": [1.0, 1.0, 1.0, 1.0], "metallicFactor": 0.0 },
         }],
     });
-    if !buffers.bin.is_empty() {
-        document["buffers"] = json!([{ "byteLength": buffers.bin.len() }]);
-        document["bufferViews"] = Value::Array(buffers.views);
-        document["accessors"] = Value::Array(buffers.accessors);
-    }
-    glb(&document, &buffers.bin)
+    buffers.finish(document)
 }
 
 /// A scene's camera at `frame` in scene units: its node (rotation and translation; the pose's

@@ -64,8 +64,6 @@ pub struct Lightmap {
 /// several.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct UvMesh {
-    /// The glTF node.
-    pub node: u32,
     /// The node mesh's vertex each lightmap vertex copies.
     pub xref: Vec<u32>,
     /// Each lightmap vertex's coordinates in the atlas, in [0, 1]: (0, 0) the top left corner of
@@ -100,10 +98,13 @@ type Claim = (f64, u32, u32, [f64; 3]);
 /// and its standard error, gutters filled.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Texels {
+    /// Atlas width, texels.
     pub width: u32,
+    /// Atlas height, texels.
     pub height: u32,
-    /// Row after row from the top.
+    /// Radiance per texel, row after row from the top.
     pub radiance: Vec<[f32; 3]>,
+    /// Its standard error.
     pub stderr: Vec<[f32; 3]>,
     /// Whether a triangle covers each texel (the others are gutters).
     pub covered: Vec<bool>,
@@ -163,9 +164,8 @@ impl Lightmap {
         };
         let atlas = uvunwrap::generate(&inputs, &options)
             .map_err(|e| format!("the lightmap's unwrap failed: {e}"))?;
-        let meshes: Vec<UvMesh> = (atlas.meshes.iter().zip(&rest))
-            .map(|(out, mesh)| UvMesh {
-                node: mesh.node,
+        let meshes: Vec<UvMesh> = (atlas.meshes.iter())
+            .map(|out| UvMesh {
                 xref: out.vertices.iter().map(|v| v.xref).collect(),
                 uv: out.vertices.iter().map(|v| v.uv).collect(),
                 triangles: (out.indices.chunks_exact(3))
