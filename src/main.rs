@@ -376,6 +376,16 @@ struct BenchVerticesArgs {
     /// Paths of the reference per vertex, in each of its two halves.
     #[arg(long, default_value_t = 8192)]
     paths: usize,
+    /// Also measure lightmaps at this many texels per scene unit (their texels against the
+    /// reference at the texels' points).
+    #[arg(long)]
+    texels_per_unit: Option<f64>,
+    /// Most texels measured per scene (evenly spread over the covered ones).
+    #[arg(long, default_value_t = 4000, requires = "texels_per_unit")]
+    texel_limit: usize,
+    /// Paths of the reference per texel, in each of its two halves.
+    #[arg(long, default_value_t = 2048, requires = "texels_per_unit")]
+    texel_paths: usize,
     /// How the bakes' patches are made: source (the default), auto or a length.
     #[arg(long, default_value = "source")]
     patch_size: radiosity::params::PatchSize,
@@ -744,6 +754,9 @@ impl BenchVerticesArgs {
             frames: self.frames,
             paths: self.paths,
             auto: self.patch_size == radiosity::params::PatchSize::Auto,
+            texels_per_unit: self.texels_per_unit,
+            texel_limit: self.texel_limit,
+            texel_paths: self.texel_paths,
         };
         let points = vertex_points(&scenes, bench, |p| {
             let show = |x: Option<f64>| {
@@ -772,7 +785,32 @@ impl BenchVerticesArgs {
                 p.vertex_seconds,
                 100.0 * p.vertex_seconds / p.bake_seconds
             );
-        })?;
+            if let Some(t) = &p.texels {
+                for (what, m) in [("at texels  ", &t.evaluated), ("patches    ", &t.patches)] {
+                    eprintln!(
+                        "{:<20} {what}  RMS {}  median {}  p90 {}  bias {}  within 2σ {}  dark max {}  reference noise {}",
+                        p.scene,
+                        show(m.rms),
+                        show(m.median),
+                        show(m.p90),
+                        show(m.bias),
+                        show(m.coverage),
+                        show(m.dark_max),
+                        show(m.reference_noise),
+                    );
+                }
+                eprintln!(
+                    "{:<20} {} of {} texels at {} per unit, every state's texels {:.2} s ({:.0}% of the bake)",
+                    p.scene,
+                    t.measured,
+                    t.covered,
+                    t.texels_per_unit,
+                    t.texel_seconds,
+                    100.0 * t.texel_seconds / p.bake_seconds
+                );
+            }
+        })
+        .map_err(anyhow::Error::msg)?;
         println!("{}", serde_json::to_string_pretty(&points)?);
         Ok(())
     }

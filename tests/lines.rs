@@ -261,6 +261,89 @@ fn the_bvh_agrees_with_brute_force() {
     assert!(total > 40_000, "{total}");
 }
 
+/// The BVH's walk of a convex region (a shadow volume: a point and a quad's pyramid) finds
+/// exactly the triangles that clipping every triangle by the region's planes finds, for
+/// pyramids of every size from points all over the scene; and a triangle wholly inside, beside
+/// or around one is or is not found.
+#[test]
+fn the_bvh_finds_the_triangles_in_a_convex_region_as_brute_force_does() {
+    use radiosity::trace::convex_meets_triangle;
+    let scene = common::static_scene(
+        &[
+            sphere(0.45),
+            cube([1.0; 3], [0.0; 3]),
+            cube([0.2; 3], [0.2, 0.1, 0.0]),
+        ],
+        Some(0.2),
+    );
+    let corners: Vec<[Vec3; 3]> = (scene.statics.triangles.iter())
+        .map(|t| t.map(|i| scene.statics.positions[i as usize]))
+        .collect();
+    let mesh = radiosity::trace::TraceMesh::new(corners.iter().copied(), 0).unwrap();
+    let mut rng = Xoshiro256PlusPlus::seed_from_u64(11);
+    let (mut found, mut empty) = (0, 0);
+    for _ in 0..2000 {
+        let apex = DVec3::new(
+            rng.random::<f64>() - 0.5,
+            rng.random::<f64>() - 0.5,
+            rng.random::<f64>() - 0.5,
+        ) * 1.2;
+        let centre = apex + any_direction(&mut rng) * rng.random::<f64>() * 0.8;
+        let (u, v) = (any_direction(&mut rng), any_direction(&mut rng));
+        let size = 0.2 * rng.random::<f64>().powi(2);
+        let quad = [u + v, u - v, -u - v, -u + v].map(|d| centre + d * size);
+        let mut planes: Vec<(DVec3, f64)> = Vec::new();
+        let middle = quad.iter().sum::<DVec3>() / 4.0;
+        for k in 0..4 {
+            let m = (quad[k] - apex).cross(quad[(k + 1) % 4] - apex).normalize();
+            let m = if m.dot(middle - apex) > 0.0 { -m } else { m };
+            planes.push((m, m.dot(apex)));
+        }
+        let far = (middle - apex).normalize();
+        planes.push((far, far.dot(middle)));
+        let mut walked = Vec::new();
+        mesh.any_in_convex(&planes, &mut |id| {
+            walked.push(id);
+            false
+        });
+        walked.sort_unstable();
+        let brute: Vec<u32> = (0..corners.len() as u32)
+            .filter(|&i| convex_meets_triangle(&planes, corners[i as usize].map(Vec3::as_dvec3)))
+            .collect();
+        assert_eq!(walked, brute, "apex {apex}");
+        if brute.is_empty() {
+            empty += 1;
+        } else {
+            found += brute.len();
+        }
+    }
+    assert!(found > 1000 && empty > 100, "{found} found, {empty} empty");
+    // A unit cube's region against triangles inside, beside and around it.
+    let planes: Vec<(DVec3, f64)> = [DVec3::X, DVec3::Y, DVec3::Z]
+        .into_iter()
+        .flat_map(|a| [(a, 1.0), (-a, 0.0)])
+        .collect();
+    let t = |a: [f64; 3], b: [f64; 3], c: [f64; 3]| [a, b, c].map(DVec3::from);
+    assert!(convex_meets_triangle(
+        &planes,
+        t([0.2, 0.2, 0.5], [0.8, 0.2, 0.5], [0.5, 0.8, 0.5])
+    ));
+    assert!(!convex_meets_triangle(
+        &planes,
+        t([1.2, 0.2, 0.5], [1.8, 0.2, 0.5], [1.5, 0.8, 0.5])
+    ));
+    // Corners all outside, but cutting through the cube.
+    assert!(convex_meets_triangle(
+        &planes,
+        t([-5.0, -5.0, 0.5], [5.0, -5.0, 0.5], [0.5, 5.0, 0.5])
+    ));
+    // All beyond one plane.
+    assert!(!convex_meets_triangle(
+        &planes,
+        t([1.5, -1.0, 0.5], [3.0, 0.5, 0.5], [1.5, 0.5, 3.0])
+    ));
+}
+
 /// A direction drawn from `rng` (the cube's, normalised: any direction, not uniformly).
 fn any_direction(rng: &mut Xoshiro256PlusPlus) -> DVec3 {
     DVec3::new(

@@ -36,6 +36,12 @@ pub struct VertexBench {
     /// Whether the patches are cut and merged where the light needs them (`auto`), or kept as
     /// the scene was loaded.
     pub auto: bool,
+    /// Lightmaps measured too, at this many texels per scene unit, if any: at most
+    /// `texel_limit` of their texels (evenly spread), with `texel_paths` paths of the
+    /// reference each in each half.
+    pub texels_per_unit: Option<f64>,
+    pub texel_limit: usize,
+    pub texel_paths: usize,
 }
 
 /// One scene's bake measured at its vertices.
@@ -63,6 +69,26 @@ pub struct VertexPoint {
     /// The mean of the patches around each vertex, weighed by their faces' areas: what the
     /// outputs carried before.
     pub averaged: VertexMeasured,
+    /// The lightmap's texels, if measured.
+    pub texels: Option<TexelPoint>,
+}
+
+/// One scene's lightmap measured at its texels' points.
+#[derive(Clone, Debug, Serialize)]
+pub struct TexelPoint {
+    /// Texels per scene unit.
+    pub texels_per_unit: f64,
+    /// Texels the atlas covers, and those measured (evenly spread over them).
+    pub covered: usize,
+    pub measured: usize,
+    /// Wall time of the lightmaps of every lighting state the bake writes (the vertices' light
+    /// given, as the bake's outputs have it).
+    pub texel_seconds: f64,
+    /// The texels' radiance ([`crate::output::lightmap::Lightmap::texels`]); each texel weighs
+    /// the same (one texel's area).
+    pub evaluated: VertexMeasured,
+    /// Each texel's patch's solved radiance: a lightmap filled from the patches.
+    pub patches: VertexMeasured,
 }
 
 /// Values at vertices against the reference at the same points, over the measured frames.
@@ -103,15 +129,16 @@ pub struct VertexMeasured {
 /// to `measured` as soon as it is.
 ///
 /// # Errors
-/// When a scene cannot be traced or cut.
+/// When a scene cannot be traced or cut, or its lightmap cannot be unwrapped.
 pub fn vertex_points(
     scenes: &[(String, Scene)],
     bench: VertexBench,
     mut measured: impl FnMut(&VertexPoint),
-) -> Result<Vec<VertexPoint>, TraceError> {
+) -> Result<Vec<VertexPoint>, String> {
     let mut out = Vec::new();
     for (name, scene) in scenes {
-        let run = timed_bake(scene, bench.lines, bench.seed, (bench.auto, true))?;
+        let run = timed_bake(scene, bench.lines, bench.seed, (bench.auto, true))
+            .map_err(|e: TraceError| e.to_string())?;
         let bake = &run.bake;
         let power = bake.light_power();
         let sky = crate::solve::SolveParams::default().sky;
@@ -184,6 +211,10 @@ pub fn vertex_points(
             vertex_seconds,
             evaluated: evaluated.finish(),
             averaged: averaged.finish(),
+            texels: match bench.texels_per_unit {
+                Some(density) => Some(texel_point(&run, &lit, (bench, density), lighting)?),
+                None => None,
+            },
         };
         measured(&point);
         out.push(point);
@@ -191,7 +222,88 @@ pub fn vertex_points(
     Ok(out)
 }
 
+/// `run`'s lightmap at `density` texels per unit measured at `bench`'s frames, every lighting
+/// state's texels timed, from the lit vertices `lit` (per frame, its representatives').
+fn texel_point(
+    run: &super::Timed,
+    lit: &[Option<Vec<NodeMesh>>],
+    (bench, density): (VertexBench, f64),
+    lighting: Lighting<'_>,
+) -> Result<TexelPoint, String> {
+    use crate::output::lightmap::Lightmap;
+    let bake = &run.bake;
+    let lightmap = Lightmap::new(bake, density)?;
+    let count = bake.scene.frames.count;
+    let representatives = bake.representatives();
+    let started = Instant::now();
+    let maps: Vec<Option<crate::output::lightmap::Texels>> = (0..count)
+        .map(|f| {
+            (representatives[f] == f).then(|| {
+                let states = (&run.solved[f], lighting);
+                lightmap.texels(bake, f, lit[f].as_deref(), states)
+            })
+        })
+        .collect();
+    let texel_seconds = started.elapsed().as_secs_f64();
+    // An even spread of the covered texels.
+    let texels: Vec<(usize, u32)> = lightmap.texel_patches().collect();
+    let step = texels.len().div_ceil(bench.texel_limit.max(1)).max(1);
+    let chosen: Vec<usize> = (0..texels.len()).step_by(step).collect();
+    let mut points = crate::direct::points::Points::default();
+    for &i in &chosen {
+        points.push(lightmap.points().point(i).iter().cloned());
+    }
+    let shown = bake.shown();
+    let (mut evaluated, mut patches) = (Tally::default(), Tally::default());
+    for &f in &super::measured_frames(count, bench.frames) {
+        let Some(map) = &maps[representatives[f]] else {
+            continue;
+        };
+        let halves = [1, 2].map(|k| {
+            crate::direct::reference::path_traced_points(
+                (&bake.scene, bake.tracer(), f),
+                &points,
+                bench.texel_paths,
+                lighting.sky,
+                bench.seed ^ (0x7E1 * k),
+            )
+        });
+        let radiance = &run.solved[f].radiance;
+        let mut at = Vertices::default();
+        let (mut values, mut flat) = (Vec::new(), Vec::new());
+        for &i in &chosen {
+            let (texel, patch) = texels[i];
+            let p = &shown.patches[patch as usize];
+            let m = &shown.materials[p.material as usize];
+            at.weight.push(1.0);
+            at.crease.push(false);
+            at.material.push((m.reflectance, m.emission));
+            at.averaged.push(radiance[patch as usize]);
+            values.push(PointRadiance {
+                radiance: map.radiance[texel].map(f64::from),
+                stderr: map.stderr[texel].map(f64::from),
+                ..PointRadiance::default()
+            });
+            flat.push(PointRadiance {
+                radiance: radiance[patch as usize],
+                ..PointRadiance::default()
+            });
+        }
+        evaluated.add(&at, &values, &halves);
+        patches.add(&at, &flat, &halves);
+    }
+    Ok(TexelPoint {
+        texels_per_unit: density,
+        covered: texels.len(),
+        measured: chosen.len(),
+        texel_seconds,
+        evaluated: evaluated.finish(),
+        patches: patches.finish(),
+    })
+}
+
 /// What the measure needs of each vertex of one frame, in the order of the meshes' vertices.
+#[derive(Default)]
 struct Vertices {
     /// A third of its faces' area.
     weight: Vec<f64>,

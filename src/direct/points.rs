@@ -6,9 +6,12 @@
 //!
 //! - **Direct light at the point.** Each punctual light exactly (`I·cos θ/d²` behind one shadow
 //!   ray, [`Sight::punctual`]); each emitter the bake samples as an area light
-//!   ([`super::area`]) by `g × g` stratified directions uniform in its solid angle, a shadow ray
-//!   each ([`super::area::point_form_factor`]). Contact shadows, penumbrae and the edge of a
-//!   light are resolved at the point, not averaged over a patch.
+//!   ([`super::area`]) by its unoccluded form factor in closed form (Lambert's formula) times
+//!   the share of it `g × g` stratified shadow rays get through ([`super::area::Seen`]): exact
+//!   where no static triangle is in the volume between the point and the emitter (found by a
+//!   walk of the BVH, no ray traced) and where every ray or none gets through; noisy only in a
+//!   penumbra. Contact shadows, penumbrae and the edge of a light are resolved at the point,
+//!   not averaged over a patch.
 //! - **The rest gathered from the solution** (a final gather): stratified cosine-weighted rays
 //!   from the point, each reading the solved radiance of the patch it meets first, less the
 //!   emission of the sampled emitters (their light is the direct term above: nothing is counted
@@ -42,7 +45,7 @@ use rand::rngs::Xoshiro256PlusPlus;
 use rand::{RngExt, SeedableRng};
 use rayon::prelude::*;
 
-use super::area::{AreaLights, PointRays, point_form_factor, point_grid};
+use super::area::{AreaLights, PointRays, Seen, point_form_factor, point_grid};
 use super::reference::{Met, Place, Sight, cosine_direction_at, places};
 use super::{Occluders, Posed, into_inset};
 use crate::scene::{Material, Scene};
@@ -476,7 +479,8 @@ impl Gatherer<'_> {
     /// whose shadow rays to it can meet the moving geometry at this frame is its light with
     /// the static geometry alone: kept from the first such frame (with the lighting it was
     /// traced with), read at the others, so that only the emitters a moving object may shadow
-    /// are sampled again.
+    /// are sampled again, along the rays the static geometry lets through (kept as a bit per
+    /// ray), and not at all when the static geometry is clear of them.
     fn direct(
         &self,
         site: &Site,
@@ -497,26 +501,31 @@ impl Gatherer<'_> {
                 .then(|| self.cache.direct((site, k), self.lighting_key))
                 .flatten();
             let (f, v) = kept.unwrap_or_else(|| {
+                let Some(seen) = Seen::new((x, n), emitter) else {
+                    return (0.0, 0.0);
+                };
                 let g = point_grid(x, emitter, self.gather.density);
                 let g = ((g as f64 * scale).round() as usize).max(4);
-                let (point, sample) = ((x, n, own.0, own.1), (mix(seed ^ k as u64), g));
-                // Something moving may shadow the site: its rays through the static geometry
-                // are kept, and each frame traces the moving objects along them.
+                let sample = (mix(seed ^ k as u64), g);
+                // Something moving may shadow the site: its rays' verdicts through the static
+                // geometry are kept, and each frame traces the moving objects along them.
                 if keeps
                     && !clear
                     && let Some(moving) = &self.moving
                 {
                     let rays = self.cache.direct_rays((site, k), self.lighting_key, || {
-                        PointRays::sample(self.statics.view, point, emitter, sample)
+                        PointRays::sample(self.statics.view, (&seen, emitter), own, sample)
                     });
-                    return rays.form_factor(moving.view, (x, own.0, own.1));
+                    return rays.form_factor(moving.view, &seen, own, sample);
                 }
-                let sampled = point_form_factor(self.sight.view, point, emitter, sample);
+                // The moving geometry is tested too unless it cannot be in the way.
+                let moving = self.moving.as_ref().filter(|_| !clear).map(|m| m.view);
+                let statics = seen.statics_clear(self.statics.view, emitter, own.0);
+                let lit = seen.visible_through((self.sight.view, moving), statics, own, sample);
                 if clear {
-                    self.cache
-                        .keep_direct((site, k), self.lighting_key, sampled);
+                    self.cache.keep_direct((site, k), self.lighting_key, lit);
                 }
-                sampled
+                lit
             });
             for c in 0..3 {
                 e[c] += pi * emission[c] * f;

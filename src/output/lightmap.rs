@@ -212,6 +212,23 @@ impl Lightmap {
         })
     }
 
+    /// Each covered texel's place in the atlas (`row × width + column`) and its patch, in the
+    /// order of [`Lightmap::points`].
+    pub fn texel_patches(&self) -> impl Iterator<Item = (usize, u32)> + '_ {
+        (self.texels.iter()).map(|t| {
+            (
+                t.at as usize,
+                self.rest[t.mesh as usize].patches[t.triangle as usize],
+            )
+        })
+    }
+
+    /// Where each covered texel is evaluated, row after row.
+    #[must_use]
+    pub fn points(&self) -> &Points {
+        &self.points
+    }
+
     /// Covered texels.
     #[must_use]
     pub fn covered(&self) -> usize {

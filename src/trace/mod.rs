@@ -13,7 +13,7 @@ mod wide;
 
 use std::time::Duration;
 
-use glam::{Affine3A, DAffine3, Vec3, Vec3A, Vec4};
+use glam::{Affine3A, DAffine3, DVec3, Vec3, Vec3A, Vec4};
 use obvhs::BvhBuildParams;
 use obvhs::aabb::Aabb;
 use obvhs::bvh2::builder::build_bvh2;
@@ -362,6 +362,79 @@ impl TraceMesh {
         false
     }
 
+    /// Whether `found` holds for a triangle that meets the convex region inside every one of
+    /// `planes` (each `(m, d)` the points `p` with `m · p ≤ d`): each such triangle's global
+    /// index is given to it, and the walk stops at the first it holds for. A node whose box is
+    /// wholly outside one of the planes is skipped; a triangle is clipped by every plane in
+    /// `f64` and given if anything of it is left ([`convex_meets_triangle`]).
+    pub fn any_in_convex(
+        &self,
+        planes: &[(DVec3, f64)],
+        found: &mut impl FnMut(u32) -> bool,
+    ) -> bool {
+        if self.wide.is_empty() {
+            return false;
+        }
+        let (mut small, mut large) = ([0u32; 192], Vec::new());
+        let size = (wide::WIDTH - 1) * self.depth + 1;
+        let stack: &mut [u32] = if size <= small.len() {
+            &mut small
+        } else {
+            large.resize(size, 0);
+            &mut large
+        };
+        // A box is outside a plane when its corner least along the normal is beyond it.
+        let outside = |lo: [f32; 3], hi: [f32; 3]| {
+            planes.iter().any(|&(m, d)| {
+                let near = |a: usize| {
+                    let (l, h) = (f64::from(lo[a]), f64::from(hi[a]));
+                    m[a] * if m[a] > 0.0 { l } else { h }
+                };
+                near(0) + near(1) + near(2) > d
+            })
+        };
+        let meets = |c: [Vec3; 3]| convex_meets_triangle(planes, c.map(Vec3::as_dvec3));
+        let mut top = 1;
+        while top > 0 {
+            top -= 1;
+            let node = &self.wide[stack[top] as usize];
+            let mut used = node.used;
+            while used != 0 {
+                let i = used.trailing_zeros() as usize;
+                used &= used - 1;
+                let lo = [node.lo[0][i], node.lo[1][i], node.lo[2][i]];
+                let hi = [node.hi[0][i], node.hi[1][i], node.hi[2][i]];
+                if outside(lo, hi) {
+                    continue;
+                }
+                let first = node.child[i];
+                match node.count[i] {
+                    wide::INNER => {
+                        stack[top] = first;
+                        top += 1;
+                    }
+                    count if count & wide::BLOCK != 0 => {
+                        let block = &self.blocks[first as usize];
+                        for lane in 0..usize::from(count & !wide::BLOCK) {
+                            if meets(block.corners(lane)) && found(block.id[lane]) {
+                                return true;
+                            }
+                        }
+                    }
+                    count => {
+                        for k in first..first + u32::from(count) {
+                            let Triangle { corners, id } = self.triangles[k as usize];
+                            if meets(corners) && found(id) {
+                                return true;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        false
+    }
+
     /// The box around all the triangles (padded like the BVH's).
     fn bounds(&self) -> Aabb {
         self.bounds
@@ -391,6 +464,43 @@ struct RigidTracer {
     /// hit. Most lines miss a small moving object: the box test spares them the transform and
     /// the traversal.
     frames: Vec<Option<(Aabb, Affine3A)>>,
+}
+
+/// Whether anything of triangle `corners` is inside every one of `planes` (each `(m, d)` the
+/// points `p` with `m · p ≤ d`): the triangle clipped by each plane in turn (Sutherland and
+/// Hodgman) keeps a point.
+#[must_use]
+pub fn convex_meets_triangle(planes: &[(DVec3, f64)], corners: [DVec3; 3]) -> bool {
+    // A triangle clipped by k planes has at most 3 + k corners: past the buffers' room, the
+    // triangle is said to meet the region (the answer errs on the safe side).
+    const ROOM: usize = 32;
+    if planes.len() + 3 > ROOM {
+        return true;
+    }
+    let (mut polygon, mut next) = ([DVec3::ZERO; ROOM], [DVec3::ZERO; ROOM]);
+    polygon[..3].copy_from_slice(&corners);
+    let mut len = 3;
+    for &(m, d) in planes {
+        let mut kept = 0;
+        for k in 0..len {
+            let (a, b) = (polygon[k], polygon[(k + 1) % len]);
+            let (da, db) = (m.dot(a) - d, m.dot(b) - d);
+            if da <= 0.0 {
+                next[kept] = a;
+                kept += 1;
+            }
+            if (da <= 0.0) != (db <= 0.0) {
+                next[kept] = a + (b - a) * (da / (da - db));
+                kept += 1;
+            }
+        }
+        std::mem::swap(&mut polygon, &mut next);
+        len = kept;
+        if len == 0 {
+            return false;
+        }
+    }
+    true
 }
 
 /// Everything needed to trace lines through a scene at any frame.
@@ -614,6 +724,16 @@ impl SceneTracer {
     pub fn any_static(&self, line: &Line, t_max: f32, found: &mut impl FnMut(Hit) -> bool) -> bool {
         (self.statics.as_ref())
             .is_some_and(|mesh| mesh.any_until(line.origin, line.direction, t_max, found))
+    }
+
+    /// Whether `found` holds for a static triangle that meets the convex region of `planes`
+    /// ([`TraceMesh::any_in_convex`]); the walk stops at the first it holds for.
+    pub fn any_static_in_convex(
+        &self,
+        planes: &[(DVec3, f64)],
+        found: &mut impl FnMut(u32) -> bool,
+    ) -> bool {
+        (self.statics.as_ref()).is_some_and(|mesh| mesh.any_in_convex(planes, found))
     }
 
     /// Appends the crossings of `line` with the moving objects as posed at `frame`,
