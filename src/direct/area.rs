@@ -1792,10 +1792,10 @@ impl PointRays {
 /// direct light at a third of the time (issue 49).
 pub(super) fn point_grid(x: DVec3, emitter: &Emitter, density: f64) -> usize {
     let distance = x.distance(emitter.centre).max(f64::MIN_POSITIVE);
-    let base: f64 = if emitter.edge / distance < 0.1 {
-        4.0
-    } else {
-        8.0
+    let base: f64 = match emitter.edge / distance {
+        r if r < 0.1 => 4.0,
+        r if r < 0.5 => 8.0,
+        _ => 16.0,
     };
     (base * density.sqrt()).round().clamp(4.0, 64.0) as usize
 }

@@ -238,6 +238,10 @@ pub struct PointRadiance {
     /// and lamps' directly), its sites' weighted mean: what a lightmap's texels interpolate
     /// between vertices ([`crate::output::lightmap`]). 0 with no gather rays.
     pub gathered: [f64; 3],
+    /// The weighted share of its sites that reflect light and that no surface touches: 0
+    /// under a box resting on the floor, where a lightmap's texel takes no gathered light from
+    /// its lit neighbours either.
+    pub reached: f64,
 }
 
 /// The point of `site` on `place` (its face at the frame), a hair inside the face's edges.
@@ -380,9 +384,12 @@ impl Gatherer<'_> {
     /// The weighted mean of `sites`' radiance.
     fn point(&self, sites: &[Site], hits: &mut Vec<Hit>) -> PointRadiance {
         let (mut radiance, mut variance, mut read) = ([0.0; 3], [0.0; 3], [0.0; 3]);
-        let mut gathered = [0.0; 3];
+        let (mut gathered, mut reached) = ([0.0; 3], 0.0);
         for site in sites {
-            let (l, v, r, g) = self.site(site, hits);
+            let ((l, v, r, g), reaches) = self.site(site, hits);
+            if reaches {
+                reached += site.weight;
+            }
             for c in 0..3 {
                 radiance[c] += site.weight * l[c];
                 variance[c] += site.weight * site.weight * v[c];
@@ -394,12 +401,14 @@ impl Gatherer<'_> {
             radiance,
             stderr: std::array::from_fn(|c| (variance[c] + read[c] * read[c]).sqrt()),
             gathered,
+            reached,
         }
     }
 
     /// The radiance at `site`, the variance of its sampling, the error of the patches its
-    /// gather read (a standard error, correlated between sites), and the irradiance gathered.
-    fn site(&self, site: &Site, hits: &mut Vec<Hit>) -> ([f64; 3], [f64; 3], [f64; 3], [f64; 3]) {
+    /// gather read (a standard error, correlated between sites), and the irradiance gathered;
+    /// and whether light reaches it (its face reflects, and no surface touches it there).
+    fn site(&self, site: &Site, hits: &mut Vec<Hit>) -> (SiteLight, bool) {
         let place = &self.places[2 * site.triangle as usize + usize::from(site.back)];
         let faces = self.sight.view.triangles[site.triangle as usize].1;
         let patch = if site.back {
@@ -411,13 +420,13 @@ impl Gatherer<'_> {
             .and_then(|p| self.scene.patches.get(p as usize))
             .and_then(|p| self.lighting.materials.get(p.material as usize))
         else {
-            return ([0.0; 3], [0.0; 3], [0.0; 3], [0.0; 3]);
+            return (([0.0; 3], [0.0; 3], [0.0; 3], [0.0; 3]), false);
         };
         let (le, rho) = (material.emission, material.reflectance);
         let x = site_point(site, place);
         let (n, own) = (place.normal, (place.triangle, place.back));
         if rho == [0.0; 3] || n == DVec3::ZERO || self.sight.view.covered(x, n, own) {
-            return (le, [0.0; 3], [0.0; 3], [0.0; 3]);
+            return ((le, [0.0; 3], [0.0; 3], [0.0; 3]), false);
         }
         let seed = site_seed(self.gather.seed, site);
         let pi = std::f64::consts::PI;
@@ -466,12 +475,13 @@ impl Gatherer<'_> {
             variance[c] += spread[c] / (b * b);
         }
         let to_radiance = |c: usize| rho[c] * std::f64::consts::FRAC_1_PI;
-        (
+        let light = (
             std::array::from_fn(|c| le[c] + to_radiance(c) * e[c]),
             std::array::from_fn(|c| to_radiance(c).powi(2) * variance[c]),
             std::array::from_fn(|c| to_radiance(c) * read[c] / count.max(1.0)),
             gathered,
-        )
+        );
+        (light, true)
     }
 
     /// The irradiance at `site`'s point `x` (on `place`) straight from the punctual lights and
@@ -1129,6 +1139,10 @@ type KeptForms = std::collections::HashMap<SiteKey, std::sync::Arc<[Option<Form>
 
 /// A site's direct irradiance and its variance, RGB.
 type DirectLight = ([f64; 3], [f64; 3]);
+
+/// A site's radiance, its sampling's variance, the error of the patches its gather read, and
+/// the irradiance gathered ([`Gatherer::site`]).
+type SiteLight = ([f64; 3], [f64; 3], [f64; 3], [f64; 3]);
 
 /// A [`Linear`] as kept, in `f32` (a ray's value is always read from this form, whether just
 /// traced or kept, so that frames agree to the bit whatever was evaluated before them).

@@ -225,6 +225,7 @@ pub fn light_vertices(
                 radiance,
                 stderr,
                 gathered,
+                ..
             } = values.next().unwrap_or_default();
             (*l, *e) = (radiance, stderr);
             mesh.gathered.push(gathered);
