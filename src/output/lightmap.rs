@@ -34,15 +34,17 @@ use crate::bake::Bake;
 use crate::direct::points::{Gather, Lighting, PointRadiance, Points};
 use crate::solve::FrameSolution;
 
-/// Texels per scene unit of `bake --lightmaps` unless told (8 per metre: the level's 16,000
-/// texels add about a quarter to its bake; 32 per metre took it from 7 s to 159 s).
+/// Texels per scene unit of `bake --lightmaps` unless told (8 per metre: the level's 17,700
+/// texels add about a tenth to its bake; 32 per metre, a quarter of a million, about as much
+/// again as the bake: docs/outputs.md).
 pub const TEXELS_PER_UNIT: f64 = 8.0;
 
 /// Longest edge (normalised units: the scene's radius is 1) of a drawn triangle whose texels
 /// interpolate the gathered light of its corner vertices; a longer one is cut into a lattice of
 /// `n × n` smaller triangles no longer than this, whose nodes' light is gathered on the face
 /// itself ([`Lattice`]). An eighth of the scene: on the moving Cornell box (large faces) the
-/// texels' RMS error went from 12.8% to 2.5% (a sixteenth: 1.8%, at 2.2 times the cost).
+/// texels' RMS error against the path tracer went from 12.8% to 2.5% (a sixteenth: 1.8%, at 2.2
+/// times the texels' cost; both with a vertex's shadow rays per texel).
 pub const LATTICE_SPACING: f64 = 1.0 / 8.0;
 
 /// A texel's shadow rays to an emitter, as a share of a vertex's
