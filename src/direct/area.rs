@@ -1343,7 +1343,7 @@ fn each_ray(
         if !in_front(e.dot(x - origin)) {
             continue;
         }
-        fans_above(emitter, n, x, &mut fans.triangles);
+        fans_above(&emitter.triangles, n, x, &mut fans.triangles);
         if fans.triangles.is_empty() {
             continue;
         }
@@ -1368,11 +1368,11 @@ fn in_front(height: f64) -> bool {
     height > f64::from(crate::trace::coincident::COINCIDENT)
 }
 
-/// The parts of `emitter`'s triangles in front of the plane through `x` with normal `n`, as
+/// The parts of an emitter's `triangles` in front of the plane through `x` with normal `n`, as
 /// triangles, into `fans` (cleared first).
-fn fans_above(emitter: &Emitter, n: DVec3, x: DVec3, fans: &mut Vec<[DVec3; 3]>) {
+fn fans_above(triangles: &[[DVec3; 3]], n: DVec3, x: DVec3, fans: &mut Vec<[DVec3; 3]>) {
     fans.clear();
-    for t in &emitter.triangles {
+    for t in triangles {
         let mut polygon = [DVec3::ZERO; 4];
         match clip(t, n, x, &mut polygon) {
             3 => fans.push([polygon[0], polygon[1], polygon[2]]),
@@ -1518,7 +1518,7 @@ impl Seen {
             return None;
         }
         let mut fans = Fans::default();
-        fans_above(emitter, n, x, &mut fans.triangles);
+        fans_above(&emitter.triangles, n, x, &mut fans.triangles);
         if fans.triangles.is_empty() {
             return None;
         }
@@ -2201,20 +2201,10 @@ mod tests {
             );
             [[a, b, c], [a, c, d]]
         };
-        // The parts in front of the point's plane, as `fans_above` cuts an emitter.
+        // The parts in front of the point's plane.
         let fans_of = |x: DVec3, n: DVec3, t: &[[DVec3; 3]]| {
             let mut fans = Vec::new();
-            for t in t {
-                let mut polygon = [DVec3::ZERO; 4];
-                match clip(t, n, x, &mut polygon) {
-                    3 => fans.push([polygon[0], polygon[1], polygon[2]]),
-                    4 => fans.extend([
-                        [polygon[0], polygon[1], polygon[2]],
-                        [polygon[0], polygon[2], polygon[3]],
-                    ]),
-                    _ => {}
-                }
-            }
+            fans_above(t, n, x, &mut fans);
             fans
         };
         let form =

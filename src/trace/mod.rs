@@ -300,15 +300,8 @@ impl TraceMesh {
         if self.wide.is_empty() {
             return false;
         }
-        // A node's children on the stack in place of the node: 7 more a level at most.
         let (mut small, mut large) = ([0u32; 192], Vec::new());
-        let size = (wide::WIDTH - 1) * self.depth + 1;
-        let stack: &mut [u32] = if size <= small.len() {
-            &mut small
-        } else {
-            large.resize(size, 0);
-            &mut large
-        };
+        let stack = self.stack(&mut small, &mut large);
         let shear = Shear::new(direction);
         let sheared = ShearedLine::with_shear(origin, shear);
         let seen = shear.project(origin);
@@ -362,6 +355,18 @@ impl TraceMesh {
         false
     }
 
+    /// A walk's stack of nodes (a node's children on it in place of the node: 7 more a level at
+    /// most): `small` when the BVH is shallow enough, `large` sized for it otherwise.
+    fn stack<'a>(&self, small: &'a mut [u32; 192], large: &'a mut Vec<u32>) -> &'a mut [u32] {
+        let size = (wide::WIDTH - 1) * self.depth + 1;
+        if size <= small.len() {
+            small
+        } else {
+            large.resize(size, 0);
+            large
+        }
+    }
+
     /// Whether `found` holds for a triangle that meets the convex region inside every one of
     /// `planes` (each `(m, d)` the points `p` with `m · p ≤ d`): each such triangle's global
     /// index is given to it, and the walk stops at the first it holds for. A node whose box is
@@ -376,13 +381,7 @@ impl TraceMesh {
             return false;
         }
         let (mut small, mut large) = ([0u32; 192], Vec::new());
-        let size = (wide::WIDTH - 1) * self.depth + 1;
-        let stack: &mut [u32] = if size <= small.len() {
-            &mut small
-        } else {
-            large.resize(size, 0);
-            &mut large
-        };
+        let stack = self.stack(&mut small, &mut large);
         // A box is outside a plane when its corner least along the normal is beyond it.
         let outside = |lo: [f32; 3], hi: [f32; 3]| {
             planes.iter().any(|&(m, d)| {
