@@ -607,4 +607,24 @@ fn lightmap_texels_read_the_lamp_s_closed_form_at_their_points_with_a_texel_shar
     // The file engines load: a half-float EXR of the atlas's size.
     let exr = texels.exr(1.0).unwrap();
     assert_eq!(&exr[..4], &[0x76, 0x2f, 0x31, 0x01]);
+    // And its RGBM PNG, which decodes to the same radiance within its bytes.
+    let png = texels.rgbm_png(1.0).unwrap();
+    let image = image::load_from_memory(&png).unwrap().to_rgba8();
+    assert_eq!(
+        (image.width(), image.height()),
+        (texels.width, texels.height)
+    );
+    let range = radiosity::output::lightmap::RGBM_RANGE;
+    for (k, (p, l)) in image.pixels().zip(&texels.radiance).enumerate() {
+        let a = f32::from(p[3]) / 255.0;
+        let peak = l.iter().fold(0.0f32, |m, &c| m.max(c)).min(range);
+        for c in 0..3 {
+            let back = f32::from(p[c]) / 255.0 * a * range;
+            let step = peak / 255.0 + range / 255.0 / 255.0;
+            assert!(
+                (back - l[c].min(range)).abs() <= step,
+                "texel {k}: {back} for {l:?}"
+            );
+        }
+    }
 }

@@ -373,6 +373,9 @@ fn write_outputs(
                     let bytes = texels.exr(1.0)?;
                     let name = frame_name(r, count, "exr");
                     std::fs::write(dir.join("lightmaps").join(name), bytes).map_err(io)?;
+                    let bytes = texels.rgbm_png(1.0)?;
+                    let name = frame_name(r, count, "png");
+                    std::fs::write(dir.join("lightmaps").join(name), bytes).map_err(io)?;
                 }
                 Ok((r, Arc::new(meshes)))
             })
@@ -427,10 +430,15 @@ fn write_outputs(
             "charts": lightmap.charts,
             "covered_texels": lightmap.covered(),
             "format": "OpenEXR, half float, linear RGB radiance in the scene's emission units; row 0 at the top (glTF's texture coordinates)",
+            "rgbm": {
+                "format": "PNG, 8-bit RGBA, linear RGBM: radiance = rgb * a * range, clamped at range",
+                "range": output::lightmap::RGBM_RANGE,
+            },
             "frames": (0..count).map(|f| serde_json::json!({
                 "frame": f,
                 "time": scene.frames.time(f),
                 "lightmap": frame_name(representatives[f], count, "exr"),
+                "rgbm": frame_name(representatives[f], count, "png"),
             })).collect::<Vec<_>>(),
         });
         std::fs::write(

@@ -603,7 +603,35 @@ fn dilate(texels: &mut Texels, steps: usize) {
     }
 }
 
+/// The range of [`Texels::rgbm_png`]: radiance up to this many times its scale is encoded
+/// (three.js's `RGBM16`, Unity's and Babylon's RGBM: `linear = rgb × a × RGBM_RANGE`).
+pub const RGBM_RANGE: f32 = 16.0;
+
 impl Texels {
+    /// The radiance scaled by `scale` as an 8-bit RGBA PNG in linear RGBM: `a` the multiplier
+    /// (rounded up, so that `rgb` stays within 1), `rgb` the colour over `a × RGBM_RANGE`;
+    /// radiance past [`RGBM_RANGE`] (scaled) is clamped to it. For engines without float
+    /// textures; the EXR is the exact file.
+    ///
+    /// # Errors
+    /// The encoder's, as text.
+    pub fn rgbm_png(&self, scale: f32) -> Result<Vec<u8>, String> {
+        let mut bytes = Vec::with_capacity(self.radiance.len() * 4);
+        for l in &self.radiance {
+            bytes.extend(rgbm(l.map(|c| c * scale)));
+        }
+        let mut out = Vec::new();
+        image::ImageEncoder::write_image(
+            image::codecs::png::PngEncoder::new(&mut out),
+            &bytes,
+            self.width,
+            self.height,
+            image::ExtendedColorType::Rgba8,
+        )
+        .map_err(|e| format!("encoding the lightmap: {e}"))?;
+        Ok(out)
+    }
+
     /// The radiance as a linear half-float RGB OpenEXR image, scaled by `scale` (1: the
     /// scene's emission units).
     ///
@@ -630,9 +658,44 @@ impl Texels {
     }
 }
 
+/// Linear radiance `l` as RGBM bytes ([`Texels::rgbm_png`]).
+fn rgbm(l: [f32; 3]) -> [u8; 4] {
+    let l = l.map(|c| (c / RGBM_RANGE).clamp(0.0, 1.0));
+    let peak = l.iter().fold(0.0f32, |m, &c| m.max(c));
+    let a = ((peak * 255.0).ceil() / 255.0).max(1.0 / 255.0);
+    let byte = |x: f32| (x * 255.0).round().clamp(0.0, 255.0) as u8;
+    [byte(l[0] / a), byte(l[1] / a), byte(l[2] / a), byte(a)]
+}
+
 #[cfg(test)]
 mod tests {
-    use super::Lattice;
+    use super::{Lattice, RGBM_RANGE, rgbm};
+
+    /// RGBM bytes decode (`rgb × a × range`) to the radiance within 8 bits of its multiplier,
+    /// from a dim texel to the range's top, black is black, and past the range is clamped.
+    #[test]
+    fn rgbm_decodes_to_the_radiance_within_its_bytes() {
+        let decode = |b: [u8; 4]| {
+            let a = f32::from(b[3]) / 255.0;
+            [0, 1, 2].map(|c| f32::from(b[c]) / 255.0 * a * RGBM_RANGE)
+        };
+        for l in [
+            [0.01, 0.02, 0.005],
+            [0.5, 0.25, 1.0],
+            [3.0, 7.5, 15.9],
+            [16.0, 0.0, 1.0],
+        ] {
+            let back = decode(rgbm(l));
+            let peak = l.iter().fold(0.0f32, |m, &c| m.max(c));
+            for c in 0..3 {
+                // Half a step of the colour byte at the multiplier, plus the multiplier's own.
+                let step = peak / 255.0 + RGBM_RANGE / 255.0 / 255.0;
+                assert!((back[c] - l[c]).abs() <= step, "{l:?} -> {back:?}");
+            }
+        }
+        assert_eq!(decode(rgbm([0.0; 3])), [0.0; 3]);
+        assert_eq!(decode(rgbm([100.0, 0.0, 0.0]))[0], RGBM_RANGE);
+    }
 
     /// A point's nodes are the lattice's own (each row one shorter), their weights its
     /// barycentric coordinates in the small triangle holding it: they sum to 1 and give back
