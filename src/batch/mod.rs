@@ -242,9 +242,13 @@ fn content_hash(bytes: &[u8], params: &BatchParams) -> String {
             "shading": outputs.shading,
         },
     });
-    // Only when asked for: the bakes made before lightmaps keep their hash.
+    // Only when asked for: the bakes made before lightmaps keep their hash. With the files
+    // the lightmaps are written as: a lightmap bake made before the RGBM PNGs is made again.
     if let Some(density) = outputs.lightmaps {
-        described["outputs"]["lightmaps"] = density.into();
+        described["outputs"]["lightmaps"] = serde_json::json!({
+            "texels_per_unit": density,
+            "files": ["exr", "rgbm png"],
+        });
     }
     let mut h = Sha256::new();
     h.update(b"radiosity content hash 2\0");
