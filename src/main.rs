@@ -762,13 +762,21 @@ impl BenchVerticesArgs {
             let show = |x: Option<f64>| {
                 x.map_or_else(|| "-".to_string(), |x| format!("{:.2}%", 100.0 * x))
             };
-            for (what, m) in [("at vertices", &p.evaluated), ("averaged  ", &p.averaged)] {
+            // One line of a measure; on creases where vertices have them.
+            let line = |what: &str, m: &radiosity::bench::vertices::VertexMeasured, creases| {
+                let creases = if creases {
+                    format!(
+                        "  creases {} ({} too bright)",
+                        show(m.crease_rms),
+                        show(m.crease_too_bright)
+                    )
+                } else {
+                    String::new()
+                };
                 eprintln!(
-                    "{:<20} {what}  RMS {}  creases {} ({} too bright)  median {}  p90 {}  bias {}  within 2σ {}  dark max {}  reference noise {}",
+                    "{:<20} {what}  RMS {}{creases}  median {}  p90 {}  bias {}  within 2σ {}  dark max {}  reference noise {}",
                     p.scene,
                     show(m.rms),
-                    show(m.crease_rms),
-                    show(m.crease_too_bright),
                     show(m.median),
                     show(m.p90),
                     show(m.bias),
@@ -776,7 +784,9 @@ impl BenchVerticesArgs {
                     show(m.dark_max),
                     show(m.reference_noise),
                 );
-            }
+            };
+            line("at vertices", &p.evaluated, true);
+            line("averaged  ", &p.averaged, true);
             eprintln!(
                 "{:<20} {} vertices, bake {:.2} s, every frame's vertices {:.2} s ({:.0}%)",
                 p.scene,
@@ -786,19 +796,8 @@ impl BenchVerticesArgs {
                 100.0 * p.vertex_seconds / p.bake_seconds
             );
             if let Some(t) = &p.texels {
-                for (what, m) in [("at texels  ", &t.evaluated), ("patches    ", &t.patches)] {
-                    eprintln!(
-                        "{:<20} {what}  RMS {}  median {}  p90 {}  bias {}  within 2σ {}  dark max {}  reference noise {}",
-                        p.scene,
-                        show(m.rms),
-                        show(m.median),
-                        show(m.p90),
-                        show(m.bias),
-                        show(m.coverage),
-                        show(m.dark_max),
-                        show(m.reference_noise),
-                    );
-                }
+                line("at texels  ", &t.evaluated, false);
+                line("patches    ", &t.patches, false);
                 eprintln!(
                     "{:<20} {} of {} texels at {} per unit, every state's texels {:.2} s ({:.0}% of the bake)",
                     p.scene,

@@ -1446,16 +1446,16 @@ fn each_point_ray(
     (seed, g): (u64, usize),
     mut ray: impl FnMut(usize, DVec3, f64),
 ) -> bool {
-    let Some(mut seen) = Seen::new((x, n), emitter) else {
+    let Some(mut fans) = Fans::seen((x, n), emitter) else {
         return false;
     };
     // The fans' solid angles once for all the point's rays.
-    seen.fans.measure(x);
+    fans.measure(x);
     let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed);
     for k in 0..g * g {
         let u = ((k / g) as f64 + rng.random::<f64>()) / g as f64;
         let v = ((k % g) as f64 + rng.random::<f64>()) / g as f64;
-        if let Some((y, f)) = seen.fans.sample(x, (n, seen.e), u, v)
+        if let Some((y, f)) = fans.sample(x, (n, emitter.normal), u, v)
             && f > 0.0
         {
             ray(k, y, f);
@@ -1513,15 +1513,7 @@ impl Seen {
     /// What `x` (unit normal `n`) sees of `emitter`; `None` where no ray can carry light (the
     /// point behind the emitter, or the emitter wholly behind the point's plane).
     pub(super) fn new((x, n): (DVec3, DVec3), emitter: &Emitter) -> Option<Self> {
-        let e = emitter.normal;
-        if n == DVec3::ZERO || e == DVec3::ZERO || !in_front(e.dot(x - emitter.hull[0])) {
-            return None;
-        }
-        let mut fans = Fans::default();
-        fans_above(&emitter.triangles, n, x, &mut fans.triangles);
-        if fans.triangles.is_empty() {
-            return None;
-        }
+        let fans = Fans::seen((x, n), emitter)?;
         let unoccluded = unoccluded_form_factor(x, n, &fans.triangles);
         let areas: Vec<f64> = (fans.triangles.iter())
             .map(|[a, b, c]| 0.5 * (*b - *a).cross(*c - *a).length())
@@ -1530,7 +1522,7 @@ impl Seen {
         Some(Self {
             x,
             n,
-            e,
+            e: emitter.normal,
             fans,
             areas,
             area,
@@ -1610,16 +1602,32 @@ impl Seen {
         !(statics.tracer).any_static_in_convex(&planes, &mut |id| id != own)
     }
 
-    /// The form factor with the occluders `blocked` says block a ray to a point on the emitter,
-    /// and its variance: the unoccluded form factor times the share of the `g × g` rays' values
-    /// (seeded by `seed`) that gets through (a ratio estimate: exact where all or none does).
-    pub(super) fn visible_with(
+    /// The form factor with `at`'s occluders between, and its variance: the unoccluded form
+    /// factor times the share of the `g × g` rays' values (seeded by `seed`) that gets through
+    /// (a ratio estimate: exact where all or none does). What `rays` knows of the static
+    /// geometry is used or recorded as [`form_factor`]'s for a face.
+    pub(super) fn visible(
         &self,
-        sample: (u64, usize),
-        blocked: impl Fn(DVec3) -> bool,
+        at: &Frame<'_>,
+        (own, back): (u32, bool),
+        (seed, g): (u64, usize),
+        mut rays: Rays<'_>,
     ) -> (f64, f64) {
-        let mut values = Visible::new(sample.1);
-        self.each_ray(sample, |k, y, f| values.add(k, f, !blocked(y)));
+        if let Rays::Record(bits) = &mut rays {
+            bits.clear();
+            bits.resize((g * g).div_ceil(64), 0);
+        }
+        let mut values = Visible::new(g);
+        self.each_ray((seed, g), |k, y, f| {
+            let clear = match &mut rays {
+                Rays::Known(bits) if bits[k / 64] >> (k % 64) & 1 == 0 => false,
+                _ => !at.blocked(self.x, y, own, back),
+            };
+            if clear && let Rays::Record(bits) = &mut rays {
+                bits[k / 64] |= 1 << (k % 64);
+            }
+            values.add(k, f, clear);
+        });
         values.estimate(self.unoccluded)
     }
 
@@ -1633,11 +1641,10 @@ impl Seen {
         (own, back): (u32, bool),
         sample: (u64, usize),
     ) -> (f64, f64) {
-        let x = self.x;
         match (clear, moving) {
             (true, None) => (self.unoccluded, 0.0),
-            (true, Some(moving)) => self.visible_with(sample, |y| moving.blocked(x, y, own, back)),
-            (false, _) => self.visible_with(sample, |y| view.blocked(x, y, own, back)),
+            (true, Some(moving)) => self.visible(moving, (own, back), sample, Rays::Trace),
+            (false, _) => self.visible(view, (own, back), sample, Rays::Trace),
         }
     }
 }
@@ -1745,17 +1752,12 @@ impl PointRays {
         statics: &Frame<'_>,
         (seen, emitter): (&Seen, &Emitter),
         (own, back): (u32, bool),
-        (seed, g): (u64, usize),
+        sample: (u64, usize),
     ) -> Self {
         let clear = seen.statics_clear(statics, emitter, own);
         let mut through = Vec::new();
         if !clear {
-            through = vec![0u64; (g * g).div_ceil(64)];
-            seen.each_ray((seed, g), |k, y, _| {
-                if !statics.blocked(seen.x, y, own, back) {
-                    through[k / 64] |= 1 << (k % 64);
-                }
-            });
+            seen.visible(statics, (own, back), sample, Rays::Record(&mut through));
         }
         Self { clear, through }
     }
@@ -1768,14 +1770,14 @@ impl PointRays {
         moving: &Frame<'_>,
         seen: &Seen,
         (own, back): (u32, bool),
-        (seed, g): (u64, usize),
+        sample: (u64, usize),
     ) -> (f64, f64) {
-        let mut values = Visible::new(g);
-        seen.each_ray((seed, g), |k, y, f| {
-            let statics = self.clear || self.through[k / 64] >> (k % 64) & 1 == 1;
-            values.add(k, f, statics && !moving.blocked(seen.x, y, own, back));
-        });
-        values.estimate(seen.unoccluded)
+        let rays = if self.clear {
+            Rays::Trace
+        } else {
+            Rays::Known(&self.through)
+        };
+        seen.visible(moving, (own, back), sample, rays)
     }
 
     /// Bytes held, about.
@@ -1832,6 +1834,19 @@ struct Fans {
 }
 
 impl Fans {
+    /// The parts of `emitter` that `x` (unit normal `n`) sees in front of its plane, not yet
+    /// measured; `None` where no ray can carry light (the point behind the emitter, or the
+    /// emitter wholly behind the point's plane).
+    fn seen((x, n): (DVec3, DVec3), emitter: &Emitter) -> Option<Self> {
+        let e = emitter.normal;
+        if n == DVec3::ZERO || e == DVec3::ZERO || !in_front(e.dot(x - emitter.hull[0])) {
+            return None;
+        }
+        let mut fans = Self::default();
+        fans_above(&emitter.triangles, n, x, &mut fans.triangles);
+        (!fans.triangles.is_empty()).then_some(fans)
+    }
+
     /// The solid angles of the triangles from `x`.
     fn measure(&mut self, x: DVec3) {
         self.angles.clear();

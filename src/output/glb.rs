@@ -157,6 +157,20 @@ fn mesh_node(name: String, mesh: usize, centre: glam::DVec3, source: u32) -> Val
     })
 }
 
+/// A glTF mesh of one primitive with `attributes` (accessor indices), its triangles' and
+/// their patches' accessors, material 0.
+fn drawn_mesh(name: String, attributes: Value, (indices, patches): (usize, usize)) -> Value {
+    json!({
+        "name": name,
+        "primitives": [{
+            "attributes": attributes,
+            "indices": indices,
+            "material": 0,
+            "extras": { "patches": patches },
+        }],
+    })
+}
+
 /// An `f32` that glTF accepts (finite): radiance beyond `f32`'s range is clamped.
 fn finite_f32(x: f64) -> f32 {
     (x as f32).clamp(f32::MIN, f32::MAX)
@@ -195,21 +209,18 @@ pub fn frame_glb(
         let indices = buffers.indices(&mesh.triangles);
         let patches = buffers.per_triangle(&mesh.patches);
         let name = node_name(scene, mesh.node);
-        gltf_meshes.push(json!({
-            "name": format!("{name} baked"),
-            "primitives": [{
-                "attributes": {
-                    "POSITION": position,
-                    "NORMAL": normal,
-                    "COLOR_0": colour,
-                    "_RADIANCE": hdr,
-                    "_RADIANCE_STDERR": hdr_error,
-                },
-                "indices": indices,
-                "material": 0,
-                "extras": { "patches": patches },
-            }],
-        }));
+        let attributes = json!({
+            "POSITION": position,
+            "NORMAL": normal,
+            "COLOR_0": colour,
+            "_RADIANCE": hdr,
+            "_RADIANCE_STDERR": hdr_error,
+        });
+        gltf_meshes.push(drawn_mesh(
+            format!("{name} baked"),
+            attributes,
+            (indices, patches),
+        ));
         nodes.push(mesh_node(name, gltf_meshes.len() - 1, centre, mesh.node));
     }
     // The previews' camera first, then the scene's others.
@@ -283,20 +294,14 @@ pub fn lightmap_glb(
         let indices = buffers.indices(&uv.triangles);
         let patches = buffers.per_triangle(&mesh.patches);
         let name = node_name(scene, mesh.node);
-        gltf_meshes.push(json!({
-            "name": format!("{name} lightmapped"),
-            "primitives": [{
-                "attributes": {
-                    "POSITION": position,
-                    "NORMAL": normal,
-                    "TEXCOORD_0": texcoord,
-                    "TEXCOORD_1": texcoord,
-                },
-                "indices": indices,
-                "material": 0,
-                "extras": { "patches": patches },
-            }],
-        }));
+        let attributes = json!({
+            "POSITION": position,
+            "NORMAL": normal,
+            "TEXCOORD_0": texcoord,
+            "TEXCOORD_1": texcoord,
+        });
+        let named = format!("{name} lightmapped");
+        gltf_meshes.push(drawn_mesh(named, attributes, (indices, patches)));
         nodes.push(mesh_node(name, gltf_meshes.len() - 1, centre, mesh.node));
     }
     let document = json!({
