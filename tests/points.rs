@@ -628,3 +628,66 @@ fn lightmap_texels_read_the_lamp_s_closed_form_at_their_points_with_a_texel_shar
         }
     }
 }
+
+/// The panel room's ceiling beside its panel (which hangs 1 cm under it): each texel a few
+/// centimetres to a quarter of a metre outside the panel's outline reads the light the path
+/// tracer finds at its point, not the gap's (eight to ten times brighter) that a lattice node
+/// over the panel would lend it: where the light a texel would interpolate differs more than
+/// its noise, the texel gathers its own.
+#[test]
+fn ceiling_texels_beside_a_panel_read_the_path_tracer_s_light_not_the_gap_s() {
+    use radiosity::output::lightmap::Lightmap;
+    let lines = LineParams {
+        lines: 200_000,
+        seed: 1,
+    };
+    let bake = split_sample("panel_room.gltf", None, &lines);
+    let solution = bake.solve_frame(0, &bake.scene.materials, &SolveParams::default());
+    let power = bake.light_power();
+    let lighting = Lighting {
+        materials: &bake.scene.materials,
+        power: &power,
+        sky: [0.0; 3],
+    };
+    let lightmap = Lightmap::new(&bake, 8.0).unwrap();
+    let texels = lightmap.texels(&bake, 0, None, (&solution, lighting));
+    let shown = bake.shown();
+    let mut points = radiosity::direct::points::Points::default();
+    let mut chosen = Vec::new();
+    for (k, (at, x)) in lightmap.texel_points().enumerate() {
+        let p = shown.normalisation.to_scene(x);
+        let outside = p.x.abs().max(p.z.abs());
+        if (p.y - 2.7).abs() < 1e-3 && (0.52..0.75).contains(&outside) {
+            points.push(lightmap.points().point(k).iter().cloned());
+            chosen.push(at);
+        }
+    }
+    assert!(
+        chosen.len() >= 20,
+        "{} ceiling texels beside the panel",
+        chosen.len()
+    );
+    let reference = radiosity::direct::reference::path_traced_points(
+        (&bake.scene, bake.tracer(), 0),
+        &points,
+        4096,
+        [0.0; 3],
+        7,
+    );
+    for (r, &at) in reference.iter().zip(&chosen) {
+        let (l, s) = (
+            f64::from(texels.radiance[at][0]),
+            f64::from(texels.stderr[at][0]),
+        );
+        let r = (r.radiance[0], r.stderr[0]);
+        // Within four standard errors of the two, and 5% for what the patches' solution
+        // itself is off.
+        let allowed = 4.0 * s.hypot(r.1) + 0.05 * r.0;
+        assert!(
+            (l - r.0).abs() <= allowed,
+            "texel {at}: {l} ± {s} against the path tracer's {} ± {}",
+            r.0,
+            r.1
+        );
+    }
+}

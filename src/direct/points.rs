@@ -346,6 +346,53 @@ pub fn radiance_at(
         .collect()
 }
 
+/// Probe rays per point of [`closeness`] (a 4 × 4 grid of strata).
+pub const PROBE_RAYS: usize = 16;
+
+/// How near the geometry around each of `points` is at `frame`: the mean over [`PROBE_RAYS`]
+/// stratified cosine-weighted rays from each site of the inverse of the distance to the first
+/// surface they meet (0 for a ray that leaves the scene), its sites' weighted mean: `1/R`,
+/// with `R` the harmonic mean distance that irradiance caching bounds a gather's reach by (a
+/// point in a narrow gap or a corner reads a large value; a point in the open a small one).
+/// The same rays at every call (seeded by `seed` and each site's place).
+#[must_use]
+pub fn closeness(
+    (scene, tracer): (&Scene, &SceneTracer),
+    frame: usize,
+    points: &Points,
+    seed: u64,
+) -> Vec<f64> {
+    let posed = Posed::at(scene, tracer, frame);
+    let view = posed.frame(scene, tracer, Occluders::All);
+    let (places, _) = places(scene, &view);
+    let sight = Sight::new(scene, &view, frame, &[]);
+    let g = PROBE_RAYS.isqrt();
+    (0..points.len())
+        .into_par_iter()
+        .map_init(Vec::new, |hits, i| {
+            let mut sum = 0.0;
+            for site in points.point(i) {
+                let place = &places[2 * site.triangle as usize + usize::from(site.back)];
+                if place.normal == DVec3::ZERO {
+                    continue;
+                }
+                let x = site_point(site, place);
+                let mut rng = Xoshiro256PlusPlus::seed_from_u64(mix(site_seed(seed, site)));
+                let mut inverse = 0.0;
+                for k in 0..g * g {
+                    let u = ((k / g) as f64 + rng.random::<f64>()) / g as f64;
+                    let v = ((k % g) as f64 + rng.random::<f64>()) / g as f64;
+                    let w = cosine_direction_at(place.normal, u, v);
+                    let t = met_distance(&sight.first_hit(x, w, place, hits));
+                    inverse += 1.0 / t.max(f64::MIN_POSITIVE);
+                }
+                sum += site.weight * inverse / (g * g) as f64;
+            }
+            sum
+        })
+        .collect()
+}
+
 /// What a point's evaluation reads.
 struct Gatherer<'a> {
     scene: &'a Scene,

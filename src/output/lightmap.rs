@@ -18,11 +18,16 @@
 //!   shorter than [`LATTICE_SPACING`], from a lattice of final gathers on the face itself where
 //!   it is longer (a wall drawn as two triangles: its corners' light is not its middle's). A
 //!   texel that a surface touches (under a resting box) takes no gathered light.
-//!   Each texel's standard error is its direct light's in quadrature with the interpolated
-//!   points' error bars (which hold their own direct light's too: an upper estimate); the
-//!   interpolation's own error is not in it: in a narrow gap, where the gathered light falls
-//!   off faster than the vertices or the lattice follow, a texel is too bright (docs/outputs.md
-//!   gives the measured figures).
+//! - **Where interpolating is wrong, gathers near the texel.** A texel farther from a point it
+//!   would interpolate than [`VALIDITY`] times the harmonic mean distance to the surfaces
+//!   around it (probed once, at the rest pose: [`crate::direct::points::closeness`]) reads the
+//!   final gathers of records placed among such texels instead ([`super::records`]:
+//!   irradiance caching, a record within the reach of each, many in a narrow gap, few in the
+//!   open); a texel whose interpolation points' light differs by more than [`SPREAD`] of its
+//!   radiance beyond their noise (the ceiling over an emitter against the ceiling beside it)
+//!   gathers its own. Each texel's standard error is its direct light's in quadrature with
+//!   its interpolation points' or records' error bars (which hold their own direct light's
+//!   too: an upper estimate); what linear interpolation misses where it is kept is not in it.
 //! - **States.** Frames that share a solution ([`Bake::representatives`]) share one lightmap,
 //!   written once.
 
@@ -30,7 +35,9 @@ use glam::DVec3;
 
 use super::NodeMesh;
 use super::geometry::{frame_geometry, light_points, vertex_points};
+use super::records::{MOST_REACH, Reader, Records, VALIDITY};
 use crate::bake::Bake;
+use crate::direct::points::closeness;
 use crate::direct::points::{Gather, Lighting, PointRadiance, Points};
 use crate::solve::FrameSolution;
 
@@ -53,6 +60,22 @@ pub const TEXEL_RAYS: f64 = 0.25;
 
 /// Most lattice cuts along a triangle's edge.
 const LATTICE_MOST: u32 = 64;
+
+/// Gather rays of a record ([`crate::output::records`]), a quarter of a vertex's: records are
+/// many (the level at 32 texels per unit: 17,800) and a texel reads several; more batches where
+/// they leave a record uncertain, as at a vertex. At 256, the level's texels at 8 per unit were
+/// 2.60% RMS from the path tracer against 3.09% at 64, for twice the texels' time.
+pub const RECORD_RAYS: usize = 64;
+
+/// The largest difference between the light gathered at a texel's interpolation points, as a
+/// share of the texel's radiance, that interpolating it across them may span: more, and the
+/// light is not smooth there (the ceiling over an emitter against the ceiling beside it), so
+/// the texel gathers its own. A difference within 3 of its standard errors is noise.
+pub const SPREAD: f64 = 0.25;
+
+/// A source of a texel's interpolation whose weight is below this is left out of the tests
+/// for its own gather ([`VALIDITY`], [`SPREAD`]).
+const SOURCE_WEIGHT: f64 = 0.05;
 
 /// Empty texels around each chart (charts are at least twice this apart).
 pub const PADDING: u32 = 2;
@@ -84,6 +107,22 @@ pub struct Lightmap {
     lattices: Vec<Vec<Lattice>>,
     /// The lattices' nodes, each on its triangle's face.
     nodes: Points,
+    /// Per covered texel, its index among the readers of `records` ([`u32::MAX`] for none): a
+    /// texel farther from a point it would interpolate than [`VALIDITY`] times the harmonic
+    /// mean distance to the surfaces around it (in a narrow gap, a corner) reads records
+    /// gathered near it instead.
+    reader: Vec<u32>,
+    /// The records, and where they are gathered (each a reader's point).
+    records: Records,
+    record_points: Points,
+}
+
+/// Where a texel reads the gathered light from: a vertex of its node mesh (index), or a
+/// lattice node (index in [`Lightmap::nodes`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Source {
+    Vertex(usize),
+    Node(usize),
 }
 
 /// Where a drawn triangle's texels read the gathered light: its corner vertices' (`cuts` 1),
@@ -160,6 +199,9 @@ type Rgb = Vec<[f64; 3]>;
 
 /// A node mesh's vertices' gathered irradiance and their radiance's error bars.
 type VertexLight<'a> = (&'a [[f64; 3]], &'a [[f64; 3]]);
+
+/// A point's gathered irradiance and its radiance's error bar, RGB.
+type Gathered = ([f64; 3], [f64; 3]);
 
 /// A texel's best triangle so far: its distance, the node mesh, the triangle, the point.
 type Claim = (f64, u32, u32, [f64; 3]);
@@ -256,12 +298,15 @@ impl Lightmap {
             points: Points::default(),
             lattices: Vec::new(),
             nodes: Points::default(),
+            reader: Vec::new(),
+            records: Records::default(),
+            record_points: Points::default(),
         };
         let faces: Vec<(u32, bool)> = (lightmap.texels.iter())
             .map(|t| lightmap.rest[t.mesh as usize].faces[t.triangle as usize])
             .collect();
         let at: Vec<DVec3> = lightmap.texel_points().map(|(_, x)| x).collect();
-        lightmap.points = bake.points_on_faces(faces.into_iter().zip(at));
+        lightmap.points = bake.points_on_faces(faces.into_iter().zip(at.iter().copied()));
         // The lattices of the long triangles.
         let mut nodes = Vec::new();
         for mesh in &lightmap.rest {
@@ -290,8 +335,63 @@ impl Lightmap {
             }
             lightmap.lattices.push(lattices);
         }
+        let node_at: Vec<DVec3> = nodes.iter().map(|n| n.1).collect();
         lightmap.nodes = bake.points_on_faces(nodes);
+        lightmap.place_records(bake, &at, &node_at);
         Ok(lightmap)
+    }
+
+    /// The texels farther from a point they would interpolate (vertices, and lattice nodes at
+    /// `node_at`) than [`VALIDITY`] times the harmonic mean distance to the surfaces around
+    /// them (rest pose, every surface), and the records they read ([`Records::place`]).
+    fn place_records(&mut self, bake: &Bake, at: &[DVec3], node_at: &[DVec3]) {
+        let traced = (&bake.scene, bake.tracer());
+        let closeness = closeness(traced, 0, &self.points, bake.seed());
+        let mut readers = Vec::new();
+        self.reader = vec![u32::MAX; self.texels.len()];
+        for (i, t) in self.texels.iter().enumerate() {
+            let mesh = &self.rest[t.mesh as usize];
+            let far = self.sources(t).iter().any(|&(source, w)| {
+                let x = match source {
+                    Source::Vertex(v) => mesh.positions[v],
+                    Source::Node(n) => node_at[n],
+                };
+                w >= SOURCE_WEIGHT && x.distance(at[i]) * closeness[i] > VALIDITY
+            });
+            if far {
+                let p = mesh.triangles[t.triangle as usize].map(|v| mesh.positions[v as usize]);
+                self.reader[i] = readers.len() as u32;
+                readers.push(Reader {
+                    x: at[i],
+                    n: (p[1] - p[0]).cross(p[2] - p[0]).normalize_or_zero(),
+                    reach: (VALIDITY / closeness[i]).min(MOST_REACH),
+                });
+            }
+        }
+        self.records = Records::place(&readers);
+        let mut points = Points::default();
+        let chosen: Vec<usize> = (self.reader.iter().enumerate())
+            .filter(|r| *r.1 != u32::MAX)
+            .map(|r| r.0)
+            .collect();
+        for &r in &self.records.at {
+            points.push(self.points.point(chosen[r as usize]).iter().cloned());
+        }
+        self.record_points = points;
+    }
+
+    /// The three points `texel` interpolates the gathered light of, with their weights: its
+    /// triangle's corners, or the lattice's nodes around it.
+    fn sources(&self, texel: &Texel) -> [(Source, f64); 3] {
+        let lattice = self.lattices[texel.mesh as usize][texel.triangle as usize];
+        if lattice.cuts > 1 {
+            lattice
+                .around(texel.bary)
+                .map(|(n, w)| (Source::Node(n), w))
+        } else {
+            let corners = self.rest[texel.mesh as usize].triangles[texel.triangle as usize];
+            std::array::from_fn(|k| (Source::Vertex(corners[k] as usize), texel.bary[k]))
+        }
     }
 
     /// The drawn geometry at frame 0 the atlas was made from, node mesh by node mesh.
@@ -417,41 +517,113 @@ impl Lightmap {
             covered: vec![false; size],
         };
         let patches = &bake.shown().patches;
-        for (texel, d) in self.texels.iter().zip(&direct) {
-            let mesh = &self.rest[texel.mesh as usize];
-            let (gathered, errors) = vertices[texel.mesh as usize];
-            let corners = mesh.triangles[texel.triangle as usize];
-            let patch = mesh.patches[texel.triangle as usize];
-            let rho = (patches.get(patch as usize))
+        let reflectance = |texel: &Texel| {
+            let patch = self.rest[texel.mesh as usize].patches[texel.triangle as usize];
+            (patches.get(patch as usize))
                 .and_then(|p| lighting.materials.get(p.material as usize))
-                .map_or([0.0; 3], |m| m.reflectance);
-            let at = texel.at as usize;
-            let lattice = self.lattices[texel.mesh as usize][texel.triangle as usize];
-            // The gathered light and its error bar interpolated from the corners or the
-            // lattice's nodes around the texel; none where nothing reaches the texel.
-            let (mut g, mut e) = ([0.0; 3], [0.0; 3]);
-            if lattice.cuts > 1 {
-                for (node, w) in lattice.around(texel.bary) {
-                    let node = &nodes[node];
-                    (0..3).for_each(|c| {
-                        g[c] += w * node.gathered[c];
-                        e[c] += w * node.stderr[c];
-                    });
-                }
+                .map_or([0.0; 3], |m| m.reflectance)
+        };
+        // The gathered light and its error bar interpolated from the corners or the lattice's
+        // nodes around each texel, or none: the texel gathers its own.
+        // The records' gathers, for the texels that read them.
+        let gather = Gather {
+            rays: RECORD_RAYS,
+            density: TEXEL_RAYS,
+            ..Gather::standard(bake.seed())
+        };
+        let records = if self.record_points.is_empty() {
+            Vec::new()
+        } else {
+            light_points(
+                bake,
+                frame,
+                &self.record_points,
+                (solution, lighting),
+                gather,
+            )
+        };
+        let mut interpolated: Vec<Option<Gathered>> = Vec::new();
+        let mut sources: Vec<(Gathered, f64)> = Vec::new();
+        for ((texel, &reader), d) in self.texels.iter().zip(&self.reader).zip(&direct) {
+            sources.clear();
+            if reader == u32::MAX {
+                let (gathered, errors) = vertices[texel.mesh as usize];
+                let zero = [0.0; 3];
+                sources.extend(self.sources(texel).map(|(source, w)| {
+                    let light = match source {
+                        Source::Vertex(v) => (
+                            *gathered.get(v).unwrap_or(&zero),
+                            *errors.get(v).unwrap_or(&zero),
+                        ),
+                        Source::Node(n) => (nodes[n].gathered, nodes[n].stderr),
+                    };
+                    (light, w)
+                }));
             } else {
-                for (&v, b) in corners.iter().zip(texel.bary) {
-                    let (v, zero) = (v as usize, [0.0; 3]);
-                    (0..3).for_each(|c| {
-                        g[c] += b * gathered.get(v).unwrap_or(&zero)[c];
-                        e[c] += b * errors.get(v).unwrap_or(&zero)[c];
-                    });
-                }
+                sources.extend(self.records.of(reader as usize).iter().map(|&(r, w)| {
+                    let record = &records[r as usize];
+                    ((record.gathered, record.stderr), f64::from(w))
+                }));
             }
+            let (mut g, mut e) = ([0.0; 3], [0.0; 3]);
+            for &((gk, ek), w) in &sources {
+                (0..3).for_each(|c| {
+                    g[c] += w * gk[c];
+                    e[c] += w * ek[c];
+                });
+            }
+            let rho = reflectance(texel);
+            let to_radiance = |c: usize, x: f64| rho[c] * std::f64::consts::FRAC_1_PI * x;
+            // Whether the sources' light differs by more than [`SPREAD`] of the texel's
+            // radiance, beyond their noise.
+            let uneven = (0..3).any(|c| {
+                let weighed = sources.iter().filter(|s| s.1 >= SOURCE_WEIGHT);
+                let (lo, hi, noise) = weighed.fold(
+                    (f64::INFINITY, f64::NEG_INFINITY, 0.0f64),
+                    |(lo, hi, noise), &((gk, ek), _)| {
+                        let l = to_radiance(c, gk[c]);
+                        (lo.min(l), hi.max(l), noise.max(ek[c]))
+                    },
+                );
+                let total = d.radiance[c] + to_radiance(c, g[c]);
+                hi - lo - 3.0 * std::f64::consts::SQRT_2 * noise > SPREAD * total
+            });
+            interpolated.push((!uneven).then_some((g, e)));
+        }
+        // The texels that gather their own, with a vertex's gather rays and a texel's shadow
+        // rays.
+        let mut gathering = Points::default();
+        for (k, i) in interpolated.iter().enumerate() {
+            if i.is_none() {
+                gathering.push(self.points.point(k).iter().cloned());
+            }
+        }
+        let gathered = if gathering.is_empty() {
+            Vec::new()
+        } else {
+            light_points(bake, frame, &gathering, (solution, lighting), gather)
+        };
+        let mut gathered = gathered.into_iter();
+        for ((texel, d), i) in self.texels.iter().zip(&direct).zip(interpolated) {
+            let at = texel.at as usize;
+            let (radiance, stderr) = match i {
+                Some((g, e)) => {
+                    let rho = reflectance(texel);
+                    (
+                        std::array::from_fn(|c| {
+                            d.radiance[c] + rho[c] * std::f64::consts::FRAC_1_PI * g[c] * d.reached
+                        }),
+                        std::array::from_fn(|c| d.stderr[c].hypot(e[c])),
+                    )
+                }
+                None => {
+                    let own = gathered.next().unwrap_or_default();
+                    (own.radiance, own.stderr)
+                }
+            };
             for c in 0..3 {
-                let (g, e) = (g[c] * d.reached, e[c]);
-                let l = d.radiance[c] + rho[c] * std::f64::consts::FRAC_1_PI * g;
-                out.radiance[at][c] = l.max(0.0) as f32;
-                out.stderr[at][c] = d.stderr[c].hypot(e) as f32;
+                out.radiance[at][c] = radiance[c].max(0.0) as f32;
+                out.stderr[at][c] = stderr[c] as f32;
             }
             out.covered[at] = true;
         }

@@ -10,6 +10,7 @@ pub mod geometry;
 pub mod glb;
 pub mod lightmap;
 pub mod preview;
+pub mod records;
 pub mod tonemap;
 
 use std::str::FromStr;
