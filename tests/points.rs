@@ -28,15 +28,26 @@ struct Vertex {
     averaged: [f64; 3],
 }
 
+/// Frame `frame` of `bake` solved with its own materials and no sky, and its lights' power
+/// (what [`lit`] lends the outputs).
+fn solved(bake: &Bake, frame: usize) -> (FrameSolution, Vec<[f64; 3]>) {
+    let solution = bake.solve_frame(frame, &bake.scene.materials, &SolveParams::default());
+    (solution, bake.light_power())
+}
+
+/// `bake`'s own materials lit by `power`, no sky.
+fn lit<'a>(bake: &'a Bake, power: &'a [[f64; 3]]) -> Lighting<'a> {
+    Lighting {
+        materials: &bake.scene.materials,
+        power,
+        sky: [0.0; 3],
+    }
+}
+
 /// Frame 0 of `bake` solved, and its drawn vertices.
 fn vertices(bake: &Bake) -> (FrameSolution, Vec<Vertex>) {
-    let solution = bake.solve_frame(0, &bake.scene.materials, &SolveParams::default());
-    let power = bake.light_power();
-    let lighting = Lighting {
-        materials: &bake.scene.materials,
-        power: &power,
-        sky: [0.0; 3],
-    };
+    let (solution, power) = solved(bake, 0);
+    let lighting = lit(bake, &power);
     let meshes = radiosity::output::lit_geometry(bake, 0, &solution, lighting);
     let shown = bake.shown();
     let triangles = shown.triangles_at(0);
@@ -424,13 +435,8 @@ fn a_frame_s_vertices_do_not_depend_on_the_frames_evaluated_before_it() {
         Bake::trace(scene, &lines).unwrap(),
     );
     let lit = |bake: &Bake, frame: usize| {
-        let solution = bake.solve_frame(frame, &bake.scene.materials, &SolveParams::default());
-        let power = bake.light_power();
-        let lighting = Lighting {
-            materials: &bake.scene.materials,
-            power: &power,
-            sky: [0.0; 3],
-        };
+        let (solution, power) = solved(bake, frame);
+        let lighting = lit(bake, &power);
         let meshes = radiosity::output::lit_geometry(bake, frame, &solution, lighting);
         (meshes.iter())
             .flat_map(|m| m.radiance.iter().chain(&m.stderr).copied())
@@ -468,11 +474,7 @@ fn a_solution_read_back_without_its_pieces_lights_the_vertices_as_before() {
         ..solution.clone()
     };
     let power = bake.light_power();
-    let lighting = Lighting {
-        materials: &bake.scene.materials,
-        power: &power,
-        sky: [0.0; 3],
-    };
+    let lighting = lit(&bake, &power);
     let radiance = |s: &FrameSolution| -> Vec<[f64; 3]> {
         (radiosity::output::lit_geometry(&bake, 0, s, lighting).iter())
             .flat_map(|m| m.radiance.clone())
@@ -490,13 +492,8 @@ fn a_solution_read_back_without_its_pieces_lights_the_vertices_as_before() {
 fn lightmap_texels_read_the_lamp_s_closed_form_at_their_points_with_a_texel_sharp_shadow() {
     use radiosity::output::lightmap::Lightmap;
     let bake = lamp_bake();
-    let solution = bake.solve_frame(0, &bake.scene.materials, &SolveParams::default());
-    let power = bake.light_power();
-    let lighting = Lighting {
-        materials: &bake.scene.materials,
-        power: &power,
-        sky: [0.0; 3],
-    };
+    let (solution, power) = solved(&bake, 0);
+    let lighting = lit(&bake, &power);
     let lightmap = Lightmap::new(&bake, 16.0).unwrap();
     let texels = lightmap.texels(&bake, 0, None, (&solution, lighting));
     let shown = bake.shown();
@@ -642,13 +639,8 @@ fn ceiling_texels_beside_a_panel_read_the_path_tracer_s_light_not_the_gap_s() {
         seed: 1,
     };
     let bake = split_sample("panel_room.gltf", None, &lines);
-    let solution = bake.solve_frame(0, &bake.scene.materials, &SolveParams::default());
-    let power = bake.light_power();
-    let lighting = Lighting {
-        materials: &bake.scene.materials,
-        power: &power,
-        sky: [0.0; 3],
-    };
+    let (solution, power) = solved(&bake, 0);
+    let lighting = lit(&bake, &power);
     let lightmap = Lightmap::new(&bake, 8.0).unwrap();
     let texels = lightmap.texels(&bake, 0, None, (&solution, lighting));
     let shown = bake.shown();
