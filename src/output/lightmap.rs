@@ -438,7 +438,8 @@ impl Lightmap {
 
     /// The lightmap of `frame` (a lighting state: a distinct frame), from its `solution`
     /// solved with `lighting`: each texel's direct light at its point, and the light gathered
-    /// at its triangle's vertices interpolated. `lit` is the frame's drawn geometry with its
+    /// at its triangle's vertices, its lattice's nodes or the records around it interpolated,
+    /// or at the texel itself (module docs). `lit` is the frame's drawn geometry with its
     /// vertices lit ([`super::lit_geometry`]) if the caller has it; otherwise (or if the frame's
     /// creases split its vertices unlike the rest pose's) the vertices are lit here.
     #[must_use]
@@ -523,8 +524,6 @@ impl Lightmap {
                 .and_then(|p| lighting.materials.get(p.material as usize))
                 .map_or([0.0; 3], |m| m.reflectance)
         };
-        // The gathered light and its error bar interpolated from the corners or the lattice's
-        // nodes around each texel, or none: the texel gathers its own.
         // The records' gathers, for the texels that read them.
         let gather = Gather {
             rays: RECORD_RAYS,
@@ -542,6 +541,8 @@ impl Lightmap {
                 gather,
             )
         };
+        // The gathered light and its error bar interpolated from the corners, the lattice's
+        // nodes or the records around each texel, or none: the texel gathers its own.
         let mut interpolated: Vec<Option<Gathered>> = Vec::new();
         let mut sources: Vec<(Gathered, f64)> = Vec::new();
         for ((texel, &reader), d) in self.texels.iter().zip(&self.reader).zip(&direct) {
@@ -590,7 +591,7 @@ impl Lightmap {
             });
             interpolated.push((!uneven).then_some((g, e)));
         }
-        // The texels that gather their own, with a vertex's gather rays and a texel's shadow
+        // The texels that gather their own, with a record's gather rays and a texel's shadow
         // rays.
         let mut gathering = Points::default();
         for (k, i) in interpolated.iter().enumerate() {
