@@ -1451,10 +1451,7 @@ fn each_point_ray(
     };
     // The fans' solid angles once for all the point's rays.
     fans.measure(x);
-    let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed);
-    for k in 0..g * g {
-        let u = ((k / g) as f64 + rng.random::<f64>()) / g as f64;
-        let v = ((k % g) as f64 + rng.random::<f64>()) / g as f64;
+    for (k, (u, v)) in super::strata(g, seed).enumerate() {
         if let Some((y, f)) = fans.sample(x, (n, emitter.normal), u, v)
             && f > 0.0
         {
@@ -1543,10 +1540,7 @@ impl Seen {
     /// rays estimate only the share of the light that gets through, and a point by area costs
     /// no trigonometry.
     fn each_ray(&self, (seed, g): (u64, usize), mut ray: impl FnMut(usize, DVec3, f64)) {
-        let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed);
-        for k in 0..g * g {
-            let u = ((k / g) as f64 + rng.random::<f64>()) / g as f64;
-            let v = ((k % g) as f64 + rng.random::<f64>()) / g as f64;
+        for (k, (u, v)) in super::strata(g, seed).enumerate() {
             // The triangle whose share of the area holds u, and u rescaled within it.
             let (mut below, mut pick) = (0.0, None);
             for (t, &a) in self.areas.iter().enumerate() {

@@ -666,6 +666,17 @@ fn inset(t: &[DVec3; 3]) -> [DVec3; 3] {
     t.map(|p| centre + (p - centre) * scale)
 }
 
+/// The `g × g` strata of the unit square, row after row, each point jittered uniformly within
+/// its stratum by a generator seeded with `seed`: the same points for the same seed.
+pub(super) fn strata(g: usize, seed: u64) -> impl Iterator<Item = (f64, f64)> {
+    let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed);
+    (0..g * g).map(move |k| {
+        let u = ((k / g) as f64 + rng.random::<f64>()) / g as f64;
+        let v = ((k % g) as f64 + rng.random::<f64>()) / g as f64;
+        (u, v)
+    })
+}
+
 /// Point `p` of triangle `t` moved as [`inset`] moves the triangle's corners.
 fn into_inset(p: DVec3, t: &[DVec3; 3]) -> DVec3 {
     let (centre, scale) = inset_scale(t);

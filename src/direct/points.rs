@@ -47,7 +47,7 @@ use rayon::prelude::*;
 
 use super::area::{AreaLights, PointRays, Seen, point_form_factor, point_grid};
 use super::reference::{Met, Place, Sight, cosine_direction_at, places};
-use super::{Occluders, Posed, into_inset};
+use super::{Occluders, Posed, into_inset, strata};
 use crate::scene::{Material, Scene};
 use crate::trace::coincident::mix;
 use crate::trace::{Hit, SceneTracer};
@@ -377,11 +377,8 @@ pub fn closeness(
                     continue;
                 }
                 let x = site_point(site, place);
-                let mut rng = Xoshiro256PlusPlus::seed_from_u64(mix(site_seed(seed, site)));
                 let mut inverse = 0.0;
-                for k in 0..g * g {
-                    let u = ((k / g) as f64 + rng.random::<f64>()) / g as f64;
-                    let v = ((k % g) as f64 + rng.random::<f64>()) / g as f64;
+                for (u, v) in strata(g, mix(site_seed(seed, site))) {
                     let w = cosine_direction_at(place.normal, u, v);
                     let t = met_distance(&sight.first_hit(x, w, place, hits));
                     inverse += 1.0 / t.max(f64::MIN_POSITIVE);
@@ -717,13 +714,8 @@ impl Gatherer<'_> {
     /// 16), jittered by `seed`: the same at every frame.
     fn directions(&self, site: &Site, n: DVec3, seed: u64) -> Vec<DVec3> {
         let g = ((self.gather.rays as f64 * site.weight).sqrt().ceil() as usize).max(4);
-        let mut rng = Xoshiro256PlusPlus::seed_from_u64(mix(seed ^ 0x6761_7468));
-        (0..g * g)
-            .map(|k| {
-                let u = ((k / g) as f64 + rng.random::<f64>()) / g as f64;
-                let v = ((k % g) as f64 + rng.random::<f64>()) / g as f64;
-                cosine_direction_at(n, u, v)
-            })
+        strata(g, mix(seed ^ 0x6761_7468))
+            .map(|(u, v)| cosine_direction_at(n, u, v))
             .collect()
     }
 

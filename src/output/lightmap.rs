@@ -347,7 +347,8 @@ impl Lightmap {
     fn place_records(&mut self, bake: &Bake, at: &[DVec3], node_at: &[DVec3]) {
         let traced = (&bake.scene, bake.tracer());
         let closeness = closeness(traced, 0, &self.points, bake.seed());
-        let mut readers = Vec::new();
+        // The readers, and the texel each is.
+        let (mut readers, mut texels) = (Vec::new(), Vec::new());
         self.reader = vec![u32::MAX; self.texels.len()];
         for (i, t) in self.texels.iter().enumerate() {
             let mesh = &self.rest[t.mesh as usize];
@@ -361,6 +362,7 @@ impl Lightmap {
             if far {
                 let p = mesh.triangles[t.triangle as usize].map(|v| mesh.positions[v as usize]);
                 self.reader[i] = readers.len() as u32;
+                texels.push(i);
                 readers.push(Reader {
                     x: at[i],
                     n: (p[1] - p[0]).cross(p[2] - p[0]).normalize_or_zero(),
@@ -370,12 +372,8 @@ impl Lightmap {
         }
         self.records = Records::place(&readers);
         let mut points = Points::default();
-        let chosen: Vec<usize> = (self.reader.iter().enumerate())
-            .filter(|r| *r.1 != u32::MAX)
-            .map(|r| r.0)
-            .collect();
         for &r in &self.records.at {
-            points.push(self.points.point(chosen[r as usize]).iter().cloned());
+            points.push(self.points.point(texels[r as usize]).iter().cloned());
         }
         self.record_points = points;
     }
