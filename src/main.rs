@@ -177,6 +177,14 @@ struct OutputArgs {
     /// The lightmaps' texel density, texels per scene unit (with --lightmaps)
     #[arg(long, default_value_t = radiosity::output::lightmap::TEXELS_PER_UNIT, requires = "lightmaps")]
     texels_per_unit: f64,
+    /// Also write light probes (probes/: a grid of order-2 spherical-harmonic probes of the
+    /// light arriving in the scene's empty space, one file per lighting state, probes.json)
+    #[arg(long)]
+    probes: bool,
+    /// The probes' spacing in scene units (with --probes; by default one unit, or wider to
+    /// keep at least 4 cells along the longest side and at most 4096 probes)
+    #[arg(long, requires = "probes", allow_negative_numbers = true)]
+    probe_spacing: Option<f64>,
     /// Exposure of the previews and of the baked glTF's vertex colours (radiance is
     /// multiplied by it before the tone curve); by default the one that maps the lit
     /// surfaces' log-average to middle grey (summary.json records it).
@@ -554,6 +562,8 @@ impl OutputArgs {
             preview_shading,
             lightmaps,
             texels_per_unit,
+            probes,
+            probe_spacing,
         } = self;
         radiosity::batch::Outputs {
             glb_frames,
@@ -563,6 +573,7 @@ impl OutputArgs {
             exposure,
             shading: preview_shading,
             lightmaps: lightmaps.then_some(texels_per_unit),
+            probes: probes.then_some(probe_spacing),
         }
     }
 }

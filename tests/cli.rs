@@ -878,3 +878,94 @@ fn a_directory_sharded_by_scene_bakes_each_scene_once() {
     let _ = std::fs::remove_dir_all(&input);
     let _ = std::fs::remove_dir_all(&out);
 }
+
+/// `bake --probes` (issue 49): the probes' document (positions, convention, each frame's
+/// state file), one file per lighting state with 27 coefficients and 18 irradiance error bars
+/// per probe, frames that share their light sharing one file; a spacing that is not a positive
+/// number, or that asks for too many probes, refused with a message naming it.
+#[test]
+fn bake_probes_writes_a_grid_and_one_file_per_lighting_state() {
+    let out = scratch("probes");
+    let level = sample("level.gltf");
+    let bake = |extra: &[&str]| {
+        radiosity()
+            .args([
+                "bake",
+                level.to_str().unwrap(),
+                "--out",
+                out.to_str().unwrap(),
+            ])
+            .args(["--lines", "20000", "--fps", "4", "--no-gif", "--force"])
+            .args([
+                "--glb-frames",
+                "none",
+                "--preview-frames",
+                "none",
+                "--probes",
+            ])
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    let output = bake(&[]);
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let dir = out.join("level").join("probes");
+    let read = |name: &str| -> serde_json::Value {
+        serde_json::from_slice(&std::fs::read(dir.join(name)).unwrap()).unwrap()
+    };
+    let grid = read("probes.json");
+    let positions = grid["positions"].as_array().unwrap();
+    let counts: Vec<u64> = (grid["counts"].as_array().unwrap().iter())
+        .map(|c| c.as_u64().unwrap())
+        .collect();
+    assert!(!positions.is_empty());
+    assert_eq!(
+        positions.len() as u64 + grid["dropped_inside_geometry"].as_u64().unwrap(),
+        counts.iter().product::<u64>()
+    );
+    assert_eq!(grid["convention"]["order"].as_array().unwrap().len(), 9);
+    let frames = grid["frames"].as_array().unwrap();
+    assert!(frames.len() > 2, "{frames:?}");
+    let states: std::collections::BTreeSet<&str> = frames
+        .iter()
+        .map(|f| f["probes"].as_str().unwrap())
+        .collect();
+    let files = std::fs::read_dir(&dir).unwrap().count() - 1;
+    assert_eq!(files, states.len(), "one file per lighting state");
+    // The door opens and closes again: the frames on the way back share the way out's light.
+    assert!(
+        states.len() < frames.len(),
+        "the frames that share their light share a file"
+    );
+    for state in &states {
+        let probes = read(state);
+        assert_eq!(probes["sh"].as_array().unwrap().len(), 27 * positions.len());
+        assert_eq!(
+            probes["stderr"].as_array().unwrap().len(),
+            27 * positions.len()
+        );
+        let bars = probes["irradiance_stderr"].as_array().unwrap();
+        assert_eq!(bars.len(), 18 * positions.len());
+        // Every probe sees some light.
+        let sh = probes["sh"].as_array().unwrap();
+        assert!((0..positions.len()).all(|p| sh[27 * p].as_f64().unwrap() > 0.0));
+    }
+    // The door swings through probes: while it is there, they take their neighbours' light
+    // (the check above), and the state's file lists them.
+    let inside = |state: &&str| !read(state)["inside"].as_array().unwrap().is_empty();
+    assert!(states.iter().any(inside), "no probe inside the door");
+    for (spacing, needle) in [("0", "positive"), ("-1", "positive"), ("1e-4", "more than")] {
+        let output = bake(&["--probe-spacing", spacing]);
+        let log = String::from_utf8_lossy(&output.stderr);
+        assert!(!output.status.success(), "{spacing}: {log}");
+        assert!(
+            log.contains(needle) && log.contains("spacing"),
+            "{spacing}: {log}"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&out);
+}

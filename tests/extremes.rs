@@ -122,6 +122,7 @@ fn batch(load: LoadOptions, n: u64) -> BatchParams {
             exposure: None,
             shading: radiosity::output::Shading::Flat,
             lightmaps: None,
+            probes: None,
         },
         force: true,
         max_iterations: SolveParams::default().max_iterations,

@@ -5,7 +5,7 @@ use glam::DVec3;
 
 use super::Bake;
 use crate::direct::points::{
-    Corner, Gather, Lighting, NEAR_CORNER, PointRadiance, Points, Site, Solved,
+    Corner, Gather, Lighting, NEAR_CORNER, PointRadiance, Points, Probe, Site, Solved,
 };
 
 impl Bake {
@@ -67,6 +67,24 @@ impl Bake {
             v.radiance = v.radiance.map(|c| c.max(0.0));
         }
         values
+    }
+}
+
+impl Bake {
+    /// The light probes at `positions` (normalised space) at `frame`, from `solved`, this
+    /// frame's patches solved with `lighting`, `gather.rays` gather rays each
+    /// ([`crate::direct::points::probes_at`]).
+    #[must_use]
+    pub fn probes_at(
+        &self,
+        frame: usize,
+        positions: &[DVec3],
+        (solved, lighting): (Solved<'_>, Lighting<'_>),
+        gather: Gather,
+    ) -> Vec<Probe> {
+        let state = (&self.scene, &self.tracer, &self.area);
+        let sampling = (gather, &self.gathered);
+        crate::direct::points::probes_at(state, frame, positions, (solved, lighting), sampling)
     }
 }
 

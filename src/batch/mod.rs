@@ -77,6 +77,9 @@ pub struct Outputs {
     /// Lightmaps at this many texels per scene unit, if any (`lightmaps/`,
     /// [`output::lightmap`]).
     pub lightmaps: Option<f64>,
+    /// Light probes, if any (`probes/`, [`output::probes`]), at this spacing in scene units
+    /// (`None`: the default for the scene).
+    pub probes: Option<Option<f64>>,
 }
 
 impl Default for Outputs {
@@ -94,6 +97,7 @@ impl Default for Outputs {
             exposure: None,
             shading: output::Shading::Smooth,
             lightmaps: None,
+            probes: None,
         }
     }
 }
@@ -250,6 +254,9 @@ fn content_hash(bytes: &[u8], params: &BatchParams) -> String {
             "files": ["exr", "rgbm png"],
         });
     }
+    if let Some(spacing) = outputs.probes {
+        described["outputs"]["probes"] = serde_json::json!({ "spacing": spacing });
+    }
     let mut h = Sha256::new();
     h.update(b"radiosity content hash 2\0");
     h.update((bytes.len() as u64).to_le_bytes());
@@ -334,6 +341,16 @@ fn write_outputs(
         }
         None => None,
     };
+    let probes = match outputs.probes {
+        Some(spacing) => {
+            let grid = output::probes::ProbeGrid::new(bake, spacing)?;
+            std::fs::create_dir_all(dir.join("probes"))
+                .map_err(|e| format!("writing {}: {e}", dir.display()))?;
+            wanted.extend((0..count).filter(|&f| representatives[f] == f));
+            Some(grid)
+        }
+        None => None,
+    };
     wanted.sort_unstable();
     wanted.dedup();
     control.start_stage(wanted.len() as u64);
@@ -380,6 +397,13 @@ fn write_outputs(
                     let bytes = texels.rgbm_png(1.0)?;
                     let name = frame_name(r, count, "png");
                     std::fs::write(dir.join("lightmaps").join(name), bytes).map_err(io)?;
+                }
+                if let Some(grid) = &probes {
+                    let values = grid.probes(bake, r, (&frames[r], lighting));
+                    let document = output::probes::ProbeGrid::state_document(&values);
+                    let bytes = serde_json::to_vec(&document).map_err(|e| e.to_string())?;
+                    let name = frame_name(r, count, "json");
+                    std::fs::write(dir.join("probes").join(name), bytes).map_err(io)?;
                 }
                 Ok((r, Arc::new(meshes)))
             })
@@ -448,6 +472,23 @@ fn write_outputs(
         std::fs::write(
             dir.join("lightmaps").join("manifest.json"),
             serde_json::to_vec_pretty(&manifest).map_err(|e| e.to_string())?,
+        )
+        .map_err(io)?;
+    }
+    if let Some(grid) = &probes {
+        let frames = (0..count)
+            .map(|f| {
+                serde_json::json!({
+                    "frame": f,
+                    "time": scene.frames.time(f),
+                    "probes": frame_name(representatives[f], count, "json"),
+                })
+            })
+            .collect();
+        let document = grid.document(bake, frames);
+        std::fs::write(
+            dir.join("probes").join("probes.json"),
+            serde_json::to_vec_pretty(&document).map_err(|e| e.to_string())?,
         )
         .map_err(io)?;
     }
@@ -1007,6 +1048,8 @@ mod tests {
             |p| p.outputs.exposure = Some(2.0),
             |p| p.outputs.shading = output::Shading::Flat,
             |p| p.outputs.lightmaps = Some(8.0),
+            |p| p.outputs.probes = Some(None),
+            |p| p.outputs.probes = Some(Some(0.5)),
         ];
         let mut seen = std::collections::HashSet::from([base.clone()]);
         for (k, change) in changed.iter().enumerate() {

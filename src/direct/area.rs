@@ -774,6 +774,93 @@ impl Emitter {
     pub(super) fn triangles(&self) -> &[[DVec3; 3]] {
         &self.triangles
     }
+
+    /// Whether `x` is in front of the emitting face (by more than rounding): it sends `x`
+    /// light.
+    pub(super) fn faces(&self, x: DVec3) -> bool {
+        let e = self.normal;
+        e != DVec3::ZERO && !self.hull.is_empty() && in_front(e.dot(x - self.hull[0]))
+    }
+
+    /// Whether the ray from `x`, in front of the emitter ([`Emitter::faces`]), along unit `w`
+    /// meets one of its triangles: whether `w` is in the solid angle it subtends from `x`.
+    pub(super) fn covers(&self, x: DVec3, w: DVec3) -> bool {
+        let e = self.normal;
+        let towards = e.dot(w);
+        if towards >= 0.0 {
+            return false;
+        }
+        let t = e.dot(self.hull[0] - x) / towards;
+        if !(t.is_finite() && t > 0.0) {
+            return false;
+        }
+        let p = x + w * t;
+        self.triangles.iter().any(|[a, b, c]| {
+            let inside = |u: DVec3, v: DVec3| (v - u).cross(p - u).dot(e);
+            let (s0, s1, s2) = (inside(*a, *b), inside(*b, *c), inside(*c, *a));
+            (s0 >= 0.0 && s1 >= 0.0 && s2 >= 0.0) || (s0 <= 0.0 && s1 <= 0.0 && s2 <= 0.0)
+        })
+    }
+
+    /// `g × g` stratified samples of the emitter as seen from `x`, a point on no surface (a
+    /// light probe's), jittered by `seed`: each a unit direction from `x`, the point of the
+    /// emitter it meets, and a one-sample estimate of the solid angle the emitter subtends
+    /// (uniform in solid angle, the estimate that angle itself, with `u` picking the triangle
+    /// by its share; by area where the angle is too small to measure, `A cos θ' / r²`), or
+    /// `None` for a sample that misses (by rounding). Empty unless `x` is in front of the
+    /// emitting face.
+    pub(super) fn seen_from(
+        &self,
+        x: DVec3,
+        (seed, g): (u64, usize),
+    ) -> Vec<Option<(DVec3, DVec3, f64)>> {
+        let e = self.normal;
+        if !self.faces(x) {
+            return Vec::new();
+        }
+        let area = |[a, b, c]: &[DVec3; 3]| 0.5 * (b - a).cross(c - a).length();
+        let angles: Vec<f64> = self.triangles.iter().map(|t| solid_angle(x, t)).collect();
+        let total: f64 = angles.iter().sum();
+        let by_angle = total >= TINY_SOLID_ANGLE && total.is_finite();
+        let weights: Vec<f64> = if by_angle {
+            angles
+        } else {
+            self.triangles.iter().map(area).collect()
+        };
+        let sum: f64 = weights.iter().sum();
+        if sum <= 0.0 {
+            return Vec::new();
+        }
+        let mut out = Vec::with_capacity(g * g);
+        for (u, v) in super::strata(g, seed) {
+            // The triangle whose share of the weights holds u; u rescaled within it.
+            let (mut below, mut pick) = (0.0, (0, 0.0));
+            for (k, &w) in weights.iter().enumerate() {
+                if w > 0.0 {
+                    pick = (k, ((u * sum - below) / w).clamp(0.0, 1.0));
+                    if u * sum < below + w {
+                        break;
+                    }
+                }
+                below += w;
+            }
+            let (t, u) = (&self.triangles[pick.0], pick.1);
+            if by_angle {
+                let sample = sample_spherical_triangle(x, t, u, v).and_then(|w| {
+                    let along = e.dot(t[0] - x) / e.dot(w);
+                    (along.is_finite() && along > 0.0).then(|| (w, x + w * along, total))
+                });
+                out.push(sample);
+            } else {
+                let y = triangle_point(t, u, v);
+                let d = y - x;
+                let r2 = d.length_squared();
+                let cos = -e.dot(d) / r2.sqrt();
+                out.push((r2 > 0.0 && cos > 0.0).then(|| (d / r2.sqrt(), y, sum * cos / r2)));
+            }
+        }
+        out
+    }
 }
 
 impl Face {

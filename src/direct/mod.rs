@@ -446,6 +446,19 @@ impl Frame<'_> {
         })
     }
 
+    /// Whether anything crosses the segment from `from`, a point on no surface (a light
+    /// probe's), to `to`, short of `to` itself.
+    fn blocked_between(&self, from: DVec3, to: DVec3) -> bool {
+        let d = to - from;
+        let length = d.length();
+        if length <= 0.0 || !length.is_finite() {
+            return false;
+        }
+        let (line, t_max) = from_behind(from, d / length, length);
+        let (start, end) = (BEHIND as f32, (BEHIND + length) as f32 - SHADOW_EPSILON);
+        self.any_until(&line, t_max, &mut |h| h.t > start && h.t < end)
+    }
+
     /// Whether a surface touches face `back` (or the front) of triangle `own`, of unit normal
     /// `n` on that side, at `x` (a box standing on a floor covers the floor under it): the
     /// touching surface [`Frame::blocked`] finds at the start of every shadow ray from there,

@@ -45,6 +45,11 @@ use rand::rngs::Xoshiro256PlusPlus;
 use rand::{RngExt, SeedableRng};
 use rayon::prelude::*;
 
+mod probes;
+
+pub use probes::{AXES, COSINE_LOBE, PROBE_GATHER_RAYS, Probe, inside, probes_at, reach, sh_basis};
+pub(super) use probes::{kernel, sphere_direction};
+
 use super::area::{AreaLights, PointRays, Seen, point_form_factor, point_grid};
 use super::reference::{Met, Place, Sight, cosine_direction_at, places};
 use super::{Occluders, Posed, into_inset, strata};
@@ -285,12 +290,29 @@ pub(super) fn site_seed(seed: u64, site: &Site) -> u64 {
 /// with, sampled as `gather` says (module docs).
 #[must_use]
 pub fn radiance_at(
-    (scene, tracer, area): (&Scene, &SceneTracer, &AreaLights),
+    state: (&Scene, &SceneTracer, &AreaLights),
     frame: usize,
     points: &Points,
+    read: (Solved<'_>, Lighting<'_>),
+    sampling: (Gather, &GatherCache),
+) -> Vec<PointRadiance> {
+    with_gatherer(state, frame, read, sampling, |gatherer| {
+        (0..points.len())
+            .into_par_iter()
+            .map_init(Vec::new, |hits, i| gatherer.point(points.point(i), hits))
+            .collect()
+    })
+}
+
+/// Runs `f` with the [`Gatherer`] of `frame`: what [`radiance_at`] and the light probes
+/// ([`probes_at`]) read.
+fn with_gatherer<R>(
+    (scene, tracer, area): (&Scene, &SceneTracer, &AreaLights),
+    frame: usize,
     (solved, lighting): (Solved<'_>, Lighting<'_>),
     (gather, cache): (Gather, &GatherCache),
-) -> Vec<PointRadiance> {
+    f: impl FnOnce(&Gatherer<'_>) -> R,
+) -> R {
     let posed = Posed::at(scene, tracer, frame);
     let view = posed.frame(scene, tracer, Occluders::All);
     let statics = posed.frame(scene, tracer, Occluders::Static);
@@ -340,10 +362,7 @@ pub fn radiance_at(
         lighting,
         gather,
     };
-    (0..points.len())
-        .into_par_iter()
-        .map_init(Vec::new, |hits, i| gatherer.point(points.point(i), hits))
-        .collect()
+    f(&gatherer)
 }
 
 /// Probe rays per point of [`closeness`] (a 4 × 4 grid of strata).

@@ -31,7 +31,9 @@ use rand::rngs::Xoshiro256PlusPlus;
 use rand::{RngExt, SeedableRng};
 use rayon::prelude::*;
 
-use super::points::{PointRadiance, Points, Site, site_point, site_seed};
+use super::points::{
+    PointRadiance, Points, Probe, Site, kernel, sh_basis, site_point, site_seed, sphere_direction,
+};
 use super::{
     Frame, Occluders, Posed, inset, into_inset, range_window, spot_attenuation, triangle_point,
 };
@@ -169,6 +171,31 @@ pub fn path_traced_points(
                     stderr: variance.map(f64::sqrt),
                     ..PointRadiance::default()
                 }
+            })
+            .collect()
+    })
+}
+
+/// The path-traced reference of light probes at `positions` (normalised space, on no surface)
+/// at `frame`: each probe's coefficients ([`super::points::sh_basis`]) from `rays` directions
+/// uniform over the sphere, each reading the radiance arriving along it (the emission of the
+/// surface it meets, and the light that surface reflects, estimated as a patch's point's is);
+/// the punctual lights exactly. Each coefficient's standard error is its rays' spread.
+#[must_use]
+pub fn path_traced_probes(
+    (scene, tracer, frame): (&Scene, &SceneTracer, usize),
+    positions: &[DVec3],
+    rays: usize,
+    sky: [f64; 3],
+    seed: u64,
+) -> Vec<Probe> {
+    with_tracer((scene, tracer, frame, sky), |tracer| {
+        (positions.par_iter().enumerate())
+            .map_init(Vec::new, |hits, (i, &x)| {
+                let mut rng = Xoshiro256PlusPlus::seed_from_u64(
+                    seed ^ (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+                );
+                tracer.probe(x, rays.max(2), &mut rng, hits)
             })
             .collect()
     })
@@ -400,7 +427,40 @@ impl<'a> Sight<'a> {
         total
     }
 
-    /// What the ray from `x` (on `place`) along unit `w` meets first.
+    /// The light of each punctual light that reaches `x`, a point on no surface (a light
+    /// probe's): the unit direction it arrives from, and its irradiance on a plane facing it
+    /// (`I/d²` with the spot's cone and the range's window, `E⊥` for a directional light),
+    /// behind one shadow ray.
+    pub(super) fn punctual_toward(&self, x: DVec3, hits: &mut Vec<Hit>) -> Vec<(DVec3, [f64; 3])> {
+        let radius = self.scene.normalisation.radius;
+        let mut out = Vec::new();
+        for light in &self.punctual {
+            let (w, e) = match light.kind {
+                LightKind::Directional => match self.free_hit(x, -light.direction, hits) {
+                    Met::Sky => (-light.direction, 1.0),
+                    _ => continue,
+                },
+                LightKind::Point | LightKind::Spot { .. } => {
+                    let to_light = light.position - x;
+                    let d = to_light.length();
+                    if d <= 0.0 {
+                        continue;
+                    }
+                    let mut e = range_window(d, light.range) / (d * d);
+                    if let LightKind::Spot { inner, outer } = light.kind {
+                        e *= spot_attenuation(light.direction.dot(-to_light / d), inner, outer);
+                    }
+                    if e <= 0.0 || self.view.blocked_between(x, light.position) {
+                        continue;
+                    }
+                    (to_light / d, e / (radius * radius))
+                }
+            };
+            out.push((w, light.power.map(|p| p * e)));
+        }
+        out
+    }
+
     /// Each punctual light's position (`None` for a directional light) and direction, posed.
     pub(super) fn lights(&self) -> impl Iterator<Item = (Option<DVec3>, DVec3)> + '_ {
         self.punctual.iter().map(|light| {
@@ -409,6 +469,7 @@ impl<'a> Sight<'a> {
         })
     }
 
+    /// What the ray from `x` (on `place`) along unit `w` meets first.
     pub(super) fn first_hit(&self, x: DVec3, w: DVec3, place: &Place, hits: &mut Vec<Hit>) -> Met {
         self.first_hit_within(x, w, place, hits, f64::INFINITY)
     }
@@ -447,7 +508,27 @@ impl<'a> Sight<'a> {
         // left out first: along a ray that grazes its face, it and a wall meeting the face
         // would be taken for one seam.)
         hits.retain(|h| h.t > start && h.surface() != place.triangle);
-        let resolved = resolve(hits, &surfaces.along(line.direction));
+        self.first_of(hits, line.direction, behind)
+    }
+
+    /// What the ray from `x`, a point on no surface (a light probe's), along unit `w` meets
+    /// first.
+    pub(super) fn free_hit(&self, x: DVec3, w: DVec3, hits: &mut Vec<Hit>) -> Met {
+        let behind = f64::from(4.0 * COINCIDENT);
+        let line = Line {
+            origin: (x - w * behind).as_vec3(),
+            direction: w.as_vec3(),
+        };
+        self.view.trace_until(&line, LINE_LENGTH, hits);
+        hits.retain(|h| f64::from(h.t) > behind);
+        self.first_of(hits, line.direction, behind)
+    }
+
+    /// The first of `hits`, the crossings of a line along `direction` that starts `behind`
+    /// the point a ray leaves, as the lines resolve coincident crossings.
+    fn first_of(&self, hits: &mut [Hit], direction: glam::Vec3, behind: f64) -> Met {
+        let surfaces = self.view.tracer.surfaces();
+        let resolved = resolve(hits, &surfaces.along(direction));
         let Some(hit) = resolved.as_deref().unwrap_or(hits).first() else {
             return Met::Sky;
         };
@@ -590,6 +671,73 @@ impl Tracer<'_> {
                 (squares[c] - n * mean * mean).max(0.0) / (n - 1.0) / n
             }),
         )
+    }
+
+    /// The probe at `x` from `rays` uniform directions ([`path_traced_probes`]).
+    fn probe(
+        &self,
+        x: DVec3,
+        rays: usize,
+        rng: &mut Xoshiro256PlusPlus,
+        hits: &mut Vec<Hit>,
+    ) -> Probe {
+        let mut sh = [[0.0; 3]; 9];
+        for (w, e) in self.sight.punctual_toward(x, hits) {
+            let y = sh_basis(w);
+            (0..9).for_each(|k| (0..3).for_each(|c| sh[k][c] += e[c] * y[k]));
+        }
+        let (mut sum, mut squares) = ([[0.0; 3]; 15], [[0.0; 3]; 15]);
+        for _ in 0..rays {
+            let w = sphere_direction(rng.random(), rng.random());
+            let l = self.arriving(x, w, rng, hits);
+            let y = kernel(w);
+            for k in 0..15 {
+                for c in 0..3 {
+                    let f = 4.0 * std::f64::consts::PI * l[c] * y[k];
+                    sum[k][c] += f;
+                    squares[k][c] += f * f;
+                }
+            }
+        }
+        let n = rays as f64;
+        let error = |k: usize| -> [f64; 3] {
+            std::array::from_fn(|c| {
+                let mean = sum[k][c] / n;
+                ((squares[k][c] - n * mean * mean).max(0.0) / (n - 1.0) / n).sqrt()
+            })
+        };
+        Probe {
+            sh: std::array::from_fn(|k| std::array::from_fn(|c| sh[k][c] + sum[k][c] / n)),
+            stderr: std::array::from_fn(error),
+            axes_stderr: std::array::from_fn(|a| error(9 + a)),
+            inside: false,
+        }
+    }
+
+    /// One estimate of the radiance arriving at `x`, on no surface, from direction `-w`: what
+    /// the ray along `w` meets emits and reflects.
+    fn arriving(
+        &self,
+        x: DVec3,
+        w: DVec3,
+        rng: &mut Xoshiro256PlusPlus,
+        hits: &mut Vec<Hit>,
+    ) -> [f64; 3] {
+        let (face, patch, t) = match self.sight.free_hit(x, w, hits) {
+            Met::Sky => return self.sky,
+            Met::Nothing => return [0.0; 3],
+            Met::Patch(face, patch, t) => (face, patch, t),
+        };
+        let material = &self.scene.materials[self.scene.patches[patch].material as usize];
+        let place = &self.places[face];
+        if material.reflectance == [0.0; 3] {
+            return material.emission;
+        }
+        let y = into_inset(x + w * t, &place.corners);
+        let e = self.irradiance(y, place, rng, hits);
+        std::array::from_fn(|c| {
+            material.emission[c] + material.reflectance[c] * e[c] * std::f64::consts::FRAC_1_PI
+        })
     }
 
     /// An estimate of the irradiance at `x` on `place` (module docs).

@@ -15,7 +15,7 @@ use glam::{DVec3, Vec3};
 
 use crate::bake::Bake;
 pub use crate::direct::points::Corner;
-use crate::direct::points::{Gather, Lighting, PointRadiance, Points, Solved};
+use crate::direct::points::{Gather, Lighting, PointRadiance, Points, Probe, Solved};
 use crate::scene::{Scene, TriangleMesh};
 use crate::solve::FrameSolution;
 
@@ -243,6 +243,43 @@ pub fn light_points(
     (solution, lighting): (&FrameSolution, Lighting<'_>),
     gather: Gather,
 ) -> Vec<PointRadiance> {
+    read_solution(
+        bake,
+        frame,
+        (solution, lighting),
+        gather.rays > 0,
+        |solved| bake.radiance_at(frame, points, (solved, lighting), gather),
+    )
+}
+
+/// The light probes at `positions` (normalised space) at frame `frame`, from `solution`, solved
+/// with `lighting`, sampled as `gather` says ([`Bake::probes_at`]).
+#[must_use]
+pub fn light_probes(
+    bake: &Bake,
+    frame: usize,
+    positions: &[DVec3],
+    (solution, lighting): (&FrameSolution, Lighting<'_>),
+    gather: Gather,
+) -> Vec<Probe> {
+    read_solution(
+        bake,
+        frame,
+        (solution, lighting),
+        gather.rays > 0,
+        |solved| bake.probes_at(frame, positions, (solved, lighting), gather),
+    )
+}
+
+/// Runs `f` with what a gather reads of `solution` (frame `frame`, solved with `lighting`):
+/// its patches, and its pieces if the bake was split and a gather will read them (`gathers`).
+fn read_solution<R>(
+    bake: &Bake,
+    frame: usize,
+    (solution, lighting): (&FrameSolution, Lighting<'_>),
+    gathers: bool,
+    f: impl FnOnce(Solved<'_>) -> R,
+) -> R {
     let has_pieces = |s: &FrameSolution, map: &crate::direct::points::PieceMap| {
         map.patch.len() == s.pieces.len() && s.pieces_stderr.len() == s.radiance.len()
     };
@@ -250,7 +287,7 @@ pub fn light_points(
     // solved again for them, with the lighting it was solved with; its patches keep their
     // answer. Not needed without gather rays: the direct light reads no solution.
     let again = (bake.piece_map())
-        .filter(|map| gather.rays > 0 && !has_pieces(solution, map))
+        .filter(|map| gathers && !has_pieces(solution, map))
         .map(|_| {
             let params = crate::solve::SolveParams {
                 sky: lighting.sky,
@@ -262,12 +299,11 @@ pub fn light_points(
     let pieces = (bake.piece_map())
         .filter(|map| has_pieces(read, map))
         .map(|map| (&read.pieces[..], &read.pieces_stderr[..], map));
-    let solved = Solved {
+    f(Solved {
         radiance: &solution.radiance,
         stderr: &solution.stderr,
         pieces,
-    };
-    bake.radiance_at(frame, points, (solved, lighting), gather)
+    })
 }
 
 /// A unit normal in `f32` (glTF requires unit length), +Y for a vertex with no area around it.

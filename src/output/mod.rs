@@ -10,6 +10,7 @@ pub mod geometry;
 pub mod glb;
 pub mod lightmap;
 pub mod preview;
+pub mod probes;
 pub mod records;
 pub mod tonemap;
 
