@@ -257,6 +257,11 @@ async fn every_json_answer_has_the_fields_the_openapi_document_gives_it() {
             "/v1/timelines/{id}/stats",
         ),
         ("health", "/healthz".to_string(), "/healthz"),
+        (
+            "probes",
+            format!("{timeline}/frames/0/probes.json?spacing=0.5"),
+            "/v1/timelines/{id}/frames/{frame}/probes.json",
+        ),
     ] {
         let (status, value) = send(Method::GET, path, None).await;
         assert_eq!(status, StatusCode::OK, "{name}: {value}");
@@ -276,6 +281,17 @@ async fn every_json_answer_has_the_fields_the_openapi_document_gives_it() {
     let (status, problem) = send(Method::GET, format!("{timeline}/frames/99"), None).await;
     assert!(status.is_client_error(), "{problem}");
     let problem_schema = document["components"]["schemas"]["Problem"].clone();
-    check("problem", problem_schema, &problem);
-    assert_eq!(checked.len(), 9, "{checked:?}");
+    check("problem", problem_schema.clone(), &problem);
+    // Probes: a spacing that is not positive, or too fine for the scene, is the request's fault.
+    for (spacing, needle) in [("0", "positive"), ("1e-5", "more than")] {
+        let path = format!("{timeline}/frames/0/probes.json?spacing={spacing}");
+        let (status, problem) = send(Method::GET, path, None).await;
+        assert_eq!(status, StatusCode::BAD_REQUEST, "{problem}");
+        assert!(
+            problem["detail"].as_str().unwrap().contains(needle),
+            "{problem}"
+        );
+        check("probes' problem", problem_schema.clone(), &problem);
+    }
+    assert_eq!(checked.len(), 12, "{checked:?}");
 }

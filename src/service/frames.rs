@@ -12,7 +12,7 @@ use axum::response::{IntoResponse, Response};
 use serde_json::json;
 
 use super::jobs::{Job, LightSetting};
-use super::query::{BakedQuery, NoParameters, PreviewQuery, StrictQuery};
+use super::query::{BakedQuery, NoParameters, PreviewQuery, ProbesQuery, StrictQuery};
 use super::{ApiError, AppState, job};
 use crate::bake::Bake;
 use crate::direct::points::Lighting;
@@ -111,17 +111,13 @@ pub(super) async fn frame_preview(
         exposure,
         "image/png",
         "a preview",
-        move |bake, f, meshes, radiance, tone| {
+        move |bake, f, (solution, lighting), tone| {
+            let meshes = crate::output::lit_geometry(bake, f, solution, lighting);
             let look = (tone, shading);
-            let image = crate::output::preview_image(
-                bake.shown(),
-                f,
-                (meshes, radiance),
-                look,
-                width,
-                height,
-            );
+            let shown = (&meshes[..], &solution.radiance[..]);
+            let image = crate::output::preview_image(bake.shown(), f, shown, look, width, height);
             crate::output::preview::encode_png(&image)
+                .map_err(|e| ApiError::Internal(format!("making a preview: {e}")))
         },
     )
     .await
@@ -143,7 +139,47 @@ pub(super) async fn frame_baked(
         exposure,
         "model/gltf-binary",
         "a glTF",
-        |bake, f, meshes, _, tone| crate::output::frame_glb(bake.shown(), f, meshes, tone),
+        |bake, f, (solution, lighting), tone| {
+            let meshes = crate::output::lit_geometry(bake, f, solution, lighting);
+            crate::output::frame_glb(bake.shown(), f, &meshes, tone)
+                .map_err(|e| ApiError::Internal(format!("making a glTF: {e}")))
+        },
+    )
+    .await
+}
+
+/// `GET /v1/timelines/{id}/frames/{f}/probes.json?spacing=`: the light probes at the frame, by
+/// the grid and evaluation of `radiosity bake --probes` (its `probes.json` with the frame's
+/// state file's `sh`, `stderr`, `irradiance_stderr` and `inside` beside it).
+pub(super) async fn frame_probes(
+    State(state): State<AppState>,
+    Path((id, frame)): Path<(String, String)>,
+    StrictQuery(query): StrictQuery<ProbesQuery>,
+) -> Result<Response, ApiError> {
+    let job = job(&state, &id)?;
+    let spacing = query.validate()?;
+    let times = job.frame_times.clone();
+    frame_file(
+        (&state, job),
+        &frame,
+        None,
+        "application/json",
+        "the light probes",
+        move |bake, f, (solution, lighting), _| {
+            let grid = crate::output::probes::ProbeGrid::new(bake, spacing)
+                .map_err(ApiError::Parameter)?;
+            let probes = grid.probes(bake, f, (solution, lighting));
+            let frames = json!([{ "frame": f, "time": times.get(f) }]);
+            let mut document = grid.document(bake, frames);
+            let state = crate::output::probes::ProbeGrid::state_document(&probes);
+            if let (Some(document), serde_json::Value::Object(state)) =
+                (document.as_object_mut(), state)
+            {
+                document.extend(state);
+            }
+            serde_json::to_vec(&document)
+                .map_err(|e| ApiError::Internal(format!("writing the probes: {e}")))
+        },
     )
     .await
 }
@@ -161,7 +197,7 @@ impl Drop for Enforce<'_> {
 /// Solved frame `frame` of `job` made into a file by `make` (from the scene as shown, the
 /// frame, its radiance and the tone map of `exposure` or, if none, the timeline's), served as
 /// `content_type` with the result's version and the exposure; `what` names the file in errors.
-async fn frame_file<E: std::fmt::Display + Send + 'static>(
+async fn frame_file(
     (state, job): (&AppState, Arc<Job>),
     frame: &str,
     exposure: Option<f64>,
@@ -170,10 +206,9 @@ async fn frame_file<E: std::fmt::Display + Send + 'static>(
     make: impl FnOnce(
         &Bake,
         usize,
-        &[crate::output::NodeMesh],
-        &[[f64; 3]],
+        (&FrameSolution, Lighting<'_>),
         &crate::output::ToneMap,
-    ) -> Result<Vec<u8>, E>
+    ) -> Result<Vec<u8>, ApiError>
     + Send
     + 'static,
 ) -> Result<Response, ApiError> {
@@ -200,11 +235,7 @@ async fn frame_file<E: std::fmt::Display + Send + 'static>(
                 power: &power,
                 sky: job.solve.sky,
             };
-            let meshes = crate::output::lit_geometry(bake, f, &solution, lighting);
-            (
-                make(bake, f, &meshes, &solution.radiance, &tone),
-                tone.exposure,
-            )
+            (make(bake, f, (&solution, lighting), &tone), tone.exposure)
         })
     })
     .await
@@ -223,7 +254,7 @@ async fn frame_file<E: std::fmt::Display + Send + 'static>(
                 .into(),
         ));
     };
-    let bytes = bytes.map_err(|e| ApiError::Internal(format!("making {what}: {e}")))?;
+    let bytes = bytes?;
     Ok((
         [
             (header::CONTENT_TYPE, content_type.to_string()),

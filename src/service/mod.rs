@@ -250,6 +250,10 @@ pub fn app(state: AppState) -> Router {
             "/v1/timelines/{id}/frames/{frame}/baked.glb",
             get(frames::frame_baked),
         )
+        .route(
+            "/v1/timelines/{id}/frames/{frame}/probes.json",
+            get(frames::frame_probes),
+        )
         .fallback(|| async { ApiError::NotFound("no such path".into()) })
         .layer(DefaultBodyLimit::max(limit))
         .layer(axum::middleware::from_fn(

@@ -178,6 +178,27 @@ impl BakedQuery {
     }
 }
 
+/// The query of `GET /v1/timelines/{id}/frames/{f}/probes.json`.
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct ProbesQuery {
+    /// The probes' spacing in scene units; the scene's default if absent.
+    #[serde(default, deserialize_with = "number")]
+    spacing: Option<f64>,
+}
+
+impl ProbesQuery {
+    /// The spacing (> 0) if one is asked for.
+    pub(super) fn validate(self) -> Result<Option<f64>, ApiError> {
+        match self.spacing {
+            Some(s) if s <= 0.0 => Err(ApiError::Parameter(format!(
+                "spacing must be a positive number, not {s}"
+            ))),
+            spacing => Ok(spacing),
+        }
+    }
+}
+
 /// The query of `GET /v1/timelines/{id}/viewer`: the view the page opens with. Its script
 /// reads them; they are checked here too, so a bad link is a 400 naming the parameter rather
 /// than a page that quietly shows something else.
