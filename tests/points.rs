@@ -624,6 +624,36 @@ fn lightmap_texels_read_the_lamp_s_closed_form_at_their_points_with_a_texel_shar
             );
         }
     }
+    // And its KTX2 texture (read by the `ktx2` crate), the radiance in half floats.
+    let ktx2 = texels.ktx2(1.0).unwrap();
+    let reader = ktx2::Reader::new(&ktx2[..]).unwrap();
+    let header = reader.header();
+    assert_eq!(
+        (header.pixel_width, header.pixel_height),
+        (texels.width, texels.height)
+    );
+    let level = reader.levels().next().unwrap();
+    let raw = zstd::bulk::decompress(level.data, level.uncompressed_byte_length as usize).unwrap();
+    for (k, l) in texels.radiance.iter().enumerate() {
+        for c in 0..3 {
+            let at = 8 * k + 2 * c;
+            let half = half_float(u16::from_le_bytes([raw[at], raw[at + 1]]));
+            let step = l[c].abs() / 1024.0 + 1e-7;
+            assert!((half - l[c]).abs() <= step, "texel {k}: {half} for {l:?}");
+        }
+    }
+}
+
+/// An IEEE half float's value.
+fn half_float(bits: u16) -> f32 {
+    let sign = if bits & 0x8000 != 0 { -1.0 } else { 1.0 };
+    let exponent = i32::from((bits >> 10) & 0x1f);
+    let mantissa = f32::from(bits & 0x3ff);
+    sign * match exponent {
+        0 => mantissa * 2f32.powi(-24),
+        31 => f32::INFINITY,
+        e => (1.0 + mantissa / 1024.0) * 2f32.powi(e - 15),
+    }
 }
 
 /// The panel room's ceiling beside its panel (which hangs 1 cm under it): each texel a few

@@ -247,11 +247,12 @@ fn content_hash(bytes: &[u8], params: &BatchParams) -> String {
         },
     });
     // Only when asked for: the bakes made before lightmaps keep their hash. With the files
-    // the lightmaps are written as: a lightmap bake made before the RGBM PNGs is made again.
+    // the lightmaps are written as: a lightmap bake made before the RGBM PNGs (or the KTX2
+    // textures) is made again.
     if let Some(density) = outputs.lightmaps {
         described["outputs"]["lightmaps"] = serde_json::json!({
             "texels_per_unit": density,
-            "files": ["exr", "rgbm png"],
+            "files": ["exr", "rgbm png", "ktx2"],
         });
     }
     if let Some(spacing) = outputs.probes {
@@ -397,6 +398,9 @@ fn write_outputs(
                     let bytes = texels.rgbm_png(1.0)?;
                     let name = frame_name(r, count, "png");
                     std::fs::write(dir.join("lightmaps").join(name), bytes).map_err(io)?;
+                    let bytes = texels.ktx2(1.0)?;
+                    let name = frame_name(r, count, "ktx2");
+                    std::fs::write(dir.join("lightmaps").join(name), bytes).map_err(io)?;
                 }
                 if let Some(grid) = &probes {
                     let values = grid.probes(bake, r, (&frames[r], lighting));
@@ -462,11 +466,13 @@ fn write_outputs(
                 "format": "PNG, 8-bit RGBA, linear RGBM: radiance = rgb * a * range, clamped at range",
                 "range": output::lightmap::RGBM_RANGE,
             },
+            "ktx2": "KTX 2.0, VK_FORMAT_R16G16B16A16_SFLOAT, Zstandard-supercompressed, linear radiance (alpha 1), rows from the top",
             "frames": (0..count).map(|f| serde_json::json!({
                 "frame": f,
                 "time": scene.frames.time(f),
                 "lightmap": frame_name(representatives[f], count, "exr"),
                 "rgbm": frame_name(representatives[f], count, "png"),
+                "ktx2": frame_name(representatives[f], count, "ktx2"),
             })).collect::<Vec<_>>(),
         });
         std::fs::write(

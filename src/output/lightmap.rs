@@ -803,6 +803,19 @@ impl Texels {
         Ok(out)
     }
 
+    /// The radiance scaled by `scale` as a KTX2 texture of linear RGBA half floats (alpha 1),
+    /// Zstandard-supercompressed ([`super::ktx2`]): for the web (three.js's `KTX2Loader`) and
+    /// Bevy.
+    ///
+    /// # Errors
+    /// The encoder's, as text.
+    pub fn ktx2(&self, scale: f32) -> Result<Vec<u8>, String> {
+        let rgba: Vec<[f32; 4]> = (self.radiance.iter())
+            .map(|l| [l[0] * scale, l[1] * scale, l[2] * scale, 1.0])
+            .collect();
+        super::ktx2::rgba16f(self.width, self.height, &rgba)
+    }
+
     /// The radiance as a linear half-float RGB OpenEXR image, scaled by `scale` (1: the
     /// scene's emission units).
     ///

@@ -8,6 +8,7 @@
 
 pub mod geometry;
 pub mod glb;
+pub mod ktx2;
 pub mod lightmap;
 pub mod preview;
 pub mod probes;
