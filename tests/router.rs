@@ -293,5 +293,44 @@ async fn every_json_answer_has_the_fields_the_openapi_document_gives_it() {
         );
         check("probes' problem", problem_schema.clone(), &problem);
     }
+    // Lightmaps: the geometry and each file of a frame, by their first bytes; a density that
+    // is not positive or too fine for the service is the request's fault.
+    let bytes = |path: String| {
+        let router = app(state.clone());
+        async move {
+            let request = Request::builder().uri(path).body(Body::empty()).unwrap();
+            let response = router.oneshot(request).await.unwrap();
+            let status = response.status();
+            let body = axum::body::to_bytes(response.into_body(), usize::MAX)
+                .await
+                .unwrap();
+            (status, body.to_vec())
+        }
+    };
+    for (file, magic) in [
+        ("lightmap.glb", &b"glTF"[..]),
+        ("frames/0/lightmap.exr", &[0x76, 0x2f, 0x31, 0x01]),
+        (
+            "frames/0/lightmap.ktx2",
+            &[0xAB, 0x4B, 0x54, 0x58, 0x20, 0x32, 0x30, 0xBB],
+        ),
+        ("frames/0/lightmap.png", &[0x89, b'P', b'N', b'G']),
+    ] {
+        let (status, body) = bytes(format!("{timeline}/{file}?texels_per_unit=4")).await;
+        assert_eq!(
+            status,
+            StatusCode::OK,
+            "{file}: {}",
+            String::from_utf8_lossy(&body)
+        );
+        assert!(body.starts_with(magic), "{file}");
+        for (density, needle) in [("0", "positive"), ("1e6", "allowed")] {
+            let path = format!("{timeline}/{file}?texels_per_unit={density}");
+            let (status, problem) = send(Method::GET, path, None).await;
+            assert_eq!(status, StatusCode::BAD_REQUEST, "{file}: {problem}");
+            let detail = problem["detail"].as_str().unwrap();
+            assert!(detail.contains(needle), "{file}: {problem}");
+        }
+    }
     assert_eq!(checked.len(), 12, "{checked:?}");
 }

@@ -229,6 +229,15 @@ impl Lightmap {
     /// A message naming the problem: a density that is not a positive number, an atlas over
     /// [`MAX_TEXELS`] at that density, or the unwrapper's own failure.
     pub fn new(bake: &Bake, texels_per_unit: f64) -> Result<Self, String> {
+        Self::within(bake, texels_per_unit, MAX_TEXELS)
+    }
+
+    /// [`Lightmap::new`] with at most `most` texels (the service's limit, below
+    /// [`MAX_TEXELS`]).
+    ///
+    /// # Errors
+    /// As [`Lightmap::new`], the atlas over `most`.
+    pub fn within(bake: &Bake, texels_per_unit: f64, most: f64) -> Result<Self, String> {
         if !(texels_per_unit.is_finite() && texels_per_unit > 0.0) {
             return Err(format!(
                 "texels_per_unit must be a positive number, not {texels_per_unit}"
@@ -247,10 +256,10 @@ impl Lightmap {
             .map(|[a, b, c]| 0.5 * (b - a).cross(c - a).length() * scale * scale)
             .sum();
         let needed = area * texels_per_unit * texels_per_unit;
-        if needed > MAX_TEXELS {
+        if needed > most {
             return Err(format!(
                 "a lightmap at {texels_per_unit} texels per unit needs about {needed:.0} texels \
-                 for {area:.1} square units of surface, over the {MAX_TEXELS} allowed: lower \
+                 for {area:.1} square units of surface, over the {most} allowed: lower \
                  texels_per_unit"
             ));
         }

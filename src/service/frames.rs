@@ -12,7 +12,9 @@ use axum::response::{IntoResponse, Response};
 use serde_json::json;
 
 use super::jobs::{Job, LightSetting};
-use super::query::{BakedQuery, NoParameters, PreviewQuery, ProbesQuery, StrictQuery};
+use super::query::{
+    BakedQuery, LightmapQuery, NoParameters, PreviewQuery, ProbesQuery, StrictQuery,
+};
 use super::{ApiError, AppState, job};
 use crate::bake::Bake;
 use crate::direct::points::Lighting;
@@ -182,6 +184,94 @@ pub(super) async fn frame_probes(
         },
     )
     .await
+}
+
+/// Texels at most in a lightmap the service makes (a quarter of `radiosity bake`'s
+/// [`crate::output::lightmap::MAX_TEXELS`]: a timeline keeps the last one it made in memory).
+pub const SERVICE_MOST_TEXELS: f64 = 4_194_304.0;
+
+/// A lightmap's file format.
+#[derive(Clone, Copy, Debug)]
+pub(super) enum LightmapFile {
+    /// Linear half-float RGB OpenEXR.
+    Exr,
+    /// KTX2, RGBA16F, Zstandard.
+    Ktx2,
+    /// RGBM PNG.
+    Png,
+}
+
+/// `GET /v1/timelines/{id}/frames/{f}/lightmap.{exr,ktx2,png}?texels_per_unit=`: the frame's
+/// lightmap, the texels `radiosity bake --lightmaps` writes for its lighting state, on the atlas
+/// of `GET /v1/timelines/{id}/lightmap.glb` at the same density.
+pub(super) async fn frame_lightmap(
+    State(state): State<AppState>,
+    Path((id, frame)): Path<(String, String)>,
+    StrictQuery(query): StrictQuery<LightmapQuery>,
+    file: LightmapFile,
+) -> Result<Response, ApiError> {
+    let job = job(&state, &id)?;
+    let density = query.validate()?;
+    let (content_type, what) = match file {
+        LightmapFile::Exr => ("image/x-exr", "the lightmap's EXR"),
+        LightmapFile::Ktx2 => ("image/ktx2", "the lightmap's KTX2"),
+        LightmapFile::Png => ("image/png", "the lightmap's PNG"),
+    };
+    let owner = job.clone();
+    frame_file(
+        (&state, job),
+        &frame,
+        None,
+        content_type,
+        what,
+        move |bake, f, (solution, lighting), _| {
+            let lightmap = (owner.lightmap(bake, density, SERVICE_MOST_TEXELS))
+                .map_err(ApiError::Parameter)?;
+            let texels = lightmap.texels(bake, f, None, (solution, lighting));
+            match file {
+                LightmapFile::Exr => texels.exr(1.0),
+                LightmapFile::Ktx2 => texels.ktx2(1.0),
+                LightmapFile::Png => texels.rgbm_png(1.0),
+            }
+            .map_err(ApiError::Internal)
+        },
+    )
+    .await
+}
+
+/// `GET /v1/timelines/{id}/lightmap.glb?texels_per_unit=`: the scene as drawn at its rest pose
+/// with its lightmap coordinates in `TEXCOORD_1`, as `radiosity bake --lightmaps` writes
+/// `lightmaps/scene.glb`.
+pub(super) async fn timeline_lightmap_geometry(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    StrictQuery(query): StrictQuery<LightmapQuery>,
+) -> Result<Response, ApiError> {
+    let job = job(&state, &id)?;
+    let density = query.validate()?;
+    let _budget = Enforce(&state);
+    let made = tokio::task::spawn_blocking(move || {
+        job.with_bake(|bake| {
+            let lightmap =
+                (job.lightmap(bake, density, SERVICE_MOST_TEXELS)).map_err(ApiError::Parameter)?;
+            crate::output::lightmap_glb(bake.shown(), &lightmap)
+                .map_err(|e| ApiError::Internal(format!("making the lightmap's glTF: {e}")))
+        })
+    })
+    .await
+    .map_err(|e| ApiError::Internal(format!("making the lightmap's glTF: {e}")))?;
+    let bytes = made.ok_or_else(|| {
+        ApiError::NotReady(
+            "the timeline's geometry is not available: it is being traced (try again once \
+             frames are being solved)"
+                .into(),
+        )
+    })??;
+    Ok((
+        [(header::CONTENT_TYPE, "model/gltf-binary")],
+        Body::from(bytes),
+    )
+        .into_response())
 }
 
 /// Keeps the traced state within the resident budget when dropped (at the end of a route

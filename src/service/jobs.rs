@@ -16,6 +16,7 @@ use crate::adaptive::{self, Adaptive};
 use crate::bake::Bake;
 use crate::control::{Control, Stop};
 use crate::direct::area::Poses;
+use crate::output::lightmap::Lightmap;
 use crate::params::BakeSettings;
 use crate::scene::{Material, Scene};
 use crate::solve::{FrameSolution, NotConverged, SolveParams};
@@ -190,6 +191,9 @@ pub struct Job {
     /// Seconds the last rebuild of the traced state took, and what it was rebuilt from; its
     /// lock makes rebuilds one at a time.
     rebuilt: Mutex<Option<(f64, Rebuilt)>>,
+    /// The lightmap last asked for ([`Job::lightmap`]), with its density's bits and the lines
+    /// its traced state had; its lock makes lightmaps one at a time.
+    lightmap: Mutex<Option<(u64, u64, Arc<Lightmap>)>>,
     /// Whether the traced state in memory is the one in the data directory's `traced.bin`.
     traced_saved: AtomicBool,
     /// The timeline's exposure and the result version it is of, once every frame of that
@@ -287,6 +291,7 @@ impl Job {
             refinements: Mutex::new(Vec::new()),
             restarts: 0,
             rebuilt: Mutex::new(None),
+            lightmap: Mutex::new(None),
             traced_saved: AtomicBool::new(false),
             exposure: Mutex::new(None),
             used: Mutex::new(Instant::now()),
@@ -414,6 +419,7 @@ impl Job {
             refinements: Mutex::new(record.refinements),
             restarts: record.restarts,
             rebuilt: Mutex::new(None),
+            lightmap: Mutex::new(None),
             traced_saved: AtomicBool::new(false),
             exposure: Mutex::new(None),
             used: Mutex::new(Instant::now()),
@@ -699,6 +705,33 @@ impl Job {
         }
         self.touch();
         self.bake.read().ok()?.as_ref().map(read)
+    }
+
+    /// The lightmap of `bake` (this job's traced state) at `texels_per_unit`, at most `most`
+    /// texels: the one made last if it is of the same density and lines (a rebuilt traced state
+    /// is the same; a refined one is not), else made now and kept in its place.
+    ///
+    /// # Errors
+    /// [`Lightmap::within`]'s message.
+    pub fn lightmap(
+        &self,
+        bake: &Bake,
+        texels_per_unit: f64,
+        most: f64,
+    ) -> Result<Arc<Lightmap>, String> {
+        let key = (
+            texels_per_unit.to_bits(),
+            self.lines_total.load(Ordering::Acquire),
+        );
+        let mut kept = self.lightmap.lock().unwrap_or_else(PoisonError::into_inner);
+        if let Some((density, lines, lightmap)) = kept.as_ref()
+            && (*density, *lines) == key
+        {
+            return Ok(lightmap.clone());
+        }
+        let lightmap = Arc::new(Lightmap::within(bake, texels_per_unit, most)?);
+        *kept = Some((key.0, key.1, lightmap.clone()));
+        Ok(lightmap)
     }
 
     /// Marks the traced state used now.

@@ -254,6 +254,22 @@ pub fn app(state: AppState) -> Router {
             "/v1/timelines/{id}/frames/{frame}/probes.json",
             get(frames::frame_probes),
         )
+        .route(
+            "/v1/timelines/{id}/lightmap.glb",
+            get(frames::timeline_lightmap_geometry),
+        )
+        .route(
+            "/v1/timelines/{id}/frames/{frame}/lightmap.exr",
+            get(|s, p, q| frames::frame_lightmap(s, p, q, frames::LightmapFile::Exr)),
+        )
+        .route(
+            "/v1/timelines/{id}/frames/{frame}/lightmap.ktx2",
+            get(|s, p, q| frames::frame_lightmap(s, p, q, frames::LightmapFile::Ktx2)),
+        )
+        .route(
+            "/v1/timelines/{id}/frames/{frame}/lightmap.png",
+            get(|s, p, q| frames::frame_lightmap(s, p, q, frames::LightmapFile::Png)),
+        )
         .fallback(|| async { ApiError::NotFound("no such path".into()) })
         .layer(DefaultBodyLimit::max(limit))
         .layer(axum::middleware::from_fn(

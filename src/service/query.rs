@@ -199,6 +199,28 @@ impl ProbesQuery {
     }
 }
 
+/// The query of a lightmap's routes (`lightmap.glb`, a frame's `lightmap.exr`, `.ktx2`,
+/// `.png`).
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct LightmapQuery {
+    /// Texels per scene unit; [`crate::output::lightmap::TEXELS_PER_UNIT`] if absent.
+    #[serde(default, deserialize_with = "number")]
+    texels_per_unit: Option<f64>,
+}
+
+impl LightmapQuery {
+    /// The density (> 0).
+    pub(super) fn validate(self) -> Result<f64, ApiError> {
+        match self.texels_per_unit {
+            Some(t) if t <= 0.0 => Err(ApiError::Parameter(format!(
+                "texels_per_unit must be a positive number, not {t}"
+            ))),
+            t => Ok(t.unwrap_or(crate::output::lightmap::TEXELS_PER_UNIT)),
+        }
+    }
+}
+
 /// The query of `GET /v1/timelines/{id}/viewer`: the view the page opens with. Its script
 /// reads them; they are checked here too, so a bad link is a 400 naming the parameter rather
 /// than a page that quietly shows something else.
