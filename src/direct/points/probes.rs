@@ -26,7 +26,9 @@ use rayon::prelude::*;
 use super::super::area::{AreaLights, point_grid};
 use super::super::reference::{Met, Sight};
 use super::super::{Occluders, Posed, strata};
-use super::{Gather, GatherCache, Gatherer, Lighting, Linear, Read, Solved, with_gatherer};
+use super::{
+    Gather, GatherCache, Gatherer, Lighting, Linear, PathTest, Read, Solved, with_gatherer,
+};
 use crate::scene::Scene;
 use crate::trace::coincident::mix;
 use crate::trace::{Hit, SceneTracer};
@@ -279,56 +281,69 @@ pub fn inside(
         .collect()
 }
 
+/// A probe's sums as its samples come in: the coefficients, the variances of the coefficients
+/// and of the axes' irradiance ([`kernel`]'s 15 values), and the error of the solution the
+/// samples read (wholly correlated between them: added linearly).
+#[derive(Default)]
+struct Tally {
+    sh: [[f64; 3]; 9],
+    variance: [[f64; 3]; 15],
+    read: [[f64; 3]; 15],
+}
+
+impl Tally {
+    /// Adds `samples` ([`weighted_sum`]: `whole` the integrals of their weights over their
+    /// domain, if known).
+    fn add(&mut self, samples: &[Option<Sample>], whole: Option<&[f64; 15]>) {
+        let (mean, variance) = weighted_sum(samples, whole);
+        for c in 0..3 {
+            (0..9).for_each(|k| self.sh[k][c] += mean[k][c]);
+            (0..15).for_each(|k| self.variance[k][c] += variance[k][c]);
+        }
+    }
+
+    /// Adds the error `error` (per unit of weight) of what a sample of weights `y` read.
+    fn read(&mut self, y: &[f64; 15], error: [f64; 3]) {
+        for (m, y) in y.iter().enumerate() {
+            (0..3).for_each(|c| self.read[m][c] += y.abs() * error[c]);
+        }
+    }
+
+    /// The probe, with whether it is inside geometry at this frame.
+    fn probe(&self, inside: bool) -> Probe {
+        let error = |k: usize| -> [f64; 3] {
+            std::array::from_fn(|c| (self.variance[k][c] + self.read[k][c].powi(2)).sqrt())
+        };
+        Probe {
+            sh: self.sh,
+            stderr: std::array::from_fn(error),
+            axes_stderr: std::array::from_fn(|a| error(9 + a)),
+            inside,
+        }
+    }
+}
+
+/// What a ray from a probe reads ([`Gatherer::arriving`]).
+struct Arriving {
+    /// The whole radiance arriving along it, RGB.
+    radiance: [f64; 3],
+    /// The error bar of the solution it read, per unit of the sample's weight.
+    error: [f64; 3],
+    /// Whether it met the back of a one-sided face first.
+    back: bool,
+}
+
 impl Gatherer<'_> {
     /// The probe at `x` (module docs), its sampling seeded by `seed`.
     fn probe(&self, x: DVec3, seed: u64, hits: &mut Vec<Hit>) -> Probe {
-        let mut sh = [[0.0; 3]; 9];
-        let mut variance = [[0.0; 3]; 15];
-        let mut read = [[0.0; 3]; 15];
+        let mut tally = Tally::default();
         for (w, e) in self.sight.punctual_toward(x, hits) {
             let y = sh_basis(w);
-            for (k, coefficient) in sh.iter_mut().enumerate() {
+            for (k, coefficient) in tally.sh.iter_mut().enumerate() {
                 (0..3).for_each(|c| coefficient[c] += e[c] * y[k]);
             }
         }
         let mut path = Vec::new();
-        // What the ray along `w` meets sends back: its whole radiance, and the error bar of
-        // the solution it reads, per unit of weight (`i` tells the ray's near bounces apart);
-        // and whether it met the back of a one-sided face.
-        let mut along = |w: DVec3, i: u64, hits: &mut Vec<Hit>| -> ([f64; 3], [f64; 3], bool) {
-            let (linear, patch) = match self.sight.free_hit(x, w, hits) {
-                Met::Sky => (Linear::read(Read::Sky), None),
-                Met::Nothing => (Linear::read(Read::Nothing), None),
-                Met::Patch(face, p, t) => {
-                    path.clear();
-                    let on = (mix(seed ^ i), &mut *hits, &mut path);
-                    (self.reflected(p, (face, x + w * t), (t, 0), on), Some(p))
-                }
-            };
-            let error = match linear.read {
-                Read::Patch(q) => self.read_error(q).unwrap_or_default(),
-                _ => [0.0; 3],
-            };
-            // The gather's reading leaves the sampled emitters' emission out; a probe's rays
-            // are split by direction instead (below), so each reads the whole of it.
-            let seen = patch.map_or([0.0; 3], |p| self.seen[p]);
-            let value = self.value(&linear);
-            (
-                std::array::from_fn(|c| value[c] + seen[c]),
-                std::array::from_fn(|c| linear.weight[c] * error[c]),
-                matches!(linear.read, Read::Nothing) && patch.is_none(),
-            )
-        };
-        // Samples, each its kernel (module docs) and the radiance it reads per channel:
-        // their weighted means added to the coefficients, their variances to the
-        // coefficients' and the axes' irradiance's.
-        let mut add = |samples: &[Option<Sample>], whole: Option<&[f64; 15]>| {
-            let (mean, var) = weighted_sum(samples, whole);
-            for c in 0..3 {
-                (0..9).for_each(|k| sh[k][c] += mean[k][c]);
-                (0..15).for_each(|k| variance[k][c] += var[k][c]);
-            }
-        };
         // The sphere in parts: the solid angle of each sampled emitter in front of the probe
         // (a direction in several, the first's), sampled uniformly within it; the rest by the
         // gather. Each part's integrals of the kernel, from its samples, tell the gather what
@@ -352,14 +367,17 @@ impl Gatherer<'_> {
                     continue;
                 };
                 let y = kernel(w).map(|b| b * angle / n);
-                let (l, error, _) = along(w, (k as u64) << 32 | j as u64, hits);
-                for (m, part) in parts.iter_mut().enumerate() {
-                    *part += y[m];
-                    (0..3).for_each(|c| read[m][c] += y[m].abs() * error[c]);
-                }
-                values.push(Some((y, l)));
+                let on = (
+                    mix(seed ^ ((k as u64) << 32 | j as u64)),
+                    &mut *hits,
+                    &mut path,
+                );
+                let arriving = self.arriving(x, w, on);
+                (0..15).for_each(|m| parts[m] += y[m]);
+                tally.read(&y, arriving.error);
+                values.push(Some((y, arriving.radiance)));
             }
-            add(&values, None);
+            tally.add(&values, None);
         }
         // The rest, gathered over the whole sphere but the emitters' parts: each ray's
         // radiance times 4π Y_lm along it estimates L_lm.
@@ -375,23 +393,45 @@ impl Gatherer<'_> {
                 continue;
             }
             let y = kernel(w).map(|b| sphere * b / n);
-            let (l, error, back) = along(w, i as u64, hits);
-            backs += usize::from(back);
-            for (m, y) in y.iter().enumerate() {
-                (0..3).for_each(|c| read[m][c] += y.abs() * error[c]);
-            }
-            values.push(Some((y, l)));
+            let arriving = self.arriving(x, w, (mix(seed ^ i as u64), &mut *hits, &mut path));
+            backs += usize::from(arriving.back);
+            tally.read(&y, arriving.error);
+            values.push(Some((y, arriving.radiance)));
         }
         let whole: [f64; 15] = std::array::from_fn(|m| sphere_integrals()[m] - parts[m]);
-        add(&values, Some(&whole));
-        let error = |k: usize| -> [f64; 3] {
-            std::array::from_fn(|c| (variance[k][c] + read[k][c] * read[k][c]).sqrt())
+        tally.add(&values, Some(&whole));
+        tally.probe(backs as f64 > INSIDE_SHARE * n)
+    }
+
+    /// What the ray from the probe at `x` along `w` reads: the whole radiance of what it meets
+    /// first (the gather's reading leaves the sampled emitters' emission out; a probe's rays
+    /// are split by direction instead, so each reads the whole of it), followed on where it
+    /// lands near as a texel's gather ray is (`seed` its bounces' sampling).
+    fn arriving(
+        &self,
+        x: DVec3,
+        w: DVec3,
+        (seed, hits, path): (u64, &mut Vec<Hit>, &mut Vec<PathTest>),
+    ) -> Arriving {
+        let (linear, patch) = match self.sight.free_hit(x, w, hits) {
+            Met::Sky => (Linear::read(Read::Sky), None),
+            Met::Nothing => (Linear::read(Read::Nothing), None),
+            Met::Patch(face, p, t) => {
+                path.clear();
+                let linear = self.reflected(p, (face, x + w * t), (t, 0), (seed, hits, path));
+                (linear, Some(p))
+            }
         };
-        Probe {
-            sh,
-            stderr: std::array::from_fn(error),
-            axes_stderr: std::array::from_fn(|a| error(9 + a)),
-            inside: backs as f64 > INSIDE_SHARE * n,
+        let error = match linear.read {
+            Read::Patch(q) => self.read_error(q).unwrap_or_default(),
+            _ => [0.0; 3],
+        };
+        let seen = patch.map_or([0.0; 3], |p| self.seen[p]);
+        let value = self.value(&linear);
+        Arriving {
+            radiance: std::array::from_fn(|c| value[c] + seen[c]),
+            error: std::array::from_fn(|c| linear.weight[c] * error[c]),
+            back: matches!(linear.read, Read::Nothing) && patch.is_none(),
         }
     }
 }
