@@ -895,3 +895,117 @@ fn a_probe_in_the_furnace_reads_its_closed_form() {
         }
     }
 }
+
+/// The level's lightmap atlas at 8 texels per unit (issue 49's unwrap): every triangle's
+/// texels are covered (the texel holding any point of a triangle, its corners and edges
+/// included, is one the lightmap evaluates, never a gutter), and the charts (a mesh's
+/// triangles joined by shared lightmap vertices) keep at least the padding between the texels
+/// they touch.
+#[test]
+fn every_triangle_has_its_texels_and_charts_keep_their_padding() {
+    use radiosity::output::lightmap::{Lightmap, PADDING};
+    let lines = LineParams {
+        lines: 20_000,
+        seed: 1,
+    };
+    let bake = split_sample("level.gltf", None, &lines);
+    let (solution, power) = solved(&bake, 0);
+    let lightmap = Lightmap::new(&bake, 8.0).unwrap();
+    let texels = lightmap.texels(&bake, 0, None, (&solution, lit(&bake, &power)));
+    let (w, h) = (lightmap.width as usize, lightmap.height as usize);
+    // Texels each chart touches (sampled at a tenth of a texel: a conservative footprint).
+    let mut chart_of = vec![u32::MAX; w * h];
+    let mut clash = None;
+    let mut charts = 0u32;
+    let mut uncovered = 0;
+    let mut corners_checked = 0;
+    for mesh in &lightmap.meshes {
+        // Charts: triangles joined by shared lightmap vertices (union-find over vertices).
+        let mut parent: Vec<usize> = (0..mesh.uv.len()).collect();
+        fn root(parent: &mut [usize], mut v: usize) -> usize {
+            while parent[v] != v {
+                parent[v] = parent[parent[v]];
+                v = parent[v];
+            }
+            v
+        }
+        for t in &mesh.triangles {
+            let a = root(&mut parent, t[0] as usize);
+            for &v in &t[1..] {
+                let b = root(&mut parent, v as usize);
+                parent[b] = a;
+            }
+        }
+        let mut ids = std::collections::HashMap::new();
+        for t in &mesh.triangles {
+            let r = root(&mut parent, t[0] as usize);
+            let id = *ids.entry(r).or_insert_with(|| {
+                charts += 1;
+                charts
+            });
+            let q = t.map(|v| {
+                let [u, v] = mesh.uv[v as usize];
+                [f64::from(u) * w as f64, f64::from(v) * h as f64]
+            });
+            let span = (0..3)
+                .map(|k| {
+                    let (a, b) = (q[k], q[(k + 1) % 3]);
+                    (b[0] - a[0]).hypot(b[1] - a[1])
+                })
+                .fold(0.0, f64::max);
+            let n = ((span * 10.0).ceil() as usize).max(1);
+            for i in 0..=n {
+                for j in 0..=n - i {
+                    let (s, t) = (i as f64 / n as f64, j as f64 / n as f64);
+                    // A hair inside the triangle: its edges are shared with its neighbours.
+                    let b = [1.0 - s - t, s, t].map(|b| 1e-4 + b * (1.0 - 3e-4));
+                    let p = [0, 1].map(|c| b[0] * q[0][c] + b[1] * q[1][c] + b[2] * q[2][c]);
+                    let (x, y) = (p[0].floor() as usize, p[1].floor() as usize);
+                    if x >= w || y >= h {
+                        uncovered += 1;
+                        continue;
+                    }
+                    if i + j == 0 || i == n || j == n {
+                        corners_checked += 1;
+                    }
+                    if !texels.covered[y * w + x] {
+                        uncovered += 1;
+                    }
+                    let owner = &mut chart_of[y * w + x];
+                    if *owner != u32::MAX && *owner != id {
+                        clash = Some((x, y));
+                    }
+                    *owner = id;
+                }
+            }
+        }
+    }
+    assert!(charts > 10, "{charts} charts");
+    assert!(corners_checked > 0);
+    assert_eq!(
+        uncovered, 0,
+        "points of triangles on texels the lightmap does not cover"
+    );
+    assert_eq!(clash, None, "two charts touch one texel");
+    // Between two charts' touched texels, at least the padding's empty texels.
+    let padding = PADDING as usize;
+    let (reach, mut closest) = (4 * padding, usize::MAX);
+    for y in 0..h {
+        for x in 0..w {
+            let id = chart_of[y * w + x];
+            if id == u32::MAX {
+                continue;
+            }
+            for ny in y.saturating_sub(reach)..(y + reach + 1).min(h) {
+                for nx in x.saturating_sub(reach)..(x + reach + 1).min(w) {
+                    let other = chart_of[ny * w + nx];
+                    if other != u32::MAX && other != id {
+                        closest = closest.min(nx.abs_diff(x).max(ny.abs_diff(y)));
+                    }
+                }
+            }
+        }
+    }
+    eprintln!("{charts} charts; closest texels of two charts {closest} apart");
+    assert!(closest > padding, "charts {closest} texels apart");
+}
