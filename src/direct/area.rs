@@ -833,18 +833,8 @@ impl Emitter {
         }
         let mut out = Vec::with_capacity(g * g);
         for (u, v) in super::strata(g, seed) {
-            // The triangle whose share of the weights holds u; u rescaled within it.
-            let (mut below, mut pick) = (0.0, (0, 0.0));
-            for (k, &w) in weights.iter().enumerate() {
-                if w > 0.0 {
-                    pick = (k, ((u * sum - below) / w).clamp(0.0, 1.0));
-                    if u * sum < below + w {
-                        break;
-                    }
-                }
-                below += w;
-            }
-            let (t, u) = (&self.triangles[pick.0], pick.1);
+            let (t, u) = pick(weights.iter().copied(), sum, u);
+            let t = &self.triangles[t];
             if by_angle {
                 let sample = sample_spherical_triangle(x, t, u, v).and_then(|w| {
                     let along = e.dot(t[0] - x) / e.dot(w);
@@ -1943,24 +1933,9 @@ impl Fans {
     /// solid angle is tiny (f = A cos θ cos θ' / (π r²)). Both are unbiased.
     fn sample(&self, x: DVec3, (n, e): (DVec3, DVec3), u: f64, v: f64) -> Option<(DVec3, f64)> {
         let fans = &self.triangles;
-        // Picks the triangle whose share of `weights` holds u; u rescaled within it.
-        let pick = |weights: &mut dyn Iterator<Item = f64>, total: f64| {
-            let mut below = 0.0;
-            let mut last = (0, 0.0);
-            for (k, w) in weights.enumerate() {
-                if w > 0.0 {
-                    last = (k, (u * total - below) / w);
-                    if u * total < below + w {
-                        break;
-                    }
-                }
-                below += w;
-            }
-            (last.0, last.1.clamp(0.0, 1.0))
-        };
         let total = self.total;
         if total >= TINY_SOLID_ANGLE && total.is_finite() {
-            let (t, u) = pick(&mut self.angles.iter().copied(), total);
+            let (t, u) = pick(self.angles.iter().copied(), total, u);
             let w = sample_spherical_triangle(x, &fans[t], u, v)?;
             // Where the direction meets the emitter's plane.
             let along = e.dot(fans[t][0] - x) / e.dot(w);
@@ -1976,7 +1951,7 @@ impl Fans {
         if total <= 0.0 {
             return None;
         }
-        let (t, u) = pick(&mut fans.iter().map(area), total);
+        let (t, u) = pick(fans.iter().map(area), total, u);
         let y = triangle_point(&fans[t], u, v);
         let d = y - x;
         let r2 = d.length_squared();
@@ -1989,6 +1964,24 @@ impl Fans {
         (cos > 0.0 && cos_emitter > 0.0)
             .then(|| (y, total * cos * cos_emitter / (std::f64::consts::PI * r2)))
     }
+}
+
+/// The index of the weight (of `weights`, summing to `total`) whose share holds `u` in [0, 1),
+/// and `u` rescaled to [0, 1] within that share: a stratified `u` picks each triangle of an
+/// emitter in proportion to its weight and stays stratified within it.
+fn pick(weights: impl Iterator<Item = f64>, total: f64, u: f64) -> (usize, f64) {
+    let mut below = 0.0;
+    let mut last = (0, 0.0);
+    for (k, w) in weights.enumerate() {
+        if w > 0.0 {
+            last = (k, (u * total - below) / w);
+            if u * total < below + w {
+                break;
+            }
+        }
+        below += w;
+    }
+    (last.0, last.1.clamp(0.0, 1.0))
 }
 
 /// The angle between unit vectors, accurate near 0 and π.
