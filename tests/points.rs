@@ -1009,3 +1009,83 @@ fn every_triangle_has_its_texels_and_charts_keep_their_padding() {
     eprintln!("{charts} charts; closest texels of two charts {closest} apart");
     assert!(closest > padding, "charts {closest} texels apart");
 }
+
+/// The lightmapped geometry carries the rigid moving nodes' motion: its animation's transform
+/// at each frame's time takes a node's rest-pose vertices to where the frame draws them (the
+/// block's slide and turn in the moving Cornell box), and names what moves how.
+#[test]
+fn the_lightmapped_geometry_s_animation_poses_the_moving_block_as_each_frame_draws_it() {
+    use gltf::animation::util::ReadOutputs;
+    use radiosity::output::frame_geometry;
+    use radiosity::output::lightmap::Lightmap;
+    let lines = LineParams {
+        lines: 20_000,
+        seed: 1,
+    };
+    let bake = split_sample("cornell_moving.gltf", None, &lines);
+    let scene = bake.shown();
+    let lightmap = Lightmap::new(&bake, 8.0).unwrap();
+    let bytes = radiosity::output::lightmap_glb(scene, &lightmap).unwrap();
+    let gltf = gltf::Gltf::from_slice(&bytes).unwrap();
+    let blob = gltf.blob.as_deref().unwrap();
+    let kinds: Vec<Option<&str>> = (gltf.nodes())
+        .map(|n| {
+            let extras = n.extras().as_ref().map(|e| e.get());
+            let extras: serde_json::Value = serde_json::from_str(extras.unwrap()).unwrap();
+            extras["moving"]
+                .as_str()
+                .map(|s| s.to_owned().leak() as &str)
+        })
+        .collect();
+    assert_eq!(
+        kinds,
+        [None, Some("rigid"), None],
+        "room, short block, tall block"
+    );
+    let animation = gltf.animations().next().expect("the baked motion");
+    let frames = scene.frames.count;
+    assert!(frames > 2);
+    // Per frame: the short block's translation, rotation and scale.
+    let mut trs = vec![([0.0f32; 3], [0.0f32, 0.0, 0.0, 1.0], [1.0f32; 3]); frames];
+    for channel in animation.channels() {
+        assert_eq!(channel.target().node().index(), 1);
+        let reader = channel.reader(|_| Some(blob));
+        let times: Vec<f32> = reader.read_inputs().unwrap().collect();
+        let expected: Vec<f32> = (0..frames).map(|f| scene.frames.time(f) as f32).collect();
+        assert_eq!(times, expected);
+        match reader.read_outputs().unwrap() {
+            ReadOutputs::Translations(t) => t.enumerate().for_each(|(f, v)| trs[f].0 = v),
+            ReadOutputs::Rotations(r) => r.into_f32().enumerate().for_each(|(f, q)| trs[f].1 = q),
+            ReadOutputs::Scales(s) => s.enumerate().for_each(|(f, v)| trs[f].2 = v),
+            ReadOutputs::MorphTargetWeights(_) => panic!("no morph weights"),
+        }
+    }
+    let block = gltf.nodes().nth(1).unwrap();
+    let primitive = block.mesh().unwrap().primitives().next().unwrap();
+    let reader = primitive.reader(|_| Some(blob));
+    let rest: Vec<DVec3> = (reader.read_positions().unwrap())
+        .map(|p| DVec3::from_array(p.map(f64::from)))
+        .collect();
+    let radius = scene.normalisation.radius;
+    let centre = scene.normalisation.center;
+    let uv = &lightmap.meshes[1];
+    let mut worst = 0.0f64;
+    for (f, (t, r, s)) in trs.iter().enumerate() {
+        let pose = glam::DAffine3::from_scale_rotation_translation(
+            DVec3::from_array(s.map(f64::from)),
+            glam::DQuat::from_array(r.map(f64::from)),
+            DVec3::from_array(t.map(f64::from)),
+        );
+        let drawn = &frame_geometry(scene, f)[1];
+        assert_eq!(drawn.node, 1);
+        for (p, &v) in rest.iter().zip(&uv.xref) {
+            let want = centre + drawn.positions[v as usize] * radius;
+            worst = worst.max(pose.transform_point3(*p).distance(want));
+        }
+    }
+    // f32 positions and keys in a 1 m room.
+    assert!(
+        worst < 1e-5,
+        "a vertex is {worst} m from where its frame draws it"
+    );
+}

@@ -262,6 +262,11 @@ async fn every_json_answer_has_the_fields_the_openapi_document_gives_it() {
             format!("{timeline}/frames/0/probes.json?spacing=0.5"),
             "/v1/timelines/{id}/frames/{frame}/probes.json",
         ),
+        (
+            "lightmaps' manifest",
+            format!("{timeline}/lightmap.json?texels_per_unit=4"),
+            "/v1/timelines/{id}/lightmap.json",
+        ),
     ] {
         let (status, value) = send(Method::GET, path, None).await;
         assert_eq!(status, StatusCode::OK, "{name}: {value}");
@@ -332,5 +337,58 @@ async fn every_json_answer_has_the_fields_the_openapi_document_gives_it() {
             assert!(detail.contains(needle), "{file}: {problem}");
         }
     }
-    assert_eq!(checked.len(), 12, "{checked:?}");
+    // The manifest's files are these routes.
+    let (_, manifest) = send(Method::GET, format!("{timeline}/lightmap.json"), None).await;
+    let first = &manifest["frames"][0];
+    assert_eq!(first["state"], 0, "{manifest}");
+    for (key, magic) in [
+        ("lightmap", &[0x76, 0x2f, 0x31, 0x01][..]),
+        ("rgbm", b"\x89PNG"),
+    ] {
+        let (status, body) = bytes(first[key].as_str().unwrap().to_string()).await;
+        assert_eq!(status, StatusCode::OK, "{key}");
+        assert!(body.starts_with(magic), "{key}");
+    }
+    // The three.js example's page and what it imports.
+    for (path, start) in [
+        (
+            format!("{timeline}/lightmapped?frame=0&texels_per_unit=4"),
+            "<!doctype html>",
+        ),
+        (
+            "/viewer/lightmapped.js".to_string(),
+            "// The service's lightmaps",
+        ),
+        ("/viewer/three/three.module.min.js".to_string(), "/**"),
+        (
+            "/viewer/three/addons/loaders/GLTFLoader.js".to_string(),
+            "import",
+        ),
+    ] {
+        let (status, body) = bytes(path.clone()).await;
+        assert_eq!(status, StatusCode::OK, "{path}");
+        assert!(String::from_utf8_lossy(&body).starts_with(start), "{path}");
+    }
+    for (path, status) in [
+        (
+            format!("{timeline}/lightmapped?probe_spacing=0"),
+            StatusCode::BAD_REQUEST,
+        ),
+        (
+            format!("{timeline}/lightmapped?overlay=error"),
+            StatusCode::BAD_REQUEST,
+        ),
+        (
+            "/v1/timelines/0123456789abcdef/lightmapped".to_string(),
+            StatusCode::NOT_FOUND,
+        ),
+        (
+            "/viewer/three/../Cargo.toml".to_string(),
+            StatusCode::NOT_FOUND,
+        ),
+    ] {
+        let (got, problem) = send(Method::GET, path.clone(), None).await;
+        assert_eq!(got, status, "{path}: {problem}");
+    }
+    assert_eq!(checked.len(), 13, "{checked:?}");
 }

@@ -206,9 +206,15 @@ fn screenshot(tab: &Tab) -> RgbImage {
 
 /// Where the point `p` (scene units) is drawn now, in the screenshot's pixels.
 fn project(tab: &Tab, p: [f64; 3]) -> (i64, i64) {
+    project_on(tab, "viewer", p)
+}
+
+/// Where the point `p` (scene units) is drawn now by the page's object `page`, in the
+/// screenshot's pixels.
+fn project_on(tab: &Tab, page: &str, p: [f64; 3]) -> (i64, i64) {
     let at = evaluate(
         tab,
-        &format!("viewer.project([{}, {}, {}])", p[0], p[1], p[2]),
+        &format!("{page}.project([{}, {}, {}])", p[0], p[1], p[2]),
     );
     (
         at[0].as_f64().unwrap().round() as i64,
@@ -620,5 +626,109 @@ fn a_closed_double_sided_room_is_seen_into_from_the_automatic_camera() {
         assert!(cut >= 12, "{name}: {cut} triangles cut away");
     }
     let seen = seen.lock().unwrap();
+    assert!(seen.errors.is_empty(), "{:?}", seen.errors);
+}
+
+/// The three.js example: the lightmapped geometry with each lighting state's lightmap (EXR)
+/// shows the light where the per-vertex viewer shows it, the moving block's shadow follows the
+/// states, the block itself is lit from the probes, and everything comes from the service.
+#[test]
+fn the_three_js_example_shows_the_baked_light_and_follows_the_lighting_states() {
+    let service = Service::start();
+    let id = service.bake("lines=20000&fps=4&seed=3", "cornell_moving.gltf");
+    let (_browser, tab, seen) = browser();
+    let view = "frame=0&orbit=35,40,1";
+    tab.navigate_to(&format!("{}/v1/timelines/{id}/viewer?{view}", service.base))
+        .unwrap();
+    wait_for(
+        &tab,
+        "document.body.dataset.frame === '0' && document.body.dataset.mode === 'light'",
+    );
+    let vertices = screenshot(&tab);
+    // Seen from above the front right: the floor, the red wall and the back wall, away from
+    // edges and shadows (where the texels and the vertices' interpolation differ), and the
+    // moving block's top.
+    let still: [[f64; 3]; 6] = [
+        [-0.3, 0.0, 0.35],
+        [0.35, 0.0, -0.35],
+        [-0.5, 0.7, 0.3],
+        [-0.5, 0.3, -0.2],
+        [0.1, 0.6, -0.5],
+        [0.35, 0.85, -0.5],
+    ];
+    let block_top = [0.17, 0.3, 0.2];
+    let per_vertex: Vec<f64> = (still.iter().chain([&block_top]))
+        .map(|&p| mean_luma(&vertices, project(&tab, p), 3))
+        .collect();
+
+    tab.navigate_to(&format!(
+        "{}/v1/timelines/{id}/lightmapped?{view}",
+        service.base
+    ))
+    .unwrap();
+    wait_for(&tab, "document.body.dataset.frame === '0'");
+    let first = screenshot(&tab);
+    let at =
+        |image: &RgbImage, p: [f64; 3]| mean_luma(image, project_on(&tab, "lightmapped", p), 3);
+    let texels: Vec<f64> = (still.iter().chain([&block_top]))
+        .map(|&p| at(&first, p))
+        .collect();
+    // The texels are evaluated at their points, the vertices interpolated across the walls'
+    // large triangles: a few levels apart (6 of 255 at most here), never the tens a lightmap
+    // read upside down or at the wrong intensity gives. The block's top, lit from the probes
+    // around its centre rather than from the texels, within a fifth.
+    for (k, (v, t)) in per_vertex.iter().zip(&texels).enumerate() {
+        let tolerance = if k == still.len() { 0.2 * v } else { 12.0 };
+        assert!(
+            (v - t).abs() <= tolerance,
+            "point {k}: per vertex {v}, lightmapped {t} (all: {per_vertex:?} and {texels:?})"
+        );
+    }
+
+    // Frame 4 (1 s, its own lighting state): the short block has slid 10 cm along +x and
+    // turned. The floor beside it, in front (the camera's side), darkens to its right where its
+    // shadow now falls and lightens to its left; what is far from it does not change.
+    tab.find_element("#frame").unwrap().focus().unwrap();
+    for _ in 0..4 {
+        tab.press_key("ArrowRight").unwrap();
+    }
+    wait_for(&tab, "document.body.dataset.frame === '4'");
+    let moved = screenshot(&tab);
+    if let Some(path) = std::env::var_os("LIGHTMAPPED_SCREENSHOT") {
+        let path = path.to_string_lossy();
+        vertices.save(format!("{path}-vertices.png")).unwrap();
+        first.save(format!("{path}-0.png")).unwrap();
+        moved.save(format!("{path}-4.png")).unwrap();
+    }
+    let ring = |k: f64| {
+        let a = std::f64::consts::TAU * k / 12.0;
+        [0.22 + 0.28 * a.cos(), 0.0, 0.2 + 0.28 * a.sin()]
+    };
+    let change = |p: [f64; 3]| at(&moved, p) - at(&first, p);
+    let right = change(ring(1.0));
+    let left = change(ring(5.0));
+    assert!(
+        right < -12.0 && left > 12.0,
+        "the floor right of the block changed by {right}, left of it by {left}"
+    );
+    for p in still {
+        let c = change(p);
+        assert!(c.abs() < 2.0, "{p:?}, far from the block, changed by {c}");
+    }
+
+    let seen = seen.lock().unwrap();
+    let state = format!("/v1/timelines/{id}/frames/4/lightmap.exr");
+    assert!(
+        seen.requests.iter().any(|u| u.contains(&state)),
+        "{state} not requested: {:?}",
+        seen.requests
+    );
+    let outside: Vec<&String> = (seen.requests.iter())
+        .filter(|u| !u.starts_with(&service.base))
+        .collect();
+    assert!(
+        outside.is_empty(),
+        "requests outside the service: {outside:?}"
+    );
     assert!(seen.errors.is_empty(), "{:?}", seen.errors);
 }

@@ -453,27 +453,8 @@ fn write_outputs(
         lit.retain(|r, _| last_use.get(r).is_some_and(|&last| last > done));
     }
     if let Some(lightmap) = &lightmap {
-        let manifest = serde_json::json!({
-            "geometry": "scene.glb",
-            "uv_set": 1,
-            "width": lightmap.width,
-            "height": lightmap.height,
-            "texels_per_unit": lightmap.texels_per_unit,
-            "charts": lightmap.charts,
-            "covered_texels": lightmap.covered(),
-            "format": "OpenEXR, half float, linear RGB radiance in the scene's emission units; row 0 at the top (glTF's texture coordinates)",
-            "rgbm": {
-                "format": "PNG, 8-bit RGBA, linear RGBM: radiance = rgb * a * range, clamped at range",
-                "range": output::lightmap::RGBM_RANGE,
-            },
-            "ktx2": "KTX 2.0, VK_FORMAT_R16G16B16A16_SFLOAT, Zstandard-supercompressed, linear radiance (alpha 1), rows from the top",
-            "frames": (0..count).map(|f| serde_json::json!({
-                "frame": f,
-                "time": scene.frames.time(f),
-                "lightmap": frame_name(representatives[f], count, "exr"),
-                "rgbm": frame_name(representatives[f], count, "png"),
-                "ktx2": frame_name(representatives[f], count, "ktx2"),
-            })).collect::<Vec<_>>(),
+        let manifest = lightmap.manifest(scene, "scene.glb", &representatives, |r, kind| {
+            frame_name(r, count, kind)
         });
         std::fs::write(
             dir.join("lightmaps").join("manifest.json"),

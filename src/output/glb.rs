@@ -24,13 +24,13 @@
 //! a mesh's own morph targets and animated weights stay out of the way. A pipeline also loads
 //! only the frames it needs. The cost is that static geometry is repeated in every file.
 
-use glam::DQuat;
+use glam::{DAffine3, DMat3, DQuat, DVec3};
 use serde_json::{Value, json};
 
 use super::OutputError;
 use super::geometry::NodeMesh;
 use super::tonemap::ToneMap;
-use crate::scene::{Projection, Scene, SceneCamera};
+use crate::scene::{Motion, Projection, Scene, SceneCamera};
 
 /// glTF component type of a 32-bit float.
 const FLOAT: u32 = 5126;
@@ -264,8 +264,15 @@ pub fn frame_glb(
 
 /// The `.glb` of a timeline's lightmapped geometry: the scene as drawn at frame 0 on the
 /// lightmap's vertices (seams split them), `TEXCOORD_1` its coordinates in the atlas (and
-/// `TEXCOORD_0` the same, glTF's sets counting from 0), each node's source node in `extras`;
-/// the states' lightmaps are the EXR files beside it (`manifest.json`).
+/// `TEXCOORD_0` the same, glTF's sets counting from 0), `COLOR_0` the albedo of the face each
+/// vertex is on (linear; an emitter's emission in `extras.emission`), each node's source node in
+/// `extras`; the states' lightmaps are the EXR files beside it (`manifest.json`).
+///
+/// A rigid moving node (`extras.moving` `"rigid"`) follows its motion in the animation
+/// `"baked motion"`: its transform at every frame's time, interpolated linearly between them,
+/// so that an engine plays the geometry the lightmaps were baked for. A deforming one
+/// (`"deforming"`: skinned or morphing) stays in its rest pose: its texels are evaluated where
+/// it is at each state, but its shape at a frame is the per-vertex files'.
 ///
 /// # Errors
 /// [`OutputError::TooLarge`] if the file would pass GLB's 4 GiB limit.
@@ -278,6 +285,7 @@ pub fn lightmap_glb(
     let mut buffers = Buffers::default();
     let mut nodes = Vec::new();
     let mut gltf_meshes = Vec::new();
+    let mut moving = Vec::new();
     for (uv, mesh) in lightmap.meshes.iter().zip(lightmap.rest()) {
         if uv.triangles.is_empty() {
             continue;
@@ -288,8 +296,21 @@ pub fn lightmap_glb(
         let normals: Vec<[f32; 3]> = (uv.xref.iter())
             .map(|&v| mesh.normals[v as usize].to_array())
             .collect();
+        // A vertex is shared by faces of one material only (`frame_geometry`).
+        let mut albedo = vec![[0.0f32; 3]; uv.uv.len()];
+        let mut emission = [0.0f64; 3];
+        for (t, &patch) in uv.triangles.iter().zip(&mesh.patches) {
+            let material = &scene.materials[scene.patches[patch as usize].material as usize];
+            for &v in t {
+                albedo[v as usize] = material.reflectance.map(|r| r as f32);
+            }
+            for (e, m) in emission.iter_mut().zip(material.emission) {
+                *e = e.max(m);
+            }
+        }
         let position = buffers.vec3(&positions, true);
         let normal = buffers.vec3(&normals, false);
+        let colour = buffers.vec3(&albedo, false);
         let texcoord = buffers.vec2(&uv.uv);
         let indices = buffers.indices(&uv.triangles);
         let patches = buffers.per_triangle(&mesh.patches);
@@ -297,14 +318,31 @@ pub fn lightmap_glb(
         let attributes = json!({
             "POSITION": position,
             "NORMAL": normal,
+            "COLOR_0": colour,
             "TEXCOORD_0": texcoord,
             "TEXCOORD_1": texcoord,
         });
         let named = format!("{name} lightmapped");
         gltf_meshes.push(drawn_mesh(named, attributes, (indices, patches)));
-        nodes.push(mesh_node(name, gltf_meshes.len() - 1, centre, mesh.node));
+        let mut node = mesh_node(name, gltf_meshes.len() - 1, centre, mesh.node);
+        if emission.iter().any(|&e| e > 0.0) {
+            node["extras"]["emission"] = json!(emission);
+        }
+        let object = scene.objects.iter().find(|o| o.node == mesh.node);
+        if let Some(object) = object {
+            let kind = match &object.motion {
+                Motion::Rigid { poses } => {
+                    moving.push((nodes.len(), poses));
+                    "rigid"
+                }
+                Motion::Deforming(_) => "deforming",
+            };
+            node["extras"]["moving"] = kind.into();
+        }
+        nodes.push(node);
     }
-    let document = json!({
+    let animation = baked_motion(scene, &mut buffers, &mut nodes, &moving);
+    let mut document = json!({
         "asset": {
             "version": "2.0",
             "generator": concat!("radiosity ", env!("CARGO_PKG_VERSION")),
@@ -329,7 +367,125 @@ pub fn lightmap_glb(
             "pbrMetallicRoughness": { "baseColorFactor": [1.0, 1.0, 1.0, 1.0], "metallicFactor": 0.0 },
         }],
     });
+    if let Some(animation) = animation {
+        document["animations"] = json!([animation]);
+    }
     buffers.finish(document)
+}
+
+/// The animation `"baked motion"` of the rigid moving nodes `moving` (index in `nodes`, poses
+/// by frame), whose meshes are drawn at frame 0: each node's transform at each frame is
+/// `pose(f) · pose(0)⁻¹` in scene units about the node's translation, as translation, rotation
+/// and scale channels (the latter two only where they change). A node whose transform has a
+/// shear (which glTF's nodes cannot hold) or whose frame-0 pose is singular is left still and
+/// says so in `extras.motion`. `None` if nothing is animated.
+fn baked_motion(
+    scene: &Scene,
+    buffers: &mut Buffers,
+    nodes: &mut [Value],
+    moving: &[(usize, &Vec<DAffine3>)],
+) -> Option<Value> {
+    let frames = scene.frames.count;
+    if frames < 2 || moving.is_empty() {
+        return None;
+    }
+    let radius = scene.normalisation.radius;
+    let centre = scene.normalisation.center;
+    let times: Vec<f32> = (0..frames)
+        .map(|f| (scene.frames.time(f) - scene.frames.start.min(0.0)) as f32)
+        .collect();
+    let mut samplers = Vec::new();
+    let mut channels = Vec::new();
+    let mut input = None;
+    for &(index, poses) in moving {
+        let Some(rest) = poses
+            .first()
+            .filter(|p| p.matrix3.determinant().abs() > 1e-300)
+        else {
+            nodes[index]["extras"]["motion"] = "left still: its first pose is singular".into();
+            continue;
+        };
+        let to_rest = rest.inverse();
+        let parts: Option<Vec<(DVec3, DQuat, DVec3)>> = (0..frames)
+            .map(|f| {
+                let m = poses[f.min(poses.len() - 1)] * to_rest;
+                let (scale, rotation, _) = m.to_scale_rotation_translation();
+                let rebuilt = DMat3::from_quat(rotation) * DMat3::from_diagonal(scale);
+                let sheared = (rebuilt - m.matrix3)
+                    .to_cols_array()
+                    .iter()
+                    .any(|d| d.abs() > 1e-6);
+                let translation = centre + m.translation * radius;
+                (!sheared && scale.is_finite() && rotation.is_finite()).then_some((
+                    translation,
+                    rotation.normalize(),
+                    scale,
+                ))
+            })
+            .collect();
+        let Some(parts) = parts else {
+            nodes[index]["extras"]["motion"] =
+                "left still: its motion shears it, which a glTF node cannot".into();
+            continue;
+        };
+        let input = *input.get_or_insert_with(|| {
+            let (first, last) = (times[0], times[frames - 1]);
+            let words = times.iter().map(|t| t.to_le_bytes());
+            let extra = json!({ "min": [first], "max": [last] });
+            buffers.push(words, None, (FLOAT, "SCALAR", frames), extra)
+        });
+        let mut channel = |path: &str, words: Vec<f32>, kind: &str| {
+            let count = frames;
+            let output = buffers.push(
+                words.into_iter().map(f32::to_le_bytes),
+                None,
+                (FLOAT, kind, count),
+                json!({}),
+            );
+            samplers.push(json!({ "input": input, "output": output, "interpolation": "LINEAR" }));
+            channels.push(json!({
+                "sampler": samplers.len() - 1,
+                "target": { "node": index, "path": path },
+            }));
+        };
+        let narrow = |v: DVec3| v.to_array().map(|x| x as f32);
+        channel(
+            "translation",
+            parts.iter().flat_map(|p| narrow(p.0)).collect(),
+            "VEC3",
+        );
+        if parts
+            .iter()
+            .any(|p| !p.1.abs_diff_eq(DQuat::IDENTITY, 1e-9))
+        {
+            // Each quaternion on the same side as the one before: linear interpolation takes
+            // the short way.
+            let mut previous = DQuat::IDENTITY;
+            let rotations: Vec<f32> = (parts.iter())
+                .flat_map(|p| {
+                    let q = if p.1.dot(previous) < 0.0 { -p.1 } else { p.1 };
+                    previous = q;
+                    q.to_array().map(|x| x as f32)
+                })
+                .collect();
+            channel("rotation", rotations, "VEC4");
+        }
+        if parts.iter().any(|p| !p.2.abs_diff_eq(DVec3::ONE, 1e-9)) {
+            channel(
+                "scale",
+                parts.iter().flat_map(|p| narrow(p.2)).collect(),
+                "VEC3",
+            );
+        }
+    }
+    (!channels.is_empty()).then(|| {
+        json!({
+            "name": "baked motion",
+            "samplers": samplers,
+            "channels": channels,
+            "extras": { "time_of_frame_0": times[0], "fps": scene.frames.fps },
+        })
+    })
 }
 
 /// A scene's camera at `frame` in scene units: its node (rotation and translation; the pose's

@@ -39,6 +39,7 @@ use super::records::{MOST_REACH, Reader, Records, VALIDITY};
 use crate::bake::Bake;
 use crate::direct::points::closeness;
 use crate::direct::points::{Gather, Lighting, PointRadiance, Points};
+use crate::scene::Scene;
 use crate::solve::FrameSolution;
 
 /// Texels per scene unit of `bake --lightmaps` unless told (8 per metre: the level's 17,700
@@ -435,6 +436,42 @@ impl Lightmap {
     #[must_use]
     pub fn points(&self) -> &Points {
         &self.points
+    }
+
+    /// The lightmaps' manifest: the atlas, the formats, and for every frame its time and its
+    /// lighting state's files (`file(state, kind)`, `kind` `"exr"`, `"png"` or `"ktx2"`; a
+    /// state is its first frame, `representatives[f]`); the geometry is `geometry`.
+    #[must_use]
+    pub fn manifest(
+        &self,
+        scene: &Scene,
+        geometry: &str,
+        representatives: &[usize],
+        file: impl Fn(usize, &str) -> String,
+    ) -> serde_json::Value {
+        serde_json::json!({
+            "geometry": geometry,
+            "uv_set": 1,
+            "width": self.width,
+            "height": self.height,
+            "texels_per_unit": self.texels_per_unit,
+            "charts": self.charts,
+            "covered_texels": self.covered(),
+            "format": "OpenEXR, half float, linear RGB radiance in the scene's emission units; row 0 at the top (glTF's texture coordinates)",
+            "rgbm": {
+                "format": "PNG, 8-bit RGBA, linear RGBM: radiance = rgb * a * range, clamped at range",
+                "range": RGBM_RANGE,
+            },
+            "ktx2": "KTX 2.0, VK_FORMAT_R16G16B16A16_SFLOAT, Zstandard-supercompressed, linear radiance (alpha 1), rows from the top",
+            "frames": (representatives.iter().enumerate()).map(|(f, &r)| serde_json::json!({
+                "frame": f,
+                "time": scene.frames.time(f),
+                "state": r,
+                "lightmap": file(r, "exr"),
+                "rgbm": file(r, "png"),
+                "ktx2": file(r, "ktx2"),
+            })).collect::<Vec<_>>(),
+        })
     }
 
     /// Covered texels.

@@ -18,6 +18,7 @@ use super::query::{
 use super::{ApiError, AppState, job};
 use crate::bake::Bake;
 use crate::direct::points::Lighting;
+use crate::output::lightmap::Lightmap;
 use crate::solve::FrameSolution;
 
 /// Binary layout of a frame (`Accept: application/octet-stream`), little-endian: u32 frame,
@@ -247,31 +248,85 @@ pub(super) async fn timeline_lightmap_geometry(
     Path(id): Path<String>,
     StrictQuery(query): StrictQuery<LightmapQuery>,
 ) -> Result<Response, ApiError> {
-    let job = job(&state, &id)?;
     let density = query.validate()?;
-    let _budget = Enforce(&state);
-    let made = tokio::task::spawn_blocking(move || {
-        job.with_bake(|bake| {
-            let lightmap =
-                (job.lightmap(bake, density, SERVICE_MOST_TEXELS)).map_err(ApiError::Parameter)?;
-            crate::output::lightmap_glb(bake.shown(), &lightmap)
-                .map_err(|e| ApiError::Internal(format!("making the lightmap's glTF: {e}")))
-        })
-    })
-    .await
-    .map_err(|e| ApiError::Internal(format!("making the lightmap's glTF: {e}")))?;
-    let bytes = made.ok_or_else(|| {
-        ApiError::NotReady(
-            "the timeline's geometry is not available: it is being traced (try again once \
-             frames are being solved)"
-                .into(),
-        )
-    })??;
+    let bytes = with_lightmap(
+        &state,
+        &id,
+        density,
+        "the lightmap's glTF",
+        |bake, lightmap| {
+            crate::output::lightmap_glb(bake.shown(), lightmap).map_err(|e| e.to_string())
+        },
+    )
+    .await?;
     Ok((
         [(header::CONTENT_TYPE, "model/gltf-binary")],
         Body::from(bytes),
     )
         .into_response())
+}
+
+/// `GET /v1/timelines/{id}/lightmap.json?texels_per_unit=`: the lightmaps' manifest, as
+/// `radiosity bake --lightmaps` writes `lightmaps/manifest.json`, its files the service's
+/// routes: every frame's time and lighting state (`state`, its first frame), and that state's
+/// lightmap in each format.
+pub(super) async fn timeline_lightmap_manifest(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    StrictQuery(query): StrictQuery<LightmapQuery>,
+) -> Result<Response, ApiError> {
+    let density = query.validate()?;
+    let base = format!("/v1/timelines/{id}");
+    let bytes = with_lightmap(
+        &state,
+        &id,
+        density,
+        "the lightmaps' manifest",
+        move |bake, lightmap| {
+            let query = format!("?texels_per_unit={density}");
+            let geometry = format!("{base}/lightmap.glb{query}");
+            let states = bake.representatives();
+            let manifest = lightmap.manifest(bake.shown(), &geometry, &states, |r, kind| {
+                format!("{base}/frames/{r}/lightmap.{kind}{query}")
+            });
+            serde_json::to_vec(&manifest).map_err(|e| e.to_string())
+        },
+    )
+    .await?;
+    Ok((
+        [(header::CONTENT_TYPE, "application/json")],
+        Body::from(bytes),
+    )
+        .into_response())
+}
+
+/// `make`'s file from timeline `id`'s lightmap at `density` (its atlas made if the timeline
+/// does not keep it), off the async runtime; `what` names the file in errors.
+async fn with_lightmap(
+    state: &AppState,
+    id: &str,
+    density: f64,
+    what: &'static str,
+    make: impl FnOnce(&Bake, &Lightmap) -> Result<Vec<u8>, String> + Send + 'static,
+) -> Result<Vec<u8>, ApiError> {
+    let job = job(state, id)?;
+    let _budget = Enforce(state);
+    let made = tokio::task::spawn_blocking(move || {
+        job.with_bake(|bake| {
+            let lightmap =
+                (job.lightmap(bake, density, SERVICE_MOST_TEXELS)).map_err(ApiError::Parameter)?;
+            make(bake, &lightmap).map_err(|e| ApiError::Internal(format!("making {what}: {e}")))
+        })
+    })
+    .await
+    .map_err(|e| ApiError::Internal(format!("making {what}: {e}")))?;
+    made.ok_or_else(|| {
+        ApiError::NotReady(
+            "the timeline's geometry is not available: it is being traced (try again once \
+             frames are being solved)"
+                .into(),
+        )
+    })?
 }
 
 /// Keeps the traced state within the resident budget when dropped (at the end of a route

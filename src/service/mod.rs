@@ -216,10 +216,15 @@ pub fn app(state: AppState) -> Router {
     Router::new()
         .route("/", get(viewer::home))
         .route("/viewer/{file}", get(viewer::asset))
+        .route("/viewer/three/{*path}", get(viewer::three))
         .route("/healthz", get(healthz))
         .route("/v1/samples", get(viewer::list_samples))
         .route("/v1/samples/{name}", get(viewer::sample))
         .route("/v1/timelines/{id}/viewer", get(viewer::timeline_viewer))
+        .route(
+            "/v1/timelines/{id}/lightmapped",
+            get(viewer::timeline_lightmapped),
+        )
         .route("/v1/timelines", get(list_timelines).post(create_timeline))
         .route(
             "/v1/timelines/{id}",
@@ -257,6 +262,10 @@ pub fn app(state: AppState) -> Router {
         .route(
             "/v1/timelines/{id}/lightmap.glb",
             get(frames::timeline_lightmap_geometry),
+        )
+        .route(
+            "/v1/timelines/{id}/lightmap.json",
+            get(frames::timeline_lightmap_manifest),
         )
         .route(
             "/v1/timelines/{id}/frames/{frame}/lightmap.exr",

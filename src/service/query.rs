@@ -275,6 +275,52 @@ impl ViewerQuery {
     }
 }
 
+/// The query of `GET /v1/timelines/{id}/lightmapped`: the three.js example's first view and
+/// the lightmap's and probes' parameters it passes on.
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct LightmappedQuery {
+    /// The frame shown first.
+    #[serde(default, deserialize_with = "whole")]
+    #[allow(dead_code)] // read by the page
+    frame: Option<u64>,
+    /// The exposure; the timeline's by default.
+    #[serde(default, deserialize_with = "number")]
+    exposure: Option<f64>,
+    /// `yaw,pitch,zoom`, as the viewer's.
+    #[serde(default)]
+    orbit: Option<String>,
+    /// Texels per scene unit.
+    #[serde(default, deserialize_with = "number")]
+    texels_per_unit: Option<f64>,
+    /// The probes' spacing.
+    #[serde(default, deserialize_with = "number")]
+    probe_spacing: Option<f64>,
+}
+
+impl LightmappedQuery {
+    /// Checks the view as the viewer's, and a positive density and spacing.
+    pub(super) fn validate(self) -> Result<(), ApiError> {
+        ViewerQuery {
+            frame: self.frame,
+            exposure: self.exposure,
+            overlay: None,
+            orbit: self.orbit,
+        }
+        .validate()?;
+        LightmapQuery {
+            texels_per_unit: self.texels_per_unit,
+        }
+        .validate()?;
+        if let Some(s) = self.probe_spacing.filter(|&s| s <= 0.0) {
+            return Err(ApiError::Parameter(format!(
+                "probe_spacing must be a positive number, not {s}"
+            )));
+        }
+        Ok(())
+    }
+}
+
 /// An exposure asked for, if it is positive.
 fn positive_exposure(exposure: Option<f64>) -> Result<Option<f64>, ApiError> {
     match exposure {

@@ -16,15 +16,18 @@ use axum::http::header;
 use axum::response::{IntoResponse, Response};
 use serde_json::json;
 
-use super::query::{NoParameters, StrictQuery, ViewerQuery};
+use super::query::{LightmappedQuery, NoParameters, StrictQuery, ViewerQuery};
 use super::{ApiError, AppState, job};
 use crate::samples::Sample;
 
 /// The page, the same for `/` and for a timeline's viewer (its script reads the path).
 const PAGE: &str = include_str!("viewer/index.html");
 
-/// The page's assets, by name: content and media type.
-const ASSETS: [(&str, &str, &str); 2] = [
+/// The three.js example's page (`GET /v1/timelines/{id}/lightmapped`).
+const LIGHTMAPPED: &str = include_str!("viewer/lightmapped.html");
+
+/// The pages' assets, by name: content and media type.
+const ASSETS: [(&str, &str, &str); 4] = [
     (
         "viewer.js",
         include_str!("viewer/viewer.js"),
@@ -35,6 +38,50 @@ const ASSETS: [(&str, &str, &str); 2] = [
         include_str!("viewer/viewer.css"),
         "text/css; charset=utf-8",
     ),
+    (
+        "lightmapped.js",
+        include_str!("viewer/lightmapped.js"),
+        "text/javascript; charset=utf-8",
+    ),
+    (
+        "lightmapped.css",
+        include_str!("viewer/lightmapped.css"),
+        "text/css; charset=utf-8",
+    ),
+];
+
+/// three.js (the npm package `three`, at the version `.ci/run` checks these against: its
+/// build and the example loaders the page imports), by path under `/viewer/three/`.
+const THREE: [(&str, &str); 8] = [
+    (
+        "three.module.min.js",
+        include_str!("viewer/three/three.module.min.js"),
+    ),
+    (
+        "three.core.min.js",
+        include_str!("viewer/three/three.core.min.js"),
+    ),
+    (
+        "addons/loaders/GLTFLoader.js",
+        include_str!("viewer/three/addons/loaders/GLTFLoader.js"),
+    ),
+    (
+        "addons/loaders/EXRLoader.js",
+        include_str!("viewer/three/addons/loaders/EXRLoader.js"),
+    ),
+    (
+        "addons/libs/fflate.module.js",
+        include_str!("viewer/three/addons/libs/fflate.module.js"),
+    ),
+    (
+        "addons/utils/BufferGeometryUtils.js",
+        include_str!("viewer/three/addons/utils/BufferGeometryUtils.js"),
+    ),
+    (
+        "addons/controls/OrbitControls.js",
+        include_str!("viewer/three/addons/controls/OrbitControls.js"),
+    ),
+    ("LICENSE", include_str!("viewer/three/LICENSE")),
 ];
 
 /// The page, which loads nothing from elsewhere (its content security policy says so too).
@@ -51,6 +98,71 @@ fn page() -> Response {
         PAGE,
     )
         .into_response()
+}
+
+/// The three.js example's page. Its content security policy admits its import map (by its
+/// hash) and nothing from elsewhere.
+fn lightmapped_page() -> Response {
+    static POLICY: OnceLock<String> = OnceLock::new();
+    let policy = POLICY.get_or_init(|| {
+        use base64::Engine as _;
+        use sha2::Digest as _;
+        let map = (LIGHTMAPPED.split_once("<script type=\"importmap\">"))
+            .and_then(|(_, rest)| rest.split_once("</script>"))
+            .map_or("", |(map, _)| map);
+        let hash = base64::engine::general_purpose::STANDARD.encode(sha2::Sha256::digest(map));
+        format!(
+            "default-src 'self'; script-src 'self' 'sha256-{hash}'; img-src 'self' data: blob:; \
+             connect-src 'self'"
+        )
+    });
+    (
+        [
+            (header::CONTENT_TYPE, "text/html; charset=utf-8"),
+            (header::CONTENT_SECURITY_POLICY, policy.as_str()),
+            (header::CACHE_CONTROL, "no-cache"),
+        ],
+        LIGHTMAPPED,
+    )
+        .into_response()
+}
+
+/// `GET /v1/timelines/{id}/lightmapped`: the three.js example (`?frame=&orbit=&exposure=` for
+/// its first view, `?texels_per_unit=&probe_spacing=` passed on to the lightmap's and probes'
+/// routes): the timeline's lightmaps by frame time on its lightmapped geometry, its moving
+/// nodes lit from the light probes.
+pub(super) async fn timeline_lightmapped(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    StrictQuery(query): StrictQuery<LightmappedQuery>,
+) -> Result<Response, ApiError> {
+    query.validate()?;
+    job(&state, &id)?;
+    Ok(lightmapped_page())
+}
+
+/// `GET /viewer/three/{path}`: the three.js files the example imports.
+pub(super) async fn three(
+    Path(path): Path<String>,
+    _: StrictQuery<NoParameters>,
+) -> Result<Response, ApiError> {
+    let (_, content) = THREE
+        .iter()
+        .find(|(name, _)| *name == path)
+        .ok_or_else(|| ApiError::NotFound(format!("no three.js file {path:?}")))?;
+    let media = if path.ends_with(".js") {
+        "text/javascript; charset=utf-8"
+    } else {
+        "text/plain; charset=utf-8"
+    };
+    Ok((
+        [
+            (header::CONTENT_TYPE, media),
+            (header::CACHE_CONTROL, "max-age=86400"),
+        ],
+        *content,
+    )
+        .into_response())
 }
 
 /// `GET /`: the home page.
