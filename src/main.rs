@@ -177,6 +177,11 @@ struct OutputArgs {
     /// The lightmaps' texel density, texels per scene unit (with --lightmaps)
     #[arg(long, default_value_t = radiosity::output::lightmap::TEXELS_PER_UNIT, requires = "lightmaps")]
     texels_per_unit: f64,
+    /// What the lightmaps hold: radiance (what the surface shows, albedo and emission
+    /// included) or light (the irradiance over π, which an engine's material multiplies by
+    /// its albedo: Unity's, Godot's and three.js's lightmaps) (with --lightmaps)
+    #[arg(long, value_enum, default_value_t, requires = "lightmaps")]
+    lightmap_quantity: radiosity::output::lightmap::Quantity,
     /// Also write light probes (probes/: a grid of order-2 spherical-harmonic probes of the
     /// light arriving in the scene's empty space, one file per lighting state, probes.json)
     #[arg(long)]
@@ -562,6 +567,7 @@ impl OutputArgs {
             preview_shading,
             lightmaps,
             texels_per_unit,
+            lightmap_quantity,
             probes,
             probe_spacing,
         } = self;
@@ -573,6 +579,7 @@ impl OutputArgs {
             exposure,
             shading: preview_shading,
             lightmaps: lightmaps.then_some(texels_per_unit),
+            lightmap_quantity,
             probes: probes.then_some(probe_spacing),
         }
     }

@@ -122,6 +122,7 @@ fn batch(load: LoadOptions, n: u64) -> BatchParams {
             exposure: None,
             shading: radiosity::output::Shading::Flat,
             lightmaps: None,
+            lightmap_quantity: Default::default(),
             probes: None,
         },
         force: true,

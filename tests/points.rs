@@ -511,8 +511,13 @@ fn lightmap_texels_read_the_lamp_s_closed_form_at_their_points_with_a_texel_shar
         spots.push(p);
         assert!(texels.covered[at]);
         let l = f64::from(texels.radiance[at][0]);
+        // The light an engine's material multiplies by its albedo: the irradiance over π.
+        let light = f64::from(texels.light[at][0]);
         if under(p) {
-            assert!(l <= 1e-6, "under the box at {p}: {l}");
+            assert!(
+                l <= 1e-6 && light <= 1e-6,
+                "under the box at {p}: {l}, {light}"
+            );
             continue;
         }
         floor += 1;
@@ -521,6 +526,11 @@ fn lightmap_texels_read_the_lamp_s_closed_form_at_their_points_with_a_texel_shar
         assert!(
             (l - expected).abs() <= 2e-3 * expected + 1e-6,
             "texel at {p}: {l} against {expected}"
+        );
+        assert!(
+            (light - expected / RHO).abs() <= 2e-3 * expected / RHO + 1e-6,
+            "texel at {p}: light {light} against {}",
+            expected / RHO
         );
         // Within a texel of the shadow's edge (the texel's width is 1/16 m).
         let step = 1.0 / 16.0;
@@ -1025,7 +1035,7 @@ fn the_lightmapped_geometry_s_animation_poses_the_moving_block_as_each_frame_dra
     let bake = split_sample("cornell_moving.gltf", None, &lines);
     let scene = bake.shown();
     let lightmap = Lightmap::new(&bake, 8.0).unwrap();
-    let bytes = radiosity::output::lightmap_glb(scene, &lightmap).unwrap();
+    let bytes = radiosity::output::lightmap_glb(scene, &scene.materials, &lightmap).unwrap();
     let gltf = gltf::Gltf::from_slice(&bytes).unwrap();
     let blob = gltf.blob.as_deref().unwrap();
     let kinds: Vec<Option<&str>> = (gltf.nodes())

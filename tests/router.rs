@@ -337,10 +337,20 @@ async fn every_json_answer_has_the_fields_the_openapi_document_gives_it() {
             assert!(detail.contains(needle), "{file}: {problem}");
         }
     }
-    // The manifest's files are these routes.
-    let (_, manifest) = send(Method::GET, format!("{timeline}/lightmap.json"), None).await;
+    // The manifest's files are these routes, holding the quantity asked for.
+    let path = format!("{timeline}/lightmap.json?quantity=light");
+    let (_, manifest) = send(Method::GET, path.clone(), None).await;
+    assert_eq!(manifest["quantity"], "light", "{manifest}");
     let first = &manifest["frames"][0];
     assert_eq!(first["state"], 0, "{manifest}");
+    assert!(
+        first["lightmap"]
+            .as_str()
+            .unwrap()
+            .ends_with("&quantity=light")
+    );
+    let (status, problem) = send(Method::GET, format!("{path}x"), None).await;
+    assert_eq!(status, StatusCode::BAD_REQUEST, "{problem}");
     for (key, magic) in [
         ("lightmap", &[0x76, 0x2f, 0x31, 0x01][..]),
         ("rgbm", b"\x89PNG"),

@@ -732,3 +732,62 @@ fn the_three_js_example_shows_the_baked_light_and_follows_the_lighting_states() 
     );
     assert!(seen.errors.is_empty(), "{:?}", seen.errors);
 }
+
+/// The three.js example on the level (a sliding door, fixtures, lamps): drawn, as bright as
+/// the per-vertex viewer from the same orbit, with nothing from elsewhere and no error.
+#[test]
+fn the_three_js_example_draws_the_level_as_bright_as_the_per_vertex_viewer() {
+    let service = Service::start();
+    let id = service.bake("lines=20000&fps=2&seed=3", "level.gltf");
+    let (_browser, tab, seen) = browser();
+    let view = "frame=0&orbit=30,45,0.8";
+    tab.navigate_to(&format!("{}/v1/timelines/{id}/viewer?{view}", service.base))
+        .unwrap();
+    wait_for(
+        &tab,
+        "document.body.dataset.frame === '0' && document.body.dataset.mode === 'light'",
+    );
+    let vertices = screenshot(&tab);
+    let (x0, y0, x1, y1) = canvas_box(&tab);
+    let centre = ((x0 + x1) / 2, (y0 + y1) / 2);
+    let half = i64::from((y1 - y0) / 2 - 1);
+    let per_vertex = mean_luma(&vertices, (i64::from(centre.0), i64::from(centre.1)), half);
+
+    tab.navigate_to(&format!(
+        "{}/v1/timelines/{id}/lightmapped?{view}",
+        service.base
+    ))
+    .unwrap();
+    wait_for(&tab, "document.body.dataset.frame === '0'");
+    let lit = screenshot(&tab);
+    if let Some(path) = std::env::var_os("LIGHTMAPPED_SCREENSHOT") {
+        lit.save(format!("{}-level.png", path.to_string_lossy()))
+            .unwrap();
+    }
+    let canvas = evaluate(
+        &tab,
+        "(() => { const r = document.getElementById('canvas').getBoundingClientRect(); \
+         return [r.left, r.top, r.right, r.bottom].map(Math.round); })()",
+    );
+    let c: Vec<i64> = (0..4).map(|i| canvas[i].as_i64().unwrap()).collect();
+    let lightmapped = mean_luma(
+        &lit,
+        ((c[0] + c[2]) / 2, (c[1] + c[3]) / 2),
+        (c[3] - c[1]) / 2 - 1,
+    );
+    eprintln!("level: per vertex {per_vertex}, lightmapped {lightmapped}");
+    assert!(lightmapped > 20.0, "the level is dark: {lightmapped}");
+    assert!(
+        (lightmapped - per_vertex).abs() < 0.25 * per_vertex,
+        "per vertex {per_vertex}, lightmapped {lightmapped}"
+    );
+    let seen = seen.lock().unwrap();
+    let outside: Vec<&String> = (seen.requests.iter())
+        .filter(|u| !u.starts_with(&service.base))
+        .collect();
+    assert!(
+        outside.is_empty(),
+        "requests outside the service: {outside:?}"
+    );
+    assert!(seen.errors.is_empty(), "{:?}", seen.errors);
+}

@@ -77,6 +77,8 @@ pub struct Outputs {
     /// Lightmaps at this many texels per scene unit, if any (`lightmaps/`,
     /// [`output::lightmap`]).
     pub lightmaps: Option<f64>,
+    /// What the lightmaps' texels hold.
+    pub lightmap_quantity: output::lightmap::Quantity,
     /// Light probes, if any (`probes/`, [`output::probes`]), at this spacing in scene units
     /// (`None`: the default for the scene).
     pub probes: Option<Option<f64>>,
@@ -97,6 +99,7 @@ impl Default for Outputs {
             exposure: None,
             shading: output::Shading::Smooth,
             lightmaps: None,
+            lightmap_quantity: output::lightmap::Quantity::Radiance,
             probes: None,
         }
     }
@@ -254,6 +257,11 @@ fn content_hash(bytes: &[u8], params: &BatchParams) -> String {
             "texels_per_unit": density,
             "files": ["exr", "rgbm png", "ktx2"],
         });
+        // The light in place of the radiance: a bake asked for the radiance keeps its hash.
+        if outputs.lightmap_quantity != output::lightmap::Quantity::Radiance {
+            described["outputs"]["lightmaps"]["quantity"] =
+                serde_json::json!(outputs.lightmap_quantity);
+        }
     }
     if let Some(spacing) = outputs.probes {
         described["outputs"]["probes"] = serde_json::json!({ "spacing": spacing });
@@ -334,7 +342,9 @@ fn write_outputs(
             let lightmap = output::lightmap::Lightmap::new(bake, density)?;
             std::fs::create_dir_all(dir.join("lightmaps"))
                 .map_err(|e| format!("writing {}: {e}", dir.display()))?;
-            let bytes = output::lightmap_glb(scene, &lightmap).map_err(|e| e.to_string())?;
+            let materials = &bake.scene.materials;
+            let bytes =
+                output::lightmap_glb(scene, materials, &lightmap).map_err(|e| e.to_string())?;
             std::fs::write(dir.join("lightmaps").join("scene.glb"), bytes)
                 .map_err(|e| format!("writing {}: {e}", dir.display()))?;
             wanted.extend((0..count).filter(|&f| representatives[f] == f));
@@ -392,6 +402,7 @@ fn write_outputs(
                 let meshes = output::lit_geometry(bake, r, &frames[r], lighting);
                 if let Some(lightmap) = &lightmap {
                     let texels = lightmap.texels(bake, r, Some(&meshes), (&frames[r], lighting));
+                    let texels = texels.holding(outputs.lightmap_quantity);
                     let bytes = texels.exr(1.0)?;
                     let name = frame_name(r, count, "exr");
                     std::fs::write(dir.join("lightmaps").join(name), bytes).map_err(io)?;
@@ -453,7 +464,8 @@ fn write_outputs(
         lit.retain(|r, _| last_use.get(r).is_some_and(|&last| last > done));
     }
     if let Some(lightmap) = &lightmap {
-        let manifest = lightmap.manifest(scene, "scene.glb", &representatives, |r, kind| {
+        let geometry = ("scene.glb", outputs.lightmap_quantity);
+        let manifest = lightmap.manifest(scene, geometry, &representatives, |r, kind| {
             frame_name(r, count, kind)
         });
         std::fs::write(
@@ -1035,6 +1047,10 @@ mod tests {
             |p| p.outputs.exposure = Some(2.0),
             |p| p.outputs.shading = output::Shading::Flat,
             |p| p.outputs.lightmaps = Some(8.0),
+            |p| {
+                p.outputs.lightmaps = Some(8.0);
+                p.outputs.lightmap_quantity = output::lightmap::Quantity::Light;
+            },
             |p| p.outputs.probes = Some(None),
             |p| p.outputs.probes = Some(Some(0.5)),
         ];

@@ -247,6 +247,10 @@ pub struct PointRadiance {
     /// under a box resting on the floor, where a lightmap's texel takes no gathered light from
     /// its lit neighbours either.
     pub reached: f64,
+    /// The whole irradiance arriving (the direct light's and the gathered), its sites' weighted
+    /// mean; over π, what a white diffuse surface there would reflect (a lightmap's `light`).
+    /// 0 where the surface reflects nothing (no light is evaluated there).
+    pub irradiance: [f64; 3],
 }
 
 /// The point of `site` on `place` (its face at the frame), a hair inside the face's edges.
@@ -447,9 +451,9 @@ impl Gatherer<'_> {
     /// The weighted mean of `sites`' radiance.
     fn point(&self, sites: &[Site], hits: &mut Vec<Hit>) -> PointRadiance {
         let (mut radiance, mut variance, mut read) = ([0.0; 3], [0.0; 3], [0.0; 3]);
-        let (mut gathered, mut reached) = ([0.0; 3], 0.0);
+        let (mut gathered, mut reached, mut irradiance) = ([0.0; 3], 0.0, [0.0; 3]);
         for site in sites {
-            let ((l, v, r, g), reaches) = self.site(site, hits);
+            let ((l, v, r, g, e), reaches) = self.site(site, hits);
             if reaches {
                 reached += site.weight;
             }
@@ -458,6 +462,7 @@ impl Gatherer<'_> {
                 variance[c] += site.weight * site.weight * v[c];
                 read[c] += site.weight * r[c];
                 gathered[c] += site.weight * g[c];
+                irradiance[c] += site.weight * e[c];
             }
         }
         PointRadiance {
@@ -465,6 +470,7 @@ impl Gatherer<'_> {
             stderr: std::array::from_fn(|c| (variance[c] + read[c] * read[c]).sqrt()),
             gathered,
             reached,
+            irradiance,
         }
     }
 
@@ -483,13 +489,13 @@ impl Gatherer<'_> {
             .and_then(|p| self.scene.patches.get(p as usize))
             .and_then(|p| self.lighting.materials.get(p.material as usize))
         else {
-            return (([0.0; 3], [0.0; 3], [0.0; 3], [0.0; 3]), false);
+            return (([0.0; 3], [0.0; 3], [0.0; 3], [0.0; 3], [0.0; 3]), false);
         };
         let (le, rho) = (material.emission, material.reflectance);
         let x = site_point(site, place);
         let (n, own) = (place.normal, (place.triangle, place.back));
         if rho == [0.0; 3] || n == DVec3::ZERO || self.sight.view.covered(x, n, own) {
-            return ((le, [0.0; 3], [0.0; 3], [0.0; 3]), false);
+            return ((le, [0.0; 3], [0.0; 3], [0.0; 3], [0.0; 3]), false);
         }
         let seed = site_seed(self.gather.seed, site);
         let pi = std::f64::consts::PI;
@@ -543,6 +549,7 @@ impl Gatherer<'_> {
             std::array::from_fn(|c| to_radiance(c).powi(2) * variance[c]),
             std::array::from_fn(|c| to_radiance(c) * read[c] / count.max(1.0)),
             gathered,
+            e,
         );
         (light, true)
     }
@@ -1198,9 +1205,9 @@ type KeptForms = std::collections::HashMap<SiteKey, std::sync::Arc<[Option<Form>
 /// A site's direct irradiance and its variance, RGB.
 type DirectLight = ([f64; 3], [f64; 3]);
 
-/// A site's radiance, its sampling's variance, the error of the patches its gather read, and
-/// the irradiance gathered ([`Gatherer::site`]).
-type SiteLight = ([f64; 3], [f64; 3], [f64; 3], [f64; 3]);
+/// A site's radiance, its sampling's variance, the error of the patches its gather read, the
+/// irradiance gathered, and the whole irradiance arriving ([`Gatherer::site`]).
+type SiteLight = ([f64; 3], [f64; 3], [f64; 3], [f64; 3], [f64; 3]);
 
 /// A [`Linear`] as kept, in `f32` (a ray's value is always read from this form, whether just
 /// traced or kept, so that frames agree to the bit whatever was evaluated before them).

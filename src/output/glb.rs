@@ -30,7 +30,7 @@ use serde_json::{Value, json};
 use super::OutputError;
 use super::geometry::NodeMesh;
 use super::tonemap::ToneMap;
-use crate::scene::{Motion, Projection, Scene, SceneCamera};
+use crate::scene::{Material, Motion, Projection, Scene, SceneCamera};
 
 /// glTF component type of a 32-bit float.
 const FLOAT: u32 = 5126;
@@ -264,9 +264,11 @@ pub fn frame_glb(
 
 /// The `.glb` of a timeline's lightmapped geometry: the scene as drawn at frame 0 on the
 /// lightmap's vertices (seams split them), `TEXCOORD_1` its coordinates in the atlas (and
-/// `TEXCOORD_0` the same, glTF's sets counting from 0), `COLOR_0` the albedo of the face each
-/// vertex is on (linear; an emitter's emission in `extras.emission`), each node's source node in
-/// `extras`; the states' lightmaps are the EXR files beside it (`manifest.json`).
+/// `TEXCOORD_0` the same, glTF's sets counting from 0), one primitive per material on the
+/// node's vertices, each material diffuse with the reflectance and emission of `materials`
+/// (the scene's, as relit), each node's source node in `extras`; the states' lightmaps are the
+/// files beside it (`manifest.json`): a material shows its albedo times the `light` lightmap,
+/// plus its emission.
 ///
 /// A rigid moving node (`extras.moving` `"rigid"`) follows its motion in the animation
 /// `"baked motion"`: its transform at every frame's time, interpolated linearly between them,
@@ -278,6 +280,7 @@ pub fn frame_glb(
 /// [`OutputError::TooLarge`] if the file would pass GLB's 4 GiB limit.
 pub fn lightmap_glb(
     scene: &Scene,
+    materials: &[Material],
     lightmap: &super::lightmap::Lightmap,
 ) -> Result<Vec<u8>, OutputError> {
     let radius = scene.normalisation.radius;
@@ -286,6 +289,9 @@ pub fn lightmap_glb(
     let mut nodes = Vec::new();
     let mut gltf_meshes = Vec::new();
     let mut moving = Vec::new();
+    // The scene's materials used, in the order of first use, and each one's glTF index.
+    let mut glb_materials: std::collections::HashMap<u32, usize> = Default::default();
+    let mut order: Vec<u32> = Vec::new();
     for (uv, mesh) in lightmap.meshes.iter().zip(lightmap.rest()) {
         if uv.triangles.is_empty() {
             continue;
@@ -296,38 +302,44 @@ pub fn lightmap_glb(
         let normals: Vec<[f32; 3]> = (uv.xref.iter())
             .map(|&v| mesh.normals[v as usize].to_array())
             .collect();
-        // A vertex is shared by faces of one material only (`frame_geometry`).
-        let mut albedo = vec![[0.0f32; 3]; uv.uv.len()];
-        let mut emission = [0.0f64; 3];
-        for (t, &patch) in uv.triangles.iter().zip(&mesh.patches) {
-            let material = &scene.materials[scene.patches[patch as usize].material as usize];
-            for &v in t {
-                albedo[v as usize] = material.reflectance.map(|r| r as f32);
-            }
-            for (e, m) in emission.iter_mut().zip(material.emission) {
-                *e = e.max(m);
-            }
-        }
         let position = buffers.vec3(&positions, true);
         let normal = buffers.vec3(&normals, false);
-        let colour = buffers.vec3(&albedo, false);
         let texcoord = buffers.vec2(&uv.uv);
-        let indices = buffers.indices(&uv.triangles);
-        let patches = buffers.per_triangle(&mesh.patches);
-        let name = node_name(scene, mesh.node);
         let attributes = json!({
             "POSITION": position,
             "NORMAL": normal,
-            "COLOR_0": colour,
             "TEXCOORD_0": texcoord,
             "TEXCOORD_1": texcoord,
         });
-        let named = format!("{name} lightmapped");
-        gltf_meshes.push(drawn_mesh(named, attributes, (indices, patches)));
-        let mut node = mesh_node(name, gltf_meshes.len() - 1, centre, mesh.node);
-        if emission.iter().any(|&e| e > 0.0) {
-            node["extras"]["emission"] = json!(emission);
+        // One primitive per material, on the same vertices.
+        let mut by_material: std::collections::BTreeMap<u32, (Vec<[u32; 3]>, Vec<u32>)> =
+            Default::default();
+        for (t, &patch) in uv.triangles.iter().zip(&mesh.patches) {
+            let material = scene.patches[patch as usize].material;
+            let (triangles, patches) = by_material.entry(material).or_default();
+            triangles.push(*t);
+            patches.push(patch);
         }
+        let primitives: Vec<Value> = (by_material.iter())
+            .map(|(&material, (triangles, patches))| {
+                let used = *glb_materials.entry(material).or_insert(order.len());
+                if used == order.len() {
+                    order.push(material);
+                }
+                json!({
+                    "attributes": attributes,
+                    "indices": buffers.indices(triangles),
+                    "material": used,
+                    "extras": { "patches": buffers.per_triangle(patches) },
+                })
+            })
+            .collect();
+        let name = node_name(scene, mesh.node);
+        gltf_meshes.push(json!({
+            "name": format!("{name} lightmapped"),
+            "primitives": primitives,
+        }));
+        let mut node = mesh_node(name, gltf_meshes.len() - 1, centre, mesh.node);
         let object = scene.objects.iter().find(|o| o.node == mesh.node);
         if let Some(object) = object {
             let kind = match &object.motion {
@@ -362,15 +374,53 @@ pub fn lightmap_glb(
         }],
         "nodes": nodes,
         "meshes": gltf_meshes,
-        "materials": [{
-            "name": "lightmapped",
-            "pbrMetallicRoughness": { "baseColorFactor": [1.0, 1.0, 1.0, 1.0], "metallicFactor": 0.0 },
-        }],
+        "materials": order.iter().map(|&m| lit_material(scene, materials, m)).collect::<Vec<_>>(),
     });
+    if order
+        .iter()
+        .any(|&m| materials[m as usize].emission.iter().any(|&e| e > 1.0))
+    {
+        document["extensionsUsed"] = json!(["KHR_materials_emissive_strength"]);
+    }
     if let Some(animation) = animation {
         document["animations"] = json!([animation]);
     }
     buffers.finish(document)
+}
+
+/// Material `m` of `materials` (the scene's, as relit) as glTF: its reflectance the base
+/// colour, diffuse (no metal, fully rough), its emission the emissive colour (with
+/// `KHR_materials_emissive_strength` past 1).
+fn lit_material(scene: &Scene, materials: &[Material], m: u32) -> Value {
+    let material = &materials[m as usize];
+    let [r, g, b] = material.reflectance;
+    let strongest = material.emission.iter().copied().fold(0.0, f64::max);
+    let mut out = json!({
+        "pbrMetallicRoughness": {
+            "baseColorFactor": [r, g, b, 1.0],
+            "metallicFactor": 0.0,
+            "roughnessFactor": 1.0,
+        },
+        "extras": { "source_material": m },
+    });
+    if let Some(name) = &material.name {
+        out["name"] = name.as_str().into();
+    } else if let Some(name) = scene
+        .materials
+        .get(m as usize)
+        .and_then(|m| m.name.as_ref())
+    {
+        out["name"] = name.as_str().into();
+    }
+    if strongest > 0.0 {
+        let scale = strongest.max(1.0);
+        out["emissiveFactor"] = json!(material.emission.map(|e| e / scale));
+        if scale > 1.0 {
+            out["extensions"] =
+                json!({ "KHR_materials_emissive_strength": { "emissiveStrength": scale } });
+        }
+    }
+    out
 }
 
 /// The animation `"baked motion"` of the rigid moving nodes `moving` (index in `nodes`, poses

@@ -84,6 +84,46 @@ pub const PADDING: u32 = 2;
 /// Most texels an atlas may have (a 4096 × 4096 map): past it, a bake asks for a lower density.
 pub const MAX_TEXELS: f64 = 16_777_216.0;
 
+/// What a lightmap's texels hold.
+#[derive(
+    Clone,
+    Copy,
+    Debug,
+    Default,
+    PartialEq,
+    Eq,
+    serde::Serialize,
+    serde::Deserialize,
+    clap::ValueEnum,
+)]
+#[serde(rename_all = "lowercase")]
+pub enum Quantity {
+    /// The outgoing radiance, albedo and emission included: what the surface shows (an unlit
+    /// material, or a display of the bake).
+    #[default]
+    Radiance,
+    /// The light: the irradiance arriving over π, what a white diffuse surface would reflect
+    /// there; what engines' lightmaps hold (Unity, Godot; three.js's `lightMap` at an intensity
+    /// of π), their material's albedo (its texture at full resolution) multiplying it and its
+    /// emission added.
+    Light,
+}
+
+impl Quantity {
+    /// The manifest's words for it.
+    #[must_use]
+    pub fn describe(self) -> &'static str {
+        match self {
+            Self::Radiance => {
+                "radiance: the outgoing radiance, albedo and emission included (what the surface shows)"
+            }
+            Self::Light => {
+                "light: the irradiance arriving over pi, what a white diffuse surface would reflect; a material shows albedo * light + emission (Unity's and Godot's lightmaps; three.js lightMap with lightMapIntensity = pi)"
+            }
+        }
+    }
+}
+
 /// The drawn scene unwrapped onto one atlas, and where each covered texel lies on it.
 #[derive(Clone, Debug)]
 pub struct Lightmap {
@@ -219,6 +259,12 @@ pub struct Texels {
     pub radiance: Vec<[f32; 3]>,
     /// Its standard error.
     pub stderr: Vec<[f32; 3]>,
+    /// The light per texel: the irradiance arriving over π, what a white diffuse surface there
+    /// would reflect, the albedo and the emission left out (an engine's lightmap, which its
+    /// material's albedo multiplies: [`Texels::light`]).
+    pub light: Vec<[f32; 3]>,
+    /// Its standard error (the radiance's over the albedo: 0 where the albedo is).
+    pub light_stderr: Vec<[f32; 3]>,
     /// Whether a triangle covers each texel (the others are gutters).
     pub covered: Vec<bool>,
 }
@@ -445,24 +491,26 @@ impl Lightmap {
     pub fn manifest(
         &self,
         scene: &Scene,
-        geometry: &str,
+        (geometry, quantity): (&str, Quantity),
         representatives: &[usize],
         file: impl Fn(usize, &str) -> String,
     ) -> serde_json::Value {
         serde_json::json!({
             "geometry": geometry,
+            "quantity": quantity,
+            "quantity_meaning": quantity.describe(),
             "uv_set": 1,
             "width": self.width,
             "height": self.height,
             "texels_per_unit": self.texels_per_unit,
             "charts": self.charts,
             "covered_texels": self.covered(),
-            "format": "OpenEXR, half float, linear RGB radiance in the scene's emission units; row 0 at the top (glTF's texture coordinates)",
+            "format": "OpenEXR, half float, linear RGB (the quantity) in the scene's emission units; row 0 at the top (glTF's texture coordinates)",
             "rgbm": {
-                "format": "PNG, 8-bit RGBA, linear RGBM: radiance = rgb * a * range, clamped at range",
+                "format": "PNG, 8-bit RGBA, linear RGBM: value = rgb * a * range, clamped at range",
                 "range": RGBM_RANGE,
             },
-            "ktx2": "KTX 2.0, VK_FORMAT_R16G16B16A16_SFLOAT, Zstandard-supercompressed, linear radiance (alpha 1), rows from the top",
+            "ktx2": "KTX 2.0, VK_FORMAT_R16G16B16A16_SFLOAT, Zstandard-supercompressed, linear (alpha 1), rows from the top",
             "frames": (representatives.iter().enumerate()).map(|(f, &r)| serde_json::json!({
                 "frame": f,
                 "time": scene.frames.time(f),
@@ -559,6 +607,8 @@ impl Lightmap {
             height: self.height,
             radiance: vec![[0.0; 3]; size],
             stderr: vec![[0.0; 3]; size],
+            light: vec![[0.0; 3]; size],
+            light_stderr: vec![[0.0; 3]; size],
             covered: vec![false; size],
         };
         let patches = &bake.shown().patches;
@@ -651,24 +701,29 @@ impl Lightmap {
         let mut gathered = gathered.into_iter();
         for ((texel, d), i) in self.texels.iter().zip(&direct).zip(interpolated) {
             let at = texel.at as usize;
-            let (radiance, stderr) = match i {
-                Some((g, e)) => {
-                    let rho = reflectance(texel);
-                    (
-                        std::array::from_fn(|c| {
-                            d.radiance[c] + rho[c] * std::f64::consts::FRAC_1_PI * g[c] * d.reached
-                        }),
-                        std::array::from_fn(|c| d.stderr[c].hypot(e[c])),
-                    )
-                }
+            let rho = reflectance(texel);
+            let (radiance, stderr, irradiance) = match i {
+                Some((g, e)) => (
+                    std::array::from_fn(|c| {
+                        d.radiance[c] + rho[c] * std::f64::consts::FRAC_1_PI * g[c] * d.reached
+                    }),
+                    std::array::from_fn(|c| d.stderr[c].hypot(e[c])),
+                    std::array::from_fn(|c| d.irradiance[c] + g[c] * d.reached),
+                ),
                 None => {
                     let own = gathered.next().unwrap_or_default();
-                    (own.radiance, own.stderr)
+                    (own.radiance, own.stderr, own.irradiance)
                 }
             };
             for c in 0..3 {
                 out.radiance[at][c] = radiance[c].max(0.0) as f32;
                 out.stderr[at][c] = stderr[c] as f32;
+                out.light[at][c] = (irradiance[c] * std::f64::consts::FRAC_1_PI).max(0.0) as f32;
+                out.light_stderr[at][c] = if rho[c] > 0.0 {
+                    (stderr[c] / rho[c]) as f32
+                } else {
+                    0.0
+                };
             }
             out.covered[at] = true;
         }
@@ -773,15 +828,15 @@ fn nearest(c: [f64; 2], p: &[[f64; 2]; 3], area: f64) -> (f64, [f64; 3]) {
 fn dilate(texels: &mut Texels, steps: usize) {
     let (w, h) = (texels.width as usize, texels.height as usize);
     let mut filled = texels.covered.clone();
+    let mut next: Vec<(usize, Vec<usize>)> = Vec::new();
     for _ in 0..steps {
-        let mut next = Vec::new();
+        next.clear();
         for y in 0..h {
             for x in 0..w {
                 if filled[y * w + x] {
                     continue;
                 }
-                let (mut sum, mut err, mut n) = ([0.0f32; 3], [0.0f32; 3], 0.0f32);
-                for (dx, dy) in [
+                let around: Vec<usize> = [
                     (-1i64, 0i64),
                     (1, 0),
                     (0, -1),
@@ -790,32 +845,40 @@ fn dilate(texels: &mut Texels, steps: usize) {
                     (1, 1),
                     (-1, 1),
                     (1, -1),
-                ] {
-                    let (nx, ny) = (x as i64 + dx, y as i64 + dy);
-                    if nx < 0 || ny < 0 || nx >= w as i64 || ny >= h as i64 {
-                        continue;
-                    }
-                    let at = ny as usize * w + nx as usize;
-                    if filled[at] {
-                        (0..3).for_each(|c| {
-                            sum[c] += texels.radiance[at][c];
-                            err[c] += texels.stderr[at][c];
-                        });
-                        n += 1.0;
-                    }
-                }
-                if n > 0.0 {
-                    next.push((y * w + x, sum.map(|s| s / n), err.map(|e| e / n)));
+                ]
+                .into_iter()
+                .map(|(dx, dy)| (x as i64 + dx, y as i64 + dy))
+                .filter(|&(nx, ny)| nx >= 0 && ny >= 0 && nx < w as i64 && ny < h as i64)
+                .map(|(nx, ny)| ny as usize * w + nx as usize)
+                .filter(|&at| filled[at])
+                .collect();
+                if !around.is_empty() {
+                    next.push((y * w + x, around));
                 }
             }
         }
         if next.is_empty() {
             break;
         }
-        for (at, l, e) in next {
-            texels.radiance[at] = l;
-            texels.stderr[at] = e;
-            filled[at] = true;
+        let fields = [
+            &mut texels.radiance,
+            &mut texels.stderr,
+            &mut texels.light,
+            &mut texels.light_stderr,
+        ];
+        for values in fields {
+            let means: Vec<[f32; 3]> = (next.iter())
+                .map(|(_, around)| {
+                    let n = around.len() as f32;
+                    std::array::from_fn(|c| around.iter().map(|&a| values[a][c]).sum::<f32>() / n)
+                })
+                .collect();
+            for ((at, _), mean) in next.iter().zip(means) {
+                values[*at] = mean;
+            }
+        }
+        for (at, _) in &next {
+            filled[*at] = true;
         }
     }
 }
@@ -825,6 +888,18 @@ fn dilate(texels: &mut Texels, steps: usize) {
 pub const RGBM_RANGE: f32 = 16.0;
 
 impl Texels {
+    /// These texels with `quantity` in place of the radiance (and its error bars), which the
+    /// writers then write: the light ([`Quantity::Light`]) is the lightmap an engine's
+    /// material multiplies by its albedo.
+    #[must_use]
+    pub fn holding(mut self, quantity: Quantity) -> Self {
+        if quantity == Quantity::Light {
+            std::mem::swap(&mut self.radiance, &mut self.light);
+            std::mem::swap(&mut self.stderr, &mut self.light_stderr);
+        }
+        self
+    }
+
     /// The radiance scaled by `scale` as an 8-bit RGBA PNG in linear RGBM: `a` the multiplier
     /// (rounded up, so that `rgb` stays within 1), `rgb` the colour over `a × RGBM_RANGE`;
     /// radiance past [`RGBM_RANGE`] (scaled) is clamped to it. For engines without float

@@ -18,7 +18,7 @@ use super::query::{
 use super::{ApiError, AppState, job};
 use crate::bake::Bake;
 use crate::direct::points::Lighting;
-use crate::output::lightmap::Lightmap;
+use crate::output::lightmap::{Lightmap, Quantity};
 use crate::solve::FrameSolution;
 
 /// Binary layout of a frame (`Accept: application/octet-stream`), little-endian: u32 frame,
@@ -202,9 +202,10 @@ pub(super) enum LightmapFile {
     Png,
 }
 
-/// `GET /v1/timelines/{id}/frames/{f}/lightmap.{exr,ktx2,png}?texels_per_unit=`: the frame's
-/// lightmap, the texels `radiosity bake --lightmaps` writes for its lighting state, on the atlas
-/// of `GET /v1/timelines/{id}/lightmap.glb` at the same density.
+/// `GET /v1/timelines/{id}/frames/{f}/lightmap.{exr,ktx2,png}?texels_per_unit=&quantity=`: the
+/// frame's lightmap (its radiance, or its light), the texels `radiosity bake --lightmaps`
+/// writes for its lighting state, on the atlas of `GET /v1/timelines/{id}/lightmap.glb` at the
+/// same density.
 pub(super) async fn frame_lightmap(
     State(state): State<AppState>,
     Path((id, frame)): Path<(String, String)>,
@@ -212,7 +213,7 @@ pub(super) async fn frame_lightmap(
     file: LightmapFile,
 ) -> Result<Response, ApiError> {
     let job = job(&state, &id)?;
-    let density = query.validate()?;
+    let (density, quantity) = query.validate()?;
     let (content_type, what) = match file {
         LightmapFile::Exr => ("image/x-exr", "the lightmap's EXR"),
         LightmapFile::Ktx2 => ("image/ktx2", "the lightmap's KTX2"),
@@ -229,6 +230,7 @@ pub(super) async fn frame_lightmap(
             let lightmap = (owner.lightmap(bake, density, SERVICE_MOST_TEXELS))
                 .map_err(ApiError::Parameter)?;
             let texels = lightmap.texels(bake, f, None, (solution, lighting));
+            let texels = texels.holding(quantity);
             match file {
                 LightmapFile::Exr => texels.exr(1.0),
                 LightmapFile::Ktx2 => texels.ktx2(1.0),
@@ -248,14 +250,17 @@ pub(super) async fn timeline_lightmap_geometry(
     Path(id): Path<String>,
     StrictQuery(query): StrictQuery<LightmapQuery>,
 ) -> Result<Response, ApiError> {
-    let density = query.validate()?;
+    let (density, _) = query.validate()?;
+    // The materials as relit: the light lightmap leaves out the surface's own albedo.
+    let (materials, _) = job(&state, &id)?.lighting();
     let bytes = with_lightmap(
         &state,
         &id,
         density,
         "the lightmap's glTF",
-        |bake, lightmap| {
-            crate::output::lightmap_glb(bake.shown(), lightmap).map_err(|e| e.to_string())
+        move |bake, lightmap| {
+            crate::output::lightmap_glb(bake.shown(), &materials, lightmap)
+                .map_err(|e| e.to_string())
         },
     )
     .await?;
@@ -266,16 +271,16 @@ pub(super) async fn timeline_lightmap_geometry(
         .into_response())
 }
 
-/// `GET /v1/timelines/{id}/lightmap.json?texels_per_unit=`: the lightmaps' manifest, as
-/// `radiosity bake --lightmaps` writes `lightmaps/manifest.json`, its files the service's
-/// routes: every frame's time and lighting state (`state`, its first frame), and that state's
-/// lightmap in each format.
+/// `GET /v1/timelines/{id}/lightmap.json?texels_per_unit=&quantity=`: the lightmaps'
+/// manifest, as `radiosity bake --lightmaps` writes `lightmaps/manifest.json`, its files the
+/// service's routes: every frame's time and lighting state (`state`, its first frame), and
+/// that state's lightmap in each format, holding `quantity`.
 pub(super) async fn timeline_lightmap_manifest(
     State(state): State<AppState>,
     Path(id): Path<String>,
     StrictQuery(query): StrictQuery<LightmapQuery>,
 ) -> Result<Response, ApiError> {
-    let density = query.validate()?;
+    let (density, quantity) = query.validate()?;
     let base = format!("/v1/timelines/{id}");
     let bytes = with_lightmap(
         &state,
@@ -283,10 +288,14 @@ pub(super) async fn timeline_lightmap_manifest(
         density,
         "the lightmaps' manifest",
         move |bake, lightmap| {
-            let query = format!("?texels_per_unit={density}");
-            let geometry = format!("{base}/lightmap.glb{query}");
+            let geometry = format!("{base}/lightmap.glb?texels_per_unit={density}");
+            let query = match quantity {
+                Quantity::Radiance => format!("?texels_per_unit={density}"),
+                Quantity::Light => format!("?texels_per_unit={density}&quantity=light"),
+            };
             let states = bake.representatives();
-            let manifest = lightmap.manifest(bake.shown(), &geometry, &states, |r, kind| {
+            let described = (geometry.as_str(), quantity);
+            let manifest = lightmap.manifest(bake.shown(), described, &states, |r, kind| {
                 format!("{base}/frames/{r}/lightmap.{kind}{query}")
             });
             serde_json::to_vec(&manifest).map_err(|e| e.to_string())

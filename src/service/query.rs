@@ -13,6 +13,7 @@ use serde::Deserialize;
 use serde::de::DeserializeOwned;
 
 use super::{ApiError, Config};
+use crate::output::lightmap::Quantity;
 use crate::params::{MIN_LINES, number, whole};
 
 /// axum's [`Query`] with the API's errors: a parameter `T` does not take, or a value it cannot
@@ -207,16 +208,22 @@ pub(super) struct LightmapQuery {
     /// Texels per scene unit; [`crate::output::lightmap::TEXELS_PER_UNIT`] if absent.
     #[serde(default, deserialize_with = "number")]
     texels_per_unit: Option<f64>,
+    /// What the texels hold: `radiance` (by default) or `light`.
+    #[serde(default)]
+    quantity: Quantity,
 }
 
 impl LightmapQuery {
-    /// The density (> 0).
-    pub(super) fn validate(self) -> Result<f64, ApiError> {
+    /// The density (> 0) and the quantity.
+    pub(super) fn validate(self) -> Result<(f64, Quantity), ApiError> {
         match self.texels_per_unit {
             Some(t) if t <= 0.0 => Err(ApiError::Parameter(format!(
                 "texels_per_unit must be a positive number, not {t}"
             ))),
-            t => Ok(t.unwrap_or(crate::output::lightmap::TEXELS_PER_UNIT)),
+            t => Ok((
+                t.unwrap_or(crate::output::lightmap::TEXELS_PER_UNIT),
+                self.quantity,
+            )),
         }
     }
 }
@@ -310,6 +317,7 @@ impl LightmappedQuery {
         .validate()?;
         LightmapQuery {
             texels_per_unit: self.texels_per_unit,
+            quantity: Quantity::Light,
         }
         .validate()?;
         if let Some(s) = self.probe_spacing.filter(|&s| s <= 0.0) {

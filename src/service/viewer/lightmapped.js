@@ -2,12 +2,13 @@
 // how an engine loads them (docs/import.md walks through it).
 //
 // - The geometry: `lightmap.glb` (GLTFLoader): every node on the lightmap's vertices, the atlas
-//   coordinates in TEXCOORD_1 (three.js's `uv1`), the albedo in COLOR_0, rigid moving nodes
-//   animated by the "baked motion" clip at the frames' times.
-// - The lightmaps: `lightmap.json` lists every frame's time and lighting state; each state's
-//   EXR (EXRLoader) is loaded once and shown on every static node as `lightMap` on channel 1.
-//   The texels are outgoing radiance (albedo and emission included), so the material is white
-//   and `lightMapIntensity` is π (three.js divides a light map by π).
+//   coordinates in TEXCOORD_1 (three.js's `uv1`), a primitive per material (its albedo and
+//   emission), rigid moving nodes animated by the "baked motion" clip at the frames' times.
+// - The lightmaps: `lightmap.json?quantity=light` lists every frame's time and lighting state;
+//   each state's EXR (EXRLoader) is loaded once and shown on every static node as `lightMap`
+//   on channel 1. Its texels are the light (the irradiance over π, albedo-free), so a
+//   material shows albedo × light + emission: three.js's `lightMap` at an intensity of π
+//   (three.js divides a light map by π), the material's colour and emissive from the file.
 // - The probes: a state's `probes.json` (SH L2 of the arriving radiance, per probe of a grid);
 //   a moving node is lit from the probes around its centre, interpolated trilinearly, by a
 //   shader that evaluates E(n) = Σ A_l L_lm Y_lm(n) and shows albedo × E / π.
@@ -27,7 +28,7 @@ const params = new URLSearchParams(location.search);
 const id = location.pathname.split('/')[3];
 const base = `/v1/timelines/${id}`;
 const density = params.get('texels_per_unit');
-const lightmapQuery = density ? `?texels_per_unit=${encodeURIComponent(density)}` : '';
+const lightmapQuery = `?quantity=light${density ? `&texels_per_unit=${encodeURIComponent(density)}` : ''}`;
 const spacing = params.get('probe_spacing');
 const probesQuery = spacing ? `?spacing=${encodeURIComponent(spacing)}` : '';
 
@@ -46,16 +47,14 @@ THREE.ShaderChunk.tonemapping_pars_fragment = THREE.ShaderChunk.tonemapping_pars
 // albedo / π.
 const probeVertex = `
 varying vec3 vNormal;
-varying vec3 vAlbedo;
 void main() {
   vNormal = normalize( mat3( modelMatrix ) * normal );
-  vAlbedo = color;
   gl_Position = projectionMatrix * modelViewMatrix * vec4( position, 1.0 );
 }`;
 const probeFragment = `
 uniform vec3 sh[ 9 ];
+uniform vec3 albedo;
 varying vec3 vNormal;
-varying vec3 vAlbedo;
 void main() {
   vec3 n = normalize( vNormal );
   vec3 e = 3.14159265 * 0.2820948 * sh[ 0 ]
@@ -63,7 +62,7 @@ void main() {
     + 0.78539816 * ( 1.0925484 * ( sh[ 4 ] * n.x * n.y + sh[ 5 ] * n.y * n.z + sh[ 7 ] * n.x * n.z )
       + 0.3153916 * sh[ 6 ] * ( 3.0 * n.z * n.z - 1.0 )
       + 0.5462742 * sh[ 8 ] * ( n.x * n.x - n.y * n.y ) );
-  gl_FragColor = vec4( vAlbedo * max( e, 0.0 ) / 3.14159265, 1.0 );
+  gl_FragColor = vec4( albedo * max( e, 0.0 ) / 3.14159265, 1.0 );
   #include <tonemapping_fragment>
   #include <colorspace_fragment>
 }`;
@@ -90,15 +89,20 @@ class Lightmapped {
     this.scene.add(gltf.scene);
     gltf.scene.traverse((object) => {
       if (!object.isMesh) return;
-      const moving = object.userData.moving === 'rigid' && !object.userData.emission;
-      if (moving) {
-        const uniforms = { sh: { value: Array.from({ length: 9 }, () => new THREE.Vector3()) } };
-        object.material = new THREE.ShaderMaterial({
-          uniforms, vertexShader: probeVertex, fragmentShader: probeFragment, vertexColors: true,
-        });
-        this.probeLit.push({ object, sh: uniforms.sh.value });
+      // The node's extras are on the mesh, or on the group of its primitives.
+      const node = object.userData.source_node === undefined ? object.parent : object;
+      const { color, emissive, emissiveIntensity } = object.material;
+      const glowing = emissive.r + emissive.g + emissive.b > 0;
+      if (node.userData.moving === 'rigid' && !glowing) {
+        const uniforms = {
+          sh: { value: Array.from({ length: 9 }, () => new THREE.Vector3()) },
+          albedo: { value: color.clone() },
+        };
+        object.material = new THREE.ShaderMaterial({ uniforms, vertexShader: probeVertex, fragmentShader: probeFragment });
+        this.probeLit.push({ object: node, sh: uniforms.sh.value });
       } else {
-        object.material = new THREE.MeshBasicMaterial({ color: 0xffffff, lightMapIntensity: Math.PI });
+        // No light objects in the scene: a Lambert material shows its lightmap and emission.
+        object.material = new THREE.MeshLambertMaterial({ color, emissive, emissiveIntensity, lightMapIntensity: Math.PI });
         this.lit.push(object.material);
       }
     });
