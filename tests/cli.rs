@@ -969,3 +969,124 @@ fn bake_probes_writes_a_grid_and_one_file_per_lighting_state() {
     }
     let _ = std::fs::remove_dir_all(&out);
 }
+
+/// An IEEE half float's value (normal and subnormal numbers).
+fn half_float(bits: u16) -> f32 {
+    let sign = if bits & 0x8000 != 0 { -1.0 } else { 1.0 };
+    let exponent = i32::from((bits >> 10) & 0x1f);
+    let mantissa = f32::from(bits & 0x3ff);
+    sign * match exponent {
+        0 => mantissa * 2f32.powi(-24),
+        e => (1.0 + mantissa / 1024.0) * 2f32.powi(e - 15),
+    }
+}
+
+/// `bake --lightmaps --lightmap-quantity light`: one lightmap per lighting state, the manifest
+/// mapping every frame to its state's files, and the geometry embedding the first state's
+/// light for `MOZ_lightmap`, the same light as the state's KTX2 within the PNG's 8 bits.
+#[test]
+fn bake_lightmaps_writes_each_state_once_and_embeds_the_first_state_s_light() {
+    let out = scratch("lightmaps");
+    let scene = sample("cornell_moving.gltf");
+    let output = radiosity()
+        .args([
+            "bake",
+            scene.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ])
+        .args(["--lines", "20000", "--fps", "4", "--no-gif", "--force"])
+        .args(["--glb-frames", "none", "--preview-frames", "none"])
+        .args(["--lightmaps", "--lightmap-quantity", "light"])
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let dir = out.join("cornell_moving").join("lightmaps");
+    let manifest: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("manifest.json")).unwrap()).unwrap();
+    assert_eq!(manifest["quantity"], "light");
+    let frames = manifest["frames"].as_array().unwrap();
+    assert_eq!(frames.len(), 9, "2 s at 4 fps");
+    let mut states = std::collections::BTreeSet::new();
+    for frame in frames {
+        let state = frame["state"].as_u64().unwrap();
+        assert!(state <= frame["frame"].as_u64().unwrap());
+        states.insert(state);
+        for kind in ["lightmap", "rgbm", "ktx2"] {
+            assert!(dir.join(frame[kind].as_str().unwrap()).is_file(), "{frame}");
+        }
+    }
+    let exrs = (std::fs::read_dir(&dir).unwrap())
+        .filter(|e| e.as_ref().unwrap().path().extension() == Some("exr".as_ref()))
+        .count();
+    assert_eq!(exrs, states.len(), "one EXR per lighting state");
+
+    let bytes = std::fs::read(dir.join("scene.glb")).unwrap();
+    let gltf = gltf::Gltf::from_slice(&bytes).unwrap();
+    let json: serde_json::Value = serde_json::from_str(
+        &gltf
+            .document
+            .clone()
+            .into_json()
+            .to_string_pretty()
+            .unwrap(),
+    )
+    .unwrap();
+    assert!(
+        (json["extensionsUsed"].as_array().unwrap()).contains(&"MOZ_lightmap".into()),
+        "{}",
+        json["extensionsUsed"]
+    );
+    let embedded = &json["scenes"][0]["extras"]["lightmap"]["embedded"];
+    let scale = embedded["scale"].as_f64().unwrap() as f32;
+    for material in json["materials"].as_array().unwrap() {
+        let moz = &material["extensions"]["MOZ_lightmap"];
+        assert_eq!((&moz["index"], &moz["texCoord"]), (&0.into(), &1.into()));
+        let intensity = moz["intensity"].as_f64().unwrap();
+        assert!((intensity - std::f64::consts::PI * f64::from(scale)).abs() < 1e-3 * intensity);
+    }
+    let view = gltf.images().next().unwrap();
+    let gltf::image::Source::View { view, mime_type } = view.source() else {
+        panic!("the lightmap is not embedded");
+    };
+    assert_eq!(mime_type, "image/png");
+    let blob = gltf.blob.as_deref().unwrap();
+    let png = &blob[view.offset()..view.offset() + view.length()];
+    let png = image::load_from_memory(png).unwrap().to_rgb8();
+    // State 0's light, as its KTX2 holds it.
+    let ktx2 = std::fs::read(dir.join(frames[0]["ktx2"].as_str().unwrap())).unwrap();
+    let reader = ktx2::Reader::new(&ktx2[..]).unwrap();
+    let level = reader.levels().next().unwrap();
+    let raw = zstd::bulk::decompress(level.data, level.uncompressed_byte_length as usize).unwrap();
+    assert_eq!(raw.len(), 8 * png.pixels().len());
+    let srgb = |linear: f32| {
+        let c = linear.clamp(0.0, 1.0);
+        let e = if c <= 0.003_130_8 {
+            12.92 * c
+        } else {
+            1.055 * c.powf(1.0 / 2.4) - 0.055
+        };
+        e * 255.0
+    };
+    let mut lit = 0;
+    for (k, pixel) in png.pixels().enumerate() {
+        for c in 0..3 {
+            let at = 8 * k + 2 * c;
+            let light = half_float(u16::from_le_bytes([raw[at], raw[at + 1]]));
+            let want = srgb(light / scale);
+            // The half float's rounding, then the byte's.
+            assert!(
+                (f32::from(pixel[c]) - want).abs() <= 1.0,
+                "texel {k}: {} for {want}",
+                pixel[c]
+            );
+            lit += usize::from(pixel[c] > 16);
+        }
+    }
+    assert!(lit > png.pixels().len() / 2, "{lit} lit channels");
+    let _ = std::fs::remove_dir_all(&out);
+}

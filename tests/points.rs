@@ -1035,7 +1035,7 @@ fn the_lightmapped_geometry_s_animation_poses_the_moving_block_as_each_frame_dra
     let bake = split_sample("cornell_moving.gltf", None, &lines);
     let scene = bake.shown();
     let lightmap = Lightmap::new(&bake, 8.0).unwrap();
-    let bytes = radiosity::output::lightmap_glb(scene, &scene.materials, &lightmap).unwrap();
+    let bytes = radiosity::output::lightmap_glb(scene, &scene.materials, &lightmap, None).unwrap();
     let gltf = gltf::Gltf::from_slice(&bytes).unwrap();
     let blob = gltf.blob.as_deref().unwrap();
     let kinds: Vec<Option<&str>> = (gltf.nodes())

@@ -26,7 +26,7 @@ pub mod shard;
 use std::collections::HashMap;
 use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
+use std::sync::{Arc, PoisonError};
 use std::time::Instant;
 
 use rayon::prelude::*;
@@ -342,11 +342,6 @@ fn write_outputs(
             let lightmap = output::lightmap::Lightmap::new(bake, density)?;
             std::fs::create_dir_all(dir.join("lightmaps"))
                 .map_err(|e| format!("writing {}: {e}", dir.display()))?;
-            let materials = &bake.scene.materials;
-            let bytes =
-                output::lightmap_glb(scene, materials, &lightmap).map_err(|e| e.to_string())?;
-            std::fs::write(dir.join("lightmaps").join("scene.glb"), bytes)
-                .map_err(|e| format!("writing {}: {e}", dir.display()))?;
             wanted.extend((0..count).filter(|&f| representatives[f] == f));
             Some(lightmap)
         }
@@ -384,6 +379,7 @@ fn write_outputs(
         last_use.insert(representatives[f], f);
     }
     let mut lit: HashMap<usize, Arc<Vec<output::NodeMesh>>> = HashMap::new();
+    let embedded: std::sync::Mutex<Option<output::Embedded>> = Default::default();
     let (width, height) = outputs.preview_size;
     let small = ((width / 2).max(1), (height / 2).max(1));
     // Frames at once: each render holds its sample buffers, so large previews take turns.
@@ -402,6 +398,11 @@ fn write_outputs(
                 let meshes = output::lit_geometry(bake, r, &frames[r], lighting);
                 if let Some(lightmap) = &lightmap {
                     let texels = lightmap.texels(bake, r, Some(&meshes), (&frames[r], lighting));
+                    if r == 0 {
+                        // The first state's light, embedded in the geometry for MOZ_lightmap.
+                        let light = output::Embedded::light(&texels, 0)?;
+                        *embedded.lock().unwrap_or_else(PoisonError::into_inner) = Some(light);
+                    }
                     let texels = texels.holding(outputs.lightmap_quantity);
                     let bytes = texels.exr(1.0)?;
                     let name = frame_name(r, count, "exr");
@@ -464,6 +465,13 @@ fn write_outputs(
         lit.retain(|r, _| last_use.get(r).is_some_and(|&last| last > done));
     }
     if let Some(lightmap) = &lightmap {
+        let materials = &bake.scene.materials;
+        let embedded = embedded
+            .into_inner()
+            .unwrap_or_else(PoisonError::into_inner);
+        let bytes = output::lightmap_glb(scene, materials, lightmap, embedded.as_ref())
+            .map_err(|e| e.to_string())?;
+        std::fs::write(dir.join("lightmaps").join("scene.glb"), bytes).map_err(io)?;
         let geometry = ("scene.glb", outputs.lightmap_quantity);
         let manifest = lightmap.manifest(scene, geometry, &representatives, |r, kind| {
             frame_name(r, count, kind)

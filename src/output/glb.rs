@@ -117,6 +117,21 @@ impl Buffers {
         glb(&document, &self.bin)
     }
 
+    /// Appends `bytes` as a bufferView of their own (an embedded image), returning its index.
+    fn view(&mut self, bytes: &[u8]) -> usize {
+        while !self.bin.len().is_multiple_of(4) {
+            self.bin.push(0);
+        }
+        let offset = self.bin.len();
+        self.bin.extend_from_slice(bytes);
+        self.views.push(json!({
+            "buffer": 0,
+            "byteOffset": offset,
+            "byteLength": bytes.len(),
+        }));
+        self.views.len() - 1
+    }
+
     /// Appends `values` as a VEC2 float accessor, returning its index.
     fn vec2(&mut self, values: &[[f32; 2]]) -> usize {
         let words = values.iter().flatten().map(|c| c.to_le_bytes());
@@ -282,6 +297,7 @@ pub fn lightmap_glb(
     scene: &Scene,
     materials: &[Material],
     lightmap: &super::lightmap::Lightmap,
+    embedded: Option<&Embedded>,
 ) -> Result<Vec<u8>, OutputError> {
     let radius = scene.normalisation.radius;
     let centre = scene.normalisation.center;
@@ -376,16 +392,79 @@ pub fn lightmap_glb(
         "meshes": gltf_meshes,
         "materials": order.iter().map(|&m| lit_material(scene, materials, m)).collect::<Vec<_>>(),
     });
+    let mut extensions = Vec::new();
     if order
         .iter()
         .any(|&m| materials[m as usize].emission.iter().any(|&e| e > 1.0))
     {
-        document["extensionsUsed"] = json!(["KHR_materials_emissive_strength"]);
+        extensions.push("KHR_materials_emissive_strength");
+    }
+    if let Some(embedded) = embedded {
+        let view = buffers.view(&embedded.png);
+        document["images"] = json!([{
+            "name": format!("light of lighting state {}", embedded.state),
+            "bufferView": view,
+            "mimeType": "image/png",
+        }]);
+        // Linear filtering, no mipmaps: a texel's neighbours across a chart's padding are
+        // its own dilated light, not another chart's.
+        document["samplers"] = json!([{ "magFilter": 9729, "minFilter": 9729 }]);
+        document["textures"] = json!([{ "source": 0, "sampler": 0 }]);
+        let intensity = std::f64::consts::PI * f64::from(embedded.scale);
+        for material in document["materials"].as_array_mut().into_iter().flatten() {
+            material["extensions"]["MOZ_lightmap"] =
+                json!({ "index": 0, "texCoord": 1, "intensity": intensity });
+        }
+        document["scenes"][0]["extras"]["lightmap"]["embedded"] = json!({
+            "state": embedded.state,
+            "quantity": "light",
+            "encoding": "8-bit sRGB PNG of light / scale, clamped at 1; MOZ_lightmap's intensity is pi * scale (three.js's lightMapIntensity)",
+            "scale": embedded.scale,
+        });
+        extensions.push("MOZ_lightmap");
+    }
+    if !extensions.is_empty() {
+        document["extensionsUsed"] = json!(extensions);
     }
     if let Some(animation) = animation {
         document["animations"] = json!([animation]);
     }
     buffers.finish(document)
+}
+
+/// A lightmap to embed in the lightmapped geometry for `MOZ_lightmap` (Mozilla Hubs' and
+/// gltf-transform's extension, which three.js-based viewers read as the material's `lightMap`
+/// on `TEXCOORD_1` at `lightMapIntensity` = its `intensity`): one lighting state's light
+/// ([`super::lightmap::Quantity::Light`]) as an 8-bit sRGB PNG of the light over `scale`
+/// ([`super::lightmap::Texels::srgb_png`]).
+#[derive(Clone, Debug)]
+pub struct Embedded {
+    /// The PNG.
+    pub png: Vec<u8>,
+    /// The light the PNG's white stands for.
+    pub scale: f32,
+    /// The lighting state (its first frame).
+    pub state: usize,
+}
+
+impl Embedded {
+    /// Lighting state `state`'s light from its `texels` (of any quantity: their light is
+    /// read), scaled to its brightest texel.
+    ///
+    /// # Errors
+    /// The PNG encoder's, as text.
+    pub fn light(texels: &super::lightmap::Texels, state: usize) -> Result<Self, String> {
+        let light = super::lightmap::Texels {
+            radiance: texels.light.clone(),
+            ..texels.clone()
+        };
+        let scale = light.peak().max(f32::MIN_POSITIVE);
+        Ok(Self {
+            png: light.srgb_png(scale)?,
+            scale,
+            state,
+        })
+    }
 }
 
 /// Material `m` of `materials` (the scene's, as relit) as glTF: its reflectance the base

@@ -900,6 +900,29 @@ impl Texels {
         self
     }
 
+    /// The largest value of a covered texel (0 if none).
+    #[must_use]
+    pub fn peak(&self) -> f32 {
+        (self.radiance.iter().zip(&self.covered))
+            .filter(|(_, c)| **c)
+            .flat_map(|(v, _)| *v)
+            .fold(0.0, f32::max)
+    }
+
+    /// The radiance over `scale` as an 8-bit sRGB-encoded RGB PNG (clamped to 1), as a glTF
+    /// colour texture is read: the lightmap `MOZ_lightmap` embeds, with `scale` in its
+    /// intensity.
+    ///
+    /// # Errors
+    /// The encoder's, as text.
+    pub fn srgb_png(&self, scale: f32) -> Result<Vec<u8>, String> {
+        let mut image = image::RgbImage::new(self.width, self.height);
+        for (pixel, value) in image.pixels_mut().zip(&self.radiance) {
+            pixel.0 = value.map(|v| super::preview::srgb((v / scale).clamp(0.0, 1.0)));
+        }
+        super::preview::encode_png(&image).map_err(|e| e.to_string())
+    }
+
     /// The radiance scaled by `scale` as an 8-bit RGBA PNG in linear RGBM: `a` the multiplier
     /// (rounded up, so that `rgb` stays within 1), `rgb` the colour over `a × RGBM_RANGE`;
     /// radiance past [`RGBM_RANGE`] (scaled) is clamped to it. For engines without float

@@ -18,7 +18,7 @@ pub mod tonemap;
 use std::str::FromStr;
 
 pub use geometry::{NodeMesh, frame_geometry, light_vertices};
-pub use glb::{frame_glb, lightmap_glb};
+pub use glb::{Embedded, frame_glb, lightmap_glb};
 pub use preview::Camera;
 pub use tonemap::ToneMap;
 use tonemap::luminance;

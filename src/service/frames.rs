@@ -259,7 +259,7 @@ pub(super) async fn timeline_lightmap_geometry(
         density,
         "the lightmap's glTF",
         move |bake, lightmap| {
-            crate::output::lightmap_glb(bake.shown(), &materials, lightmap)
+            crate::output::lightmap_glb(bake.shown(), &materials, lightmap, None)
                 .map_err(|e| e.to_string())
         },
     )
