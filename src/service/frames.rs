@@ -162,6 +162,7 @@ pub(super) async fn frame_probes(
     let job = job(&state, &id)?;
     let spacing = query.validate()?;
     let times = job.frame_times.clone();
+    let owner = job.clone();
     frame_file(
         (&state, job),
         &frame,
@@ -169,8 +170,7 @@ pub(super) async fn frame_probes(
         "application/json",
         "the light probes",
         move |bake, f, (solution, lighting), _| {
-            let grid = crate::output::probes::ProbeGrid::new(bake, spacing)
-                .map_err(ApiError::Parameter)?;
+            let grid = (owner.probe_grid(bake, spacing)).map_err(ApiError::Parameter)?;
             let probes = grid.probes(bake, f, (solution, lighting));
             let frames = json!([{ "frame": f, "time": times.get(f) }]);
             let mut document = grid.document(bake, frames);

@@ -17,6 +17,7 @@ use crate::bake::Bake;
 use crate::control::{Control, Stop};
 use crate::direct::area::Poses;
 use crate::output::lightmap::Lightmap;
+use crate::output::probes::ProbeGrid;
 use crate::params::BakeSettings;
 use crate::scene::{Material, Scene};
 use crate::solve::{FrameSolution, NotConverged, SolveParams};
@@ -194,6 +195,9 @@ pub struct Job {
     /// The lightmap last asked for ([`Job::lightmap`]), with its density's bits and the lines
     /// its traced state had; its lock makes lightmaps one at a time.
     lightmap: Mutex<Option<(u64, u64, Arc<Lightmap>)>>,
+    /// The last light probe grid made (its spacing asked for, as bits; `None` the default),
+    /// for the probes' route: the grid depends on the scene alone.
+    probe_grid: Mutex<Option<(Option<u64>, Arc<ProbeGrid>)>>,
     /// Whether the traced state in memory is the one in the data directory's `traced.bin`.
     traced_saved: AtomicBool,
     /// The timeline's exposure and the result version it is of, once every frame of that
@@ -292,6 +296,7 @@ impl Job {
             restarts: 0,
             rebuilt: Mutex::new(None),
             lightmap: Mutex::new(None),
+            probe_grid: Mutex::new(None),
             traced_saved: AtomicBool::new(false),
             exposure: Mutex::new(None),
             used: Mutex::new(Instant::now()),
@@ -420,6 +425,7 @@ impl Job {
             restarts: record.restarts,
             rebuilt: Mutex::new(None),
             lightmap: Mutex::new(None),
+            probe_grid: Mutex::new(None),
             traced_saved: AtomicBool::new(false),
             exposure: Mutex::new(None),
             used: Mutex::new(Instant::now()),
@@ -732,6 +738,27 @@ impl Job {
         let lightmap = Arc::new(Lightmap::within(bake, texels_per_unit, most)?);
         *kept = Some((key.0, key.1, lightmap.clone()));
         Ok(lightmap)
+    }
+
+    /// The light probe grid at `spacing` (`None`: the scene's default): the one made last if
+    /// it is of the same spacing, else made now and kept in its place.
+    ///
+    /// # Errors
+    /// [`ProbeGrid::new`]'s message.
+    pub fn probe_grid(&self, bake: &Bake, spacing: Option<f64>) -> Result<Arc<ProbeGrid>, String> {
+        let key = spacing.map(f64::to_bits);
+        let mut kept = self
+            .probe_grid
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
+        if let Some((k, grid)) = kept.as_ref()
+            && *k == key
+        {
+            return Ok(grid.clone());
+        }
+        let grid = Arc::new(ProbeGrid::new(bake, spacing)?);
+        *kept = Some((key, grid.clone()));
+        Ok(grid)
     }
 
     /// Marks the traced state used now.
