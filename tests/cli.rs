@@ -1,5 +1,8 @@
 //! The command line, end to end: `radiosity bake` on the sample scenes.
 
+#[allow(dead_code)] // the helpers serve several test binaries; this one uses a part
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -970,17 +973,6 @@ fn bake_probes_writes_a_grid_and_one_file_per_lighting_state() {
     let _ = std::fs::remove_dir_all(&out);
 }
 
-/// An IEEE half float's value (normal and subnormal numbers).
-fn half_float(bits: u16) -> f32 {
-    let sign = if bits & 0x8000 != 0 { -1.0 } else { 1.0 };
-    let exponent = i32::from((bits >> 10) & 0x1f);
-    let mantissa = f32::from(bits & 0x3ff);
-    sign * match exponent {
-        0 => mantissa * 2f32.powi(-24),
-        e => (1.0 + mantissa / 1024.0) * 2f32.powi(e - 15),
-    }
-}
-
 /// `bake --lightmaps --lightmap-quantity light`: one lightmap per lighting state, the manifest
 /// mapping every frame to its state's files, and the geometry embedding the first state's
 /// light for `MOZ_lightmap`, the same light as the state's KTX2 within the PNG's 8 bits.
@@ -1076,7 +1068,7 @@ fn bake_lightmaps_writes_each_state_once_and_embeds_the_first_state_s_light() {
     for (k, pixel) in png.pixels().enumerate() {
         for c in 0..3 {
             let at = 8 * k + 2 * c;
-            let light = half_float(u16::from_le_bytes([raw[at], raw[at + 1]]));
+            let light = common::half_float(u16::from_le_bytes([raw[at], raw[at + 1]]));
             let want = srgb(light / scale);
             // The half float's rounding, then the byte's.
             assert!(

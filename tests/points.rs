@@ -6,7 +6,7 @@
 #[allow(dead_code)] // the helpers serve several test binaries; this one uses a part
 mod common;
 
-use common::Doc;
+use common::{Doc, half_float};
 use glam::DVec3;
 use radiosity::bake::Bake;
 use radiosity::direct::points::Lighting;
@@ -651,18 +651,6 @@ fn lightmap_texels_read_the_lamp_s_closed_form_at_their_points_with_a_texel_shar
             let step = l[c].abs() / 1024.0 + 1e-7;
             assert!((half - l[c]).abs() <= step, "texel {k}: {half} for {l:?}");
         }
-    }
-}
-
-/// An IEEE half float's value.
-fn half_float(bits: u16) -> f32 {
-    let sign = if bits & 0x8000 != 0 { -1.0 } else { 1.0 };
-    let exponent = i32::from((bits >> 10) & 0x1f);
-    let mantissa = f32::from(bits & 0x3ff);
-    sign * match exponent {
-        0 => mantissa * 2f32.powi(-24),
-        31 => f32::INFINITY,
-        e => (1.0 + mantissa / 1024.0) * 2f32.powi(e - 15),
     }
 }
 

@@ -96,6 +96,21 @@ struct Seen {
     errors: Vec<String>,
 }
 
+impl Seen {
+    /// Asserts that every request went to the service at `base` and that the page logged or
+    /// threw no error.
+    fn all_from(&self, base: &str) {
+        let outside: Vec<&String> = (self.requests.iter())
+            .filter(|u| !u.starts_with(base))
+            .collect();
+        assert!(
+            outside.is_empty(),
+            "requests outside the service: {outside:?}"
+        );
+        assert!(self.errors.is_empty(), "{:?}", self.errors);
+    }
+}
+
 /// Headless Chromium with WebGL2 on SwiftShader, and a tab that records what it does (the
 /// DevTools protocol's Fetch domain pauses each request).
 fn browser() -> (Browser, Arc<Tab>, Arc<Mutex<Seen>>) {
@@ -431,14 +446,7 @@ fn the_viewer_draws_the_baked_light_follows_the_slider_and_overlays_the_error() 
     // Everything came from the service, and nothing went wrong on the page.
     let seen = seen.lock().unwrap();
     assert!(seen.requests.len() >= 4, "{:?}", seen.requests);
-    let outside: Vec<&String> = (seen.requests.iter())
-        .filter(|u| !u.starts_with(&service.base))
-        .collect();
-    assert!(
-        outside.is_empty(),
-        "requests outside the service: {outside:?}"
-    );
-    assert!(seen.errors.is_empty(), "{:?}", seen.errors);
+    seen.all_from(&service.base);
 }
 
 #[test]
@@ -723,14 +731,7 @@ fn the_three_js_example_shows_the_baked_light_and_follows_the_lighting_states() 
         "{state} not requested: {:?}",
         seen.requests
     );
-    let outside: Vec<&String> = (seen.requests.iter())
-        .filter(|u| !u.starts_with(&service.base))
-        .collect();
-    assert!(
-        outside.is_empty(),
-        "requests outside the service: {outside:?}"
-    );
-    assert!(seen.errors.is_empty(), "{:?}", seen.errors);
+    seen.all_from(&service.base);
 }
 
 /// The three.js example on the level (a sliding door, fixtures, lamps): drawn, as bright as
@@ -782,12 +783,5 @@ fn the_three_js_example_draws_the_level_as_bright_as_the_per_vertex_viewer() {
         "per vertex {per_vertex}, lightmapped {lightmapped}"
     );
     let seen = seen.lock().unwrap();
-    let outside: Vec<&String> = (seen.requests.iter())
-        .filter(|u| !u.starts_with(&service.base))
-        .collect();
-    assert!(
-        outside.is_empty(),
-        "requests outside the service: {outside:?}"
-    );
-    assert!(seen.errors.is_empty(), "{:?}", seen.errors);
+    seen.all_from(&service.base);
 }

@@ -315,3 +315,15 @@ pub fn sample_at(file_name: &str, fps: f64) -> radiosity::scene::Scene {
     };
     radiosity::loader::load(sample.gltf.as_bytes(), &options).unwrap()
 }
+
+/// An IEEE half float's value.
+pub fn half_float(bits: u16) -> f32 {
+    let sign = if bits & 0x8000 != 0 { -1.0 } else { 1.0 };
+    let exponent = i32::from((bits >> 10) & 0x1f);
+    let mantissa = f32::from(bits & 0x3ff);
+    sign * match exponent {
+        0 => mantissa * 2f32.powi(-24),
+        31 => f32::INFINITY,
+        e => (1.0 + mantissa / 1024.0) * 2f32.powi(e - 15),
+    }
+}
