@@ -393,10 +393,8 @@ pub fn lightmap_glb(
         "materials": order.iter().map(|&m| lit_material(scene, materials, m)).collect::<Vec<_>>(),
     });
     let mut extensions = Vec::new();
-    if order
-        .iter()
-        .any(|&m| materials[m as usize].emission.iter().any(|&e| e > 1.0))
-    {
+    let strong = |&m: &u32| (material_of(scene, materials, m).emission.iter()).any(|&e| e > 1.0);
+    if order.iter().any(strong) {
         extensions.push("KHR_materials_emissive_strength");
     }
     if let Some(embedded) = embedded {
@@ -467,11 +465,19 @@ impl Embedded {
     }
 }
 
+/// Material `m` (a patch's) of `materials` (the scene's as relit), or of the scene if they
+/// lack it.
+fn material_of<'a>(scene: &'a Scene, materials: &'a [Material], m: u32) -> &'a Material {
+    materials
+        .get(m as usize)
+        .unwrap_or(&scene.materials[m as usize])
+}
+
 /// Material `m` of `materials` (the scene's, as relit) as glTF: its reflectance the base
 /// colour, diffuse (no metal, fully rough), its emission the emissive colour (with
 /// `KHR_materials_emissive_strength` past 1).
 fn lit_material(scene: &Scene, materials: &[Material], m: u32) -> Value {
-    let material = &materials[m as usize];
+    let material = material_of(scene, materials, m);
     let [r, g, b] = material.reflectance;
     let strongest = material.emission.iter().copied().fold(0.0, f64::max);
     let mut out = json!({
@@ -483,12 +489,6 @@ fn lit_material(scene: &Scene, materials: &[Material], m: u32) -> Value {
         "extras": { "source_material": m },
     });
     if let Some(name) = &material.name {
-        out["name"] = name.as_str().into();
-    } else if let Some(name) = scene
-        .materials
-        .get(m as usize)
-        .and_then(|m| m.name.as_ref())
-    {
         out["name"] = name.as_str().into();
     }
     if strongest > 0.0 {
