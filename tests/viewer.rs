@@ -308,12 +308,7 @@ fn the_viewer_draws_the_baked_light_follows_the_slider_and_overlays_the_error() 
     let far = [-0.45, 1.0, -0.45];
     let under_light = mean_luma(&lit, project(&tab, near), 6);
     let corner = mean_luma(&lit, project(&tab, far), 6);
-    let (x0, y0, x1, y1) = canvas;
-    let whole = mean_luma(
-        &lit,
-        (i64::from(x0 + x1) / 2, i64::from(y0 + y1) / 2),
-        i64::from((y1 - y0) / 2 - 1),
-    );
+    let whole = canvas_luma(&tab, &lit);
     assert!(whole > 20.0, "the room is dark: mean luma {whole}");
     assert!(
         under_light > corner + 20.0,
@@ -558,9 +553,7 @@ fn a_glb_file_picked_on_the_home_page_is_baked_and_a_bad_one_is_refused_by_name(
     wait_for(&tab, "location.pathname.endsWith('/viewer')");
     wait_for(&tab, "document.body.dataset.frame === '0'");
     let image = screenshot(&tab);
-    let (x0, y0, x1, y1) = canvas_box(&tab);
-    let centre = (i64::from(x0 + x1) / 2, i64::from(y0 + y1) / 2);
-    let whole = mean_luma(&image, centre, i64::from((y1 - y0) / 2 - 1));
+    let whole = canvas_luma(&tab, &image);
     assert!(whole > 10.0, "the room is dark: mean luma {whole}");
     std::fs::remove_dir_all(&dir).unwrap();
     // The browser logs the refused POST; nothing else went wrong.
@@ -637,6 +630,24 @@ fn a_closed_double_sided_room_is_seen_into_from_the_automatic_camera() {
     assert!(seen.errors.is_empty(), "{:?}", seen.errors);
 }
 
+/// Timeline `id`'s per-vertex viewer at `view` (its query, of frame 0) once drawn.
+fn per_vertex_view(tab: &Tab, base: &str, id: &str, view: &str) -> RgbImage {
+    tab.navigate_to(&format!("{base}/v1/timelines/{id}/viewer?{view}"))
+        .unwrap();
+    wait_for(
+        tab,
+        "document.body.dataset.frame === '0' && document.body.dataset.mode === 'light'",
+    );
+    screenshot(tab)
+}
+
+/// The mean luma of `image` over the page's canvas (the disc inside it).
+fn canvas_luma(tab: &Tab, image: &RgbImage) -> f64 {
+    let (x0, y0, x1, y1) = canvas_box(tab);
+    let centre = (i64::from(x0 + x1) / 2, i64::from(y0 + y1) / 2);
+    mean_luma(image, centre, i64::from((y1 - y0) / 2 - 1))
+}
+
 /// The three.js example: the lightmapped geometry with each lighting state's lightmap (EXR)
 /// shows the light where the per-vertex viewer shows it, the moving block's shadow follows the
 /// states, the block itself is lit from the probes, and everything comes from the service.
@@ -646,13 +657,7 @@ fn the_three_js_example_shows_the_baked_light_and_follows_the_lighting_states() 
     let id = service.bake("lines=20000&fps=4&seed=3", "cornell_moving.gltf");
     let (_browser, tab, seen) = browser();
     let view = "frame=0&orbit=35,40,1";
-    tab.navigate_to(&format!("{}/v1/timelines/{id}/viewer?{view}", service.base))
-        .unwrap();
-    wait_for(
-        &tab,
-        "document.body.dataset.frame === '0' && document.body.dataset.mode === 'light'",
-    );
-    let vertices = screenshot(&tab);
+    let vertices = per_vertex_view(&tab, &service.base, &id, view);
     // Seen from above the front right: the floor, the red wall and the back wall, away from
     // edges and shadows (where the texels and the vertices' interpolation differ), and the
     // moving block's top.
@@ -742,17 +747,8 @@ fn the_three_js_example_draws_the_level_as_bright_as_the_per_vertex_viewer() {
     let id = service.bake("lines=20000&fps=2&seed=3", "level.gltf");
     let (_browser, tab, seen) = browser();
     let view = "frame=0&orbit=30,45,0.8";
-    tab.navigate_to(&format!("{}/v1/timelines/{id}/viewer?{view}", service.base))
-        .unwrap();
-    wait_for(
-        &tab,
-        "document.body.dataset.frame === '0' && document.body.dataset.mode === 'light'",
-    );
-    let vertices = screenshot(&tab);
-    let (x0, y0, x1, y1) = canvas_box(&tab);
-    let centre = ((x0 + x1) / 2, (y0 + y1) / 2);
-    let half = i64::from((y1 - y0) / 2 - 1);
-    let per_vertex = mean_luma(&vertices, (i64::from(centre.0), i64::from(centre.1)), half);
+    let vertices = per_vertex_view(&tab, &service.base, &id, view);
+    let per_vertex = canvas_luma(&tab, &vertices);
 
     tab.navigate_to(&format!(
         "{}/v1/timelines/{id}/lightmapped?{view}",
@@ -765,17 +761,7 @@ fn the_three_js_example_draws_the_level_as_bright_as_the_per_vertex_viewer() {
         lit.save(format!("{}-level.png", path.to_string_lossy()))
             .unwrap();
     }
-    let canvas = evaluate(
-        &tab,
-        "(() => { const r = document.getElementById('canvas').getBoundingClientRect(); \
-         return [r.left, r.top, r.right, r.bottom].map(Math.round); })()",
-    );
-    let c: Vec<i64> = (0..4).map(|i| canvas[i].as_i64().unwrap()).collect();
-    let lightmapped = mean_luma(
-        &lit,
-        ((c[0] + c[2]) / 2, (c[1] + c[3]) / 2),
-        (c[3] - c[1]) / 2 - 1,
-    );
+    let lightmapped = canvas_luma(&tab, &lit);
     eprintln!("level: per vertex {per_vertex}, lightmapped {lightmapped}");
     assert!(lightmapped > 20.0, "the level is dark: {lightmapped}");
     assert!(

@@ -305,8 +305,8 @@ pub fn lightmap_glb(
     let mut nodes = Vec::new();
     let mut gltf_meshes = Vec::new();
     let mut moving = Vec::new();
-    // The scene's materials used, in the order of first use, and each one's glTF index.
-    let mut glb_materials: std::collections::HashMap<u32, usize> = Default::default();
+    // The scene's materials used, in the order of first use: a glTF material's index is its
+    // place here.
     let mut order: Vec<u32> = Vec::new();
     for (uv, mesh) in lightmap.meshes.iter().zip(lightmap.rest()) {
         if uv.triangles.is_empty() {
@@ -338,10 +338,10 @@ pub fn lightmap_glb(
         }
         let primitives: Vec<Value> = (by_material.iter())
             .map(|(&material, (triangles, patches))| {
-                let used = *glb_materials.entry(material).or_insert(order.len());
-                if used == order.len() {
+                let used = (order.iter().position(|&m| m == material)).unwrap_or_else(|| {
                     order.push(material);
-                }
+                    order.len() - 1
+                });
                 json!({
                     "attributes": attributes,
                     "indices": buffers.indices(triangles),
@@ -446,16 +446,13 @@ pub struct Embedded {
 }
 
 impl Embedded {
-    /// Lighting state `state`'s light from its `texels` (of any quantity: their light is
-    /// read), scaled to its brightest texel.
+    /// Lighting state `state`'s light from its `texels` as [`super::lightmap::Lightmap::texels`]
+    /// makes them (holding the radiance), scaled to its brightest texel.
     ///
     /// # Errors
     /// The PNG encoder's, as text.
     pub fn light(texels: &super::lightmap::Texels, state: usize) -> Result<Self, String> {
-        let light = super::lightmap::Texels {
-            radiance: texels.light.clone(),
-            ..texels.clone()
-        };
+        let light = texels.clone().holding(super::lightmap::Quantity::Light);
         let scale = light.peak().max(f32::MIN_POSITIVE);
         Ok(Self {
             png: light.srgb_png(scale)?,

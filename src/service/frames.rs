@@ -251,24 +251,15 @@ pub(super) async fn timeline_lightmap_geometry(
     StrictQuery(query): StrictQuery<LightmapQuery>,
 ) -> Result<Response, ApiError> {
     let (density, _) = query.validate()?;
+    let job = job(&state, &id)?;
     // The materials as relit: the light lightmap leaves out the surface's own albedo.
-    let (materials, _) = job(&state, &id)?.lighting();
-    let bytes = with_lightmap(
-        &state,
-        &id,
-        density,
-        "the lightmap's glTF",
-        move |bake, lightmap| {
-            crate::output::lightmap_glb(bake.shown(), &materials, lightmap, None)
-                .map_err(|e| e.to_string())
-        },
-    )
-    .await?;
-    Ok((
-        [(header::CONTENT_TYPE, "model/gltf-binary")],
-        Body::from(bytes),
-    )
-        .into_response())
+    let (materials, _) = job.lighting();
+    let what = ("the lightmap's glTF", "model/gltf-binary");
+    with_lightmap(&state, job, density, what, move |bake, lightmap| {
+        crate::output::lightmap_glb(bake.shown(), &materials, lightmap, None)
+            .map_err(|e| e.to_string())
+    })
+    .await
 }
 
 /// `GET /v1/timelines/{id}/lightmap.json?texels_per_unit=&quantity=`: the lightmaps'
@@ -282,11 +273,12 @@ pub(super) async fn timeline_lightmap_manifest(
 ) -> Result<Response, ApiError> {
     let (density, quantity) = query.validate()?;
     let base = format!("/v1/timelines/{id}");
-    let bytes = with_lightmap(
+    let what = ("the lightmaps' manifest", "application/json");
+    with_lightmap(
         &state,
-        &id,
+        job(&state, &id)?,
         density,
-        "the lightmaps' manifest",
+        what,
         move |bake, lightmap| {
             let geometry = format!("{base}/lightmap.glb?texels_per_unit={density}");
             let query = match quantity {
@@ -301,24 +293,18 @@ pub(super) async fn timeline_lightmap_manifest(
             serde_json::to_vec(&manifest).map_err(|e| e.to_string())
         },
     )
-    .await?;
-    Ok((
-        [(header::CONTENT_TYPE, "application/json")],
-        Body::from(bytes),
-    )
-        .into_response())
+    .await
 }
 
-/// `make`'s file from timeline `id`'s lightmap at `density` (its atlas made if the timeline
-/// does not keep it), off the async runtime; `what` names the file in errors.
+/// `make`'s file from `job`'s lightmap at `density` (its atlas made if the timeline does not
+/// keep it), off the async runtime, served as `content_type`; `what` names the file in errors.
 async fn with_lightmap(
     state: &AppState,
-    id: &str,
+    job: Arc<Job>,
     density: f64,
-    what: &'static str,
+    (what, content_type): (&'static str, &'static str),
     make: impl FnOnce(&Bake, &Lightmap) -> Result<Vec<u8>, String> + Send + 'static,
-) -> Result<Vec<u8>, ApiError> {
-    let job = job(state, id)?;
+) -> Result<Response, ApiError> {
     let _budget = Enforce(state);
     let made = tokio::task::spawn_blocking(move || {
         job.with_bake(|bake| {
@@ -329,13 +315,14 @@ async fn with_lightmap(
     })
     .await
     .map_err(|e| ApiError::Internal(format!("making {what}: {e}")))?;
-    made.ok_or_else(|| {
+    let bytes = made.ok_or_else(|| {
         ApiError::NotReady(
             "the timeline's geometry is not available: it is being traced (try again once \
              frames are being solved)"
                 .into(),
         )
-    })?
+    })??;
+    Ok(([(header::CONTENT_TYPE, content_type)], Body::from(bytes)).into_response())
 }
 
 /// Keeps the traced state within the resident budget when dropped (at the end of a route

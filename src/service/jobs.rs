@@ -194,10 +194,10 @@ pub struct Job {
     rebuilt: Mutex<Option<(f64, Rebuilt)>>,
     /// The lightmap last asked for ([`Job::lightmap`]), with its density's bits and the lines
     /// its traced state had; its lock makes lightmaps one at a time.
-    lightmap: Mutex<Option<(u64, u64, Arc<Lightmap>)>>,
+    lightmap: LastMade<(u64, u64), Lightmap>,
     /// The last light probe grid made (its spacing asked for, as bits; `None` the default),
     /// for the probes' route: the grid depends on the scene alone.
-    probe_grid: Mutex<Option<(Option<u64>, Arc<ProbeGrid>)>>,
+    probe_grid: LastMade<Option<u64>, ProbeGrid>,
     /// Whether the traced state in memory is the one in the data directory's `traced.bin`.
     traced_saved: AtomicBool,
     /// The timeline's exposure and the result version it is of, once every frame of that
@@ -729,15 +729,9 @@ impl Job {
             texels_per_unit.to_bits(),
             self.lines_total.load(Ordering::Acquire),
         );
-        let mut kept = self.lightmap.lock().unwrap_or_else(PoisonError::into_inner);
-        if let Some((density, lines, lightmap)) = kept.as_ref()
-            && (*density, *lines) == key
-        {
-            return Ok(lightmap.clone());
-        }
-        let lightmap = Arc::new(Lightmap::within(bake, texels_per_unit, most)?);
-        *kept = Some((key.0, key.1, lightmap.clone()));
-        Ok(lightmap)
+        last_made(&self.lightmap, key, || {
+            Lightmap::within(bake, texels_per_unit, most)
+        })
     }
 
     /// The light probe grid at `spacing` (`None`: the scene's default): the one made last if
@@ -747,18 +741,7 @@ impl Job {
     /// [`ProbeGrid::new`]'s message.
     pub fn probe_grid(&self, bake: &Bake, spacing: Option<f64>) -> Result<Arc<ProbeGrid>, String> {
         let key = spacing.map(f64::to_bits);
-        let mut kept = self
-            .probe_grid
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner);
-        if let Some((k, grid)) = kept.as_ref()
-            && *k == key
-        {
-            return Ok(grid.clone());
-        }
-        let grid = Arc::new(ProbeGrid::new(bake, spacing)?);
-        *kept = Some((key, grid.clone()));
-        Ok(grid)
+        last_made(&self.probe_grid, key, || ProbeGrid::new(bake, spacing))
     }
 
     /// Marks the traced state used now.
@@ -1542,6 +1525,27 @@ impl Job {
         }
         doc
     }
+}
+
+/// The last value made, with the key it was made for.
+type LastMade<K, V> = Mutex<Option<(K, Arc<V>)>>;
+
+/// The value `kept` holds if it was made for `key`, else one `make` makes now, kept in its
+/// place (a second caller waits for it rather than make it again).
+fn last_made<K: PartialEq, V>(
+    kept: &LastMade<K, V>,
+    key: K,
+    make: impl FnOnce() -> Result<V, String>,
+) -> Result<Arc<V>, String> {
+    let mut kept = kept.lock().unwrap_or_else(PoisonError::into_inner);
+    if let Some((k, value)) = kept.as_ref()
+        && *k == key
+    {
+        return Ok(value.clone());
+    }
+    let value = Arc::new(make()?);
+    *kept = Some((key, value.clone()));
+    Ok(value)
 }
 
 #[cfg(test)]

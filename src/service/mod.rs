@@ -215,8 +215,7 @@ pub fn app(state: AppState) -> Router {
     let limit = state.0.config.max_body_bytes;
     Router::new()
         .route("/", get(viewer::home))
-        .route("/viewer/{file}", get(viewer::asset))
-        .route("/viewer/three/{*path}", get(viewer::three))
+        .route("/viewer/{*file}", get(viewer::asset))
         .route("/healthz", get(healthz))
         .route("/v1/samples", get(viewer::list_samples))
         .route("/v1/samples/{name}", get(viewer::sample))

@@ -26,78 +26,86 @@ const PAGE: &str = include_str!("viewer/index.html");
 /// The three.js example's page (`GET /v1/timelines/{id}/lightmapped`).
 const LIGHTMAPPED: &str = include_str!("viewer/lightmapped.html");
 
-/// The pages' assets, by name: content and media type.
-const ASSETS: [(&str, &str, &str); 4] = [
-    (
-        "viewer.js",
-        include_str!("viewer/viewer.js"),
-        "text/javascript; charset=utf-8",
-    ),
+/// JavaScript's media type.
+const JS: &str = "text/javascript; charset=utf-8";
+
+/// The pages' assets, by path under `/viewer/`: content and media type. Under `three/`,
+/// three.js (the npm package `three`, at the version `.ci/run` checks these against: its build
+/// and the example loaders the three.js page imports).
+const ASSETS: [(&str, &str, &str); 12] = [
+    ("viewer.js", include_str!("viewer/viewer.js"), JS),
     (
         "viewer.css",
         include_str!("viewer/viewer.css"),
         "text/css; charset=utf-8",
     ),
-    (
-        "lightmapped.js",
-        include_str!("viewer/lightmapped.js"),
-        "text/javascript; charset=utf-8",
-    ),
+    ("lightmapped.js", include_str!("viewer/lightmapped.js"), JS),
     (
         "lightmapped.css",
         include_str!("viewer/lightmapped.css"),
         "text/css; charset=utf-8",
     ),
-];
-
-/// three.js (the npm package `three`, at the version `.ci/run` checks these against: its
-/// build and the example loaders the page imports), by path under `/viewer/three/`.
-const THREE: [(&str, &str); 8] = [
     (
-        "three.module.min.js",
+        "three/three.module.min.js",
         include_str!("viewer/three/three.module.min.js"),
+        JS,
     ),
     (
-        "three.core.min.js",
+        "three/three.core.min.js",
         include_str!("viewer/three/three.core.min.js"),
+        JS,
     ),
     (
-        "addons/loaders/GLTFLoader.js",
+        "three/addons/loaders/GLTFLoader.js",
         include_str!("viewer/three/addons/loaders/GLTFLoader.js"),
+        JS,
     ),
     (
-        "addons/loaders/EXRLoader.js",
+        "three/addons/loaders/EXRLoader.js",
         include_str!("viewer/three/addons/loaders/EXRLoader.js"),
+        JS,
     ),
     (
-        "addons/libs/fflate.module.js",
+        "three/addons/libs/fflate.module.js",
         include_str!("viewer/three/addons/libs/fflate.module.js"),
+        JS,
     ),
     (
-        "addons/utils/BufferGeometryUtils.js",
+        "three/addons/utils/BufferGeometryUtils.js",
         include_str!("viewer/three/addons/utils/BufferGeometryUtils.js"),
+        JS,
     ),
     (
-        "addons/controls/OrbitControls.js",
+        "three/addons/controls/OrbitControls.js",
         include_str!("viewer/three/addons/controls/OrbitControls.js"),
+        JS,
     ),
-    ("LICENSE", include_str!("viewer/three/LICENSE")),
+    (
+        "three/LICENSE",
+        include_str!("viewer/three/LICENSE"),
+        "text/plain; charset=utf-8",
+    ),
 ];
 
-/// The page, which loads nothing from elsewhere (its content security policy says so too).
-fn page() -> Response {
+/// A page of ours under the content security policy `policy`.
+fn html(content: &'static str, policy: &str) -> Response {
     (
         [
             (header::CONTENT_TYPE, "text/html; charset=utf-8"),
-            (
-                header::CONTENT_SECURITY_POLICY,
-                "default-src 'self'; img-src 'self' data: blob:; connect-src 'self'",
-            ),
+            (header::CONTENT_SECURITY_POLICY, policy),
             (header::CACHE_CONTROL, "no-cache"),
         ],
-        PAGE,
+        content,
     )
         .into_response()
+}
+
+/// The page, which loads nothing from elsewhere (its content security policy says so too).
+fn page() -> Response {
+    html(
+        PAGE,
+        "default-src 'self'; img-src 'self' data: blob:; connect-src 'self'",
+    )
 }
 
 /// The three.js example's page. Its content security policy admits its import map (by its
@@ -116,15 +124,7 @@ fn lightmapped_page() -> Response {
              connect-src 'self'"
         )
     });
-    (
-        [
-            (header::CONTENT_TYPE, "text/html; charset=utf-8"),
-            (header::CONTENT_SECURITY_POLICY, policy.as_str()),
-            (header::CACHE_CONTROL, "no-cache"),
-        ],
-        LIGHTMAPPED,
-    )
-        .into_response()
+    html(LIGHTMAPPED, policy)
 }
 
 /// `GET /v1/timelines/{id}/lightmapped`: the three.js example (`?frame=&orbit=&exposure=` for
@@ -139,30 +139,6 @@ pub(super) async fn timeline_lightmapped(
     query.validate()?;
     job(&state, &id)?;
     Ok(lightmapped_page())
-}
-
-/// `GET /viewer/three/{path}`: the three.js files the example imports.
-pub(super) async fn three(
-    Path(path): Path<String>,
-    _: StrictQuery<NoParameters>,
-) -> Result<Response, ApiError> {
-    let (_, content) = THREE
-        .iter()
-        .find(|(name, _)| *name == path)
-        .ok_or_else(|| ApiError::NotFound(format!("no three.js file {path:?}")))?;
-    let media = if path.ends_with(".js") {
-        "text/javascript; charset=utf-8"
-    } else {
-        "text/plain; charset=utf-8"
-    };
-    Ok((
-        [
-            (header::CONTENT_TYPE, media),
-            (header::CACHE_CONTROL, "max-age=86400"),
-        ],
-        *content,
-    )
-        .into_response())
 }
 
 /// `GET /`: the home page.
@@ -182,7 +158,8 @@ pub(super) async fn timeline_viewer(
     Ok(page())
 }
 
-/// `GET /viewer/{file}`: the page's script and style sheet.
+/// `GET /viewer/{file}`: the pages' scripts and style sheets, and three.js (`three/...`,
+/// which changes only with the binary: cached for a day).
 pub(super) async fn asset(
     Path(file): Path<String>,
     _: StrictQuery<NoParameters>,
@@ -191,10 +168,15 @@ pub(super) async fn asset(
         .iter()
         .find(|(name, _, _)| *name == file)
         .ok_or_else(|| ApiError::NotFound(format!("no asset {file:?}")))?;
+    let cache = if file.starts_with("three/") {
+        "max-age=86400"
+    } else {
+        "no-cache"
+    };
     Ok((
         [
             (header::CONTENT_TYPE, *media),
-            (header::CACHE_CONTROL, "no-cache"),
+            (header::CACHE_CONTROL, cache),
         ],
         *content,
     )
